@@ -1,0 +1,165 @@
+"""The study config: one frozen dataclass per stage, composed, with named presets.
+
+A run writes its resolved config as ``config.json`` at the top of its folder;
+``load_config`` reads it back, so every stage (and a resumed run) sees exactly
+the settings the run started with.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import typing
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from eval.config import EvalConfig
+from learn.config import TrainConfig
+from render.config import RenderConfig
+from sim.config import SimConfig
+
+
+class ConfigError(ValueError):
+    """A config, preset or override the user gave is wrong; the message says how."""
+
+
+@dataclass(frozen=True)
+class StudyConfig:
+    name: str = "study"
+    seed: int = 0
+    sim: SimConfig = field(default_factory=SimConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+
+
+def _smoke() -> StudyConfig:
+    # Four classes at the corners of the (p, k) grid, four sequences each: a real
+    # study that finishes in a few minutes on 2 CPU cores.
+    return StudyConfig(
+        name="smoke",
+        sim=SimConfig(classes=(0, 8, 45, 53), sequences_per_class=4, grid_vertices=16, frames=20, device="cpu"),
+        render=RenderConfig(variants=("paper",), resolution=32, spp=2),
+        train=TrainConfig(models=("lrcn",), image_size=32, epochs=6, batch_size=8, width=16, fc6=64,
+                          hidden=32, val_fraction=0.0, test_fraction=0.25, lr=2e-3),
+        eval=EvalConfig(bootstrap=200),
+    )
+
+
+def _small() -> StudyConfig:
+    # All 54 classes, a few sequences each: a CPU afternoon or a GPU minute.
+    return StudyConfig(
+        name="small",
+        sim=SimConfig(motions=("wind", "arm"), sequences_per_class=6, frames=30),
+        render=RenderConfig(variants=("paper",), resolution=64, spp=4),
+        train=TrainConfig(models=("lrcn", "base1"), epochs=15),
+    )
+
+
+def _paper() -> StudyConfig:
+    # The paper's scale for one GPU: 2,592 sequences per setting (Section 7.1).
+    return StudyConfig(
+        name="paper",
+        sim=SimConfig(motions=("wind", "arm"), remeshing=("uniform1", "uniform2", "uniform3", "adaptive"),
+                      sequences_per_class=48, frames=40, device="cuda"),
+        render=RenderConfig(variants=("paper",), resolution=112, spp=16, backend="cuda_ad_rgb"),
+        train=TrainConfig(models=("lrcn", "base1", "base2", "base3"), image_size=112, epochs=30,
+                          batch_size=64, width=64, fc6=512, hidden=256, device="cuda"),
+    )
+
+
+PRESETS: dict[str, typing.Callable[[], StudyConfig]] = {"smoke": _smoke, "small": _small, "paper": _paper}
+
+
+def preset(name: str) -> StudyConfig:
+    try:
+        return PRESETS[name]()
+    except KeyError:
+        raise ConfigError(f"unknown preset {name!r}; known presets: {', '.join(PRESETS)}") from None
+
+
+# ---------------------------------------------------------------- (de)serialisation
+
+def to_dict(cfg: Any) -> dict:
+    return dataclasses.asdict(cfg)
+
+
+def _coerce(tp: Any, value: Any, where: str) -> Any:
+    origin = typing.get_origin(tp)
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise ConfigError(f"{where}: expected a table of settings, got {value!r}")
+        return from_dict(tp, value, where)
+    if origin is tuple:
+        if isinstance(value, str):
+            value = [v for v in value.split(",") if v]
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        (item_tp, _ellipsis) = typing.get_args(tp)
+        return tuple(_coerce(item_tp, v, where) for v in value)
+    if tp is bool:
+        if isinstance(value, str):
+            if value.lower() in ("1", "true", "yes", "on"):
+                return True
+            if value.lower() in ("0", "false", "no", "off"):
+                return False
+            raise ConfigError(f"{where}: expected true or false, got {value!r}")
+        return bool(value)
+    if tp in (int, float, str):
+        try:
+            return tp(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{where}: expected {tp.__name__}, got {value!r}") from None
+    return value
+
+
+def from_dict(cls: type, data: dict, where: str = "config") -> Any:
+    """Build a (nested) config dataclass from plain data, naming any unknown key."""
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(data) - names
+    if unknown:
+        raise ConfigError(f"{where}: unknown setting(s) {', '.join(sorted(unknown))}; "
+                          f"known: {', '.join(sorted(names))}")
+    kwargs = {k: _coerce(hints[k], v, f"{where}.{k}") for k, v in data.items()}
+    return cls(**kwargs)
+
+
+def apply_overrides(cfg: StudyConfig, overrides: list[str]) -> StudyConfig:
+    """Apply ``section.key=value`` overrides, e.g. ``sim.frames=30`` or ``render.variants=paper,grid``."""
+    data = to_dict(cfg)
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"override {item!r} is not of the form section.key=value")
+        path, value = item.split("=", 1)
+        keys = path.strip().split(".")
+        node = data
+        for key in keys[:-1]:
+            if not isinstance(node.get(key), dict):
+                raise ConfigError(f"override {item!r}: {key!r} is not a config section "
+                                  f"(sections: {', '.join(k for k, v in data.items() if isinstance(v, dict))})")
+            node = node[key]
+        if keys[-1] not in node:
+            raise ConfigError(f"override {item!r}: unknown setting {keys[-1]!r}; "
+                              f"known: {', '.join(sorted(node))}")
+        node[keys[-1]] = value
+    return from_dict(StudyConfig, data)
+
+
+def save_config(cfg: StudyConfig, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(to_dict(cfg), indent=2) + "\n")
+    tmp.replace(path)
+
+
+def load_config(path: Path) -> StudyConfig:
+    if not path.is_file():
+        raise ConfigError(f"no config at {path}: is this a clothgap run folder? "
+                          "(start one with `clothgap sim --preset NAME --out DIR`)")
+    return from_dict(StudyConfig, json.loads(path.read_text()))
+
+
+def with_name(cfg: StudyConfig, name: str) -> StudyConfig:
+    return replace(cfg, name=name)

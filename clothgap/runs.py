@@ -1,0 +1,136 @@
+"""Run folders: one folder per stage, one per clip, each finished by a marker.
+
+Layout of a run (``runs/<name>`` unless the user names another folder)::
+
+    config.json                                  resolved study config
+    sim/<setting>/<clip_id>/                     clip.npz, meta.json, DONE
+    render/<variant>/<setting>/<clip_id>/        hdr/*.exr, ldr/*.png, meta.json, DONE
+    splits/<setting>.json                        train/val/test clip ids (by sequence)
+    train/<setting>/<variant>/<model>/s<seed>/   checkpoint.pt, metrics.csv, tb/, DONE
+    eval/                                        predictions, tables (CSV, JSON)
+    report/report.html
+
+The ``DONE`` marker is written last, after everything else in the folder, so a
+folder without it is unfinished: a re-run deletes and redoes it, and a killed
+run loses nothing that was finished.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from clothgap.config import ConfigError, StudyConfig, load_config, save_config, to_dict
+
+DONE = "DONE"
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+def atomic_write_json(path: Path, data: Any) -> None:
+    atomic_write_text(path, json.dumps(data, indent=2, default=_json_default) + "\n")
+
+
+def _json_default(o: Any) -> Any:
+    import numpy as np
+
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def is_done(folder: Path) -> bool:
+    return (folder / DONE).is_file()
+
+
+def mark_done(folder: Path, info: dict | None = None) -> None:
+    """Write the marker last: the folder is complete once this file exists."""
+    atomic_write_json(folder / DONE, info or {})
+
+
+def fresh_dir(folder: Path) -> Path:
+    """An empty folder for a unit of work that is about to be (re)done."""
+    if folder.exists():
+        shutil.rmtree(folder)
+    folder.mkdir(parents=True)
+    return folder
+
+
+def clip_id(index: int) -> str:
+    return f"c{index:05d}"
+
+
+@dataclass(frozen=True)
+class Run:
+    root: Path
+    config: StudyConfig
+
+    # ---- opening and creating
+    @classmethod
+    def open(cls, root: Path | str) -> "Run":
+        """An existing run folder (one that a stage has already written)."""
+        root = Path(root)
+        if not root.is_dir():
+            raise ConfigError(f"run folder {root} does not exist")
+        return cls(root, load_config(root / "config.json"))
+
+    @classmethod
+    def create_or_resume(cls, root: Path | str, config: StudyConfig) -> "Run":
+        """Start a run in ``root``, or resume it when it holds the same config."""
+        root = Path(root)
+        path = root / "config.json"
+        if path.is_file():
+            existing = load_config(path)
+            if to_dict(existing) != to_dict(config):
+                raise ConfigError(
+                    f"{root} already holds a run with a different config; resume it without "
+                    "--preset/--set, or choose another --out folder")
+            return cls(root, existing)
+        root.mkdir(parents=True, exist_ok=True)
+        save_config(config, path)
+        return cls(root, config)
+
+    # ---- where things live
+    def sim_dir(self, setting: str) -> Path:
+        return self.root / "sim" / setting
+
+    def render_dir(self, variant: str, setting: str) -> Path:
+        return self.root / "render" / variant / setting
+
+    def split_path(self, setting: str) -> Path:
+        return self.root / "splits" / f"{setting}.json"
+
+    def train_dir(self, setting: str, variant: str, model: str, seed: int) -> Path:
+        return self.root / "train" / setting / variant / model / f"s{seed}"
+
+    @property
+    def eval_dir(self) -> Path:
+        return self.root / "eval"
+
+    @property
+    def report_dir(self) -> Path:
+        return self.root / "report"
+
+    def require(self, folder: Path, stage: str) -> Path:
+        """A stage's input folder, or a clear error naming the command that makes it."""
+        if not folder.is_dir() or not any(folder.iterdir()):
+            raise ConfigError(f"{folder} is missing or empty: run `clothgap {stage} {self.root}` first")
+        return folder
+
+    def done_clips(self, folder: Path) -> list[str]:
+        if not folder.is_dir():
+            return []
+        return sorted(p.name for p in folder.iterdir() if p.is_dir() and is_done(p))
