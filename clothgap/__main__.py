@@ -1,0 +1,3 @@
+from clothgap.cli import main
+
+main()

@@ -1,0 +1,282 @@
+"""The `clothgap` command: one subcommand per stage, plus `pipeline`.
+
+Each stage reads the previous stage's outputs from the run folder, so stages can
+be run, resumed and scaled one at a time:
+
+    clothgap sim --preset smoke --out runs/smoke     # starts the run, writes config.json
+    clothgap render runs/smoke
+    clothgap train runs/smoke
+    clothgap eval runs/smoke
+    clothgap report runs/smoke
+
+or all of it at once with `clothgap pipeline --preset smoke --out runs/smoke`.
+Heavy libraries (Warp, Mitsuba, torch) are imported inside the commands, so
+`--help` and bad-input errors are instant.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import click
+
+from clothgap.config import ConfigError, PRESETS, StudyConfig, apply_overrides, preset, with_name
+from clothgap.runs import Run, atomic_write_json
+
+
+class DefaultGroup(click.Group):
+    """A group that runs its `run` subcommand when no subcommand is named.
+
+    `clothgap sim runs/x` and `clothgap sim sensitivity --out d` both work.
+    """
+
+    default_command = "run"
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        if not args or (args[0] not in self.commands and args[0] not in ctx.help_option_names):
+            args = [self.default_command, *args]
+        return super().parse_args(ctx, args)
+
+
+# ------------------------------------------------------------------ shared options
+
+def _run_options(fn):
+    """RUN_DIR, or --preset/--out/--set to start (or resume) a run."""
+    fn = click.option("--set", "overrides", multiple=True, metavar="SECTION.KEY=VALUE",
+                      help="Override one setting, e.g. --set sim.frames=30 (repeatable).")(fn)
+    fn = click.option("--out", type=click.Path(path_type=Path),
+                      help="Run folder to create or resume (default: runs/<preset>).")(fn)
+    fn = click.option("--preset", "preset_name", type=str, metavar="NAME",
+                      help=f"Start a run from a named preset: {', '.join(PRESETS)}.")(fn)
+    fn = click.argument("run_dir", required=False, type=click.Path(path_type=Path))(fn)
+    return fn
+
+
+def resolve_run(run_dir: Path | None, preset_name: str | None, out: Path | None,
+                overrides: tuple[str, ...]) -> Run:
+    """Open an existing run, or create/resume one from a preset."""
+    if preset_name is None and not overrides:
+        if run_dir is None and out is None:
+            raise ConfigError("name a run folder (RUN_DIR) or start one with --preset NAME [--out DIR]")
+        return Run.open(run_dir or out)
+    if run_dir is not None and out is not None and run_dir != out:
+        raise ConfigError("give the run folder once: either RUN_DIR or --out")
+    if preset_name is None:
+        cfg = Run.open(run_dir or out).config
+    else:
+        cfg = preset(preset_name)
+    cfg = apply_overrides(cfg, list(overrides))
+    root = run_dir or out or Path("runs") / cfg.name
+    if preset_name is not None and root.name != cfg.name:
+        cfg = with_name(cfg, root.name)
+    return Run.create_or_resume(root, cfg)
+
+
+def _echo_summary(stage: str, summary: object, seconds: float) -> None:
+    click.echo(f"[{stage}] done in {seconds:.1f} s: {json.dumps(summary, default=str)}")
+
+
+# ------------------------------------------------------------------ the command
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="clothgap")
+def cli() -> None:
+    """clothgap: simulate cloth (Warp), render it (Mitsuba 3), learn its material
+    (torch CNN+LSTM) and measure the sim-to-real gap."""
+
+
+# ---- sim
+@cli.group(cls=DefaultGroup)
+def sim() -> None:
+    """Simulate cloth sequences with Warp (`clothgap sim RUN_DIR`), or run the
+    paper's material analyses (`sensitivity`, `table2`)."""
+
+
+@sim.command("run")
+@_run_options
+def sim_run(run_dir, preset_name, out, overrides) -> None:
+    """Simulate every clip of the run that is not done yet."""
+    run = resolve_run(run_dir, preset_name, out, overrides)
+    from sim.stage import run_sim
+
+    t0 = time.perf_counter()
+    _echo_summary("sim", run_sim(run), time.perf_counter() - t0)
+
+
+@sim.command("sensitivity")
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Folder for the CSV and plot.")
+@click.option("--device", default="cpu", show_default=True, help="Warp device: cpu, cuda, cuda:N.")
+def sim_sensitivity(out: Path, device: str) -> None:
+    """Sensitivity curves (the paper's Fig. 3): max stretch D(M) vs 1/p, max curvature C(M) vs 1/k."""
+    from sim.analysis import sensitivity
+
+    click.echo(f"wrote {sensitivity(out, device=device)}")
+
+
+@sim.command("table2")
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Folder for the CSV.")
+def sim_table2(out: Path) -> None:
+    """The paper's Table 2: each measured fabric's (p~, k~) and its class."""
+    from sim.analysis import table2
+
+    click.echo(f"wrote {table2(out)}")
+
+
+# ---- render
+@cli.command()
+@_run_options
+@click.option("--list-variants", is_flag=True, help="List the named render variants and exit.")
+def render(run_dir, preset_name, out, overrides, list_variants) -> None:
+    """Render the run's simulated clips under each render variant (Mitsuba 3)."""
+    if list_variants:
+        from render.variants import describe_variants
+
+        click.echo(describe_variants())
+        return
+    run = resolve_run(run_dir, preset_name, out, overrides)
+    for setting in run.config.sim.settings():
+        run.require(run.sim_dir(setting), "sim")
+    from render.stage import run_render
+
+    t0 = time.perf_counter()
+    _echo_summary("render", run_render(run), time.perf_counter() - t0)
+
+
+# ---- train
+@cli.command()
+@_run_options
+@click.option("--model", "model_name", help="Train only this model (lrcn, base1, base2, base3).")
+@click.option("--variant", help="Train only on this render variant.")
+@click.option("--setting", help="Train only on this setting, e.g. wind-uniform1.")
+@click.option("--seed", "train_seed", type=int, help="Train only this seed.")
+def train(run_dir, preset_name, out, overrides, model_name, variant, setting, train_seed) -> None:
+    """Train the models on the rendered clips (every setting x variant x model x seed
+    not done yet, or the one selected by --model/--variant/--setting/--seed)."""
+    run = resolve_run(run_dir, preset_name, out, overrides)
+    cfg = run.config
+    settings = [setting] if setting else cfg.sim.settings()
+    variants = [variant] if variant else list(cfg.render.variants)
+    for s in settings:
+        if s not in cfg.sim.settings():
+            raise ConfigError(f"unknown setting {s!r}; this run has {', '.join(cfg.sim.settings())}")
+        for v in variants:
+            run.require(run.render_dir(v, s), "render")
+    t0 = time.perf_counter()
+    if model_name or variant or setting or train_seed is not None:
+        from learn.models import MODEL_NAMES
+        from learn.train import train_one
+
+        if model_name and model_name not in MODEL_NAMES:
+            raise ConfigError(f"unknown model {model_name!r}; known models: {', '.join(MODEL_NAMES)}")
+        models = [model_name] if model_name else list(cfg.train.models)
+        seeds = [train_seed] if train_seed is not None else list(cfg.train.seeds)
+        done = [str(train_one(run, s, v, m, sd)) for s in settings for v in variants for m in models for sd in seeds]
+        _echo_summary("train", {"trained": done}, time.perf_counter() - t0)
+    else:
+        from learn.stage import run_train
+
+        _echo_summary("train", run_train(run), time.perf_counter() - t0)
+
+
+# ---- eval
+@cli.group(cls=DefaultGroup)
+def eval() -> None:  # noqa: A001 - the subcommand is called eval
+    """Evaluate trained models (`clothgap eval RUN_DIR`), or on real videos (`eval real`)."""
+
+
+@eval.command("run")
+@_run_options
+def eval_run(run_dir, preset_name, out, overrides) -> None:
+    """Accuracy tables (the paper's Table 3) and the domain-gap matrix for a run."""
+    run = resolve_run(run_dir, preset_name, out, overrides)
+    run.require(run.root / "train", "train")
+    from eval.stage import run_eval
+
+    t0 = time.perf_counter()
+    _echo_summary("eval", run_eval(run), time.perf_counter() - t0)
+
+
+@eval.command("real")
+@click.argument("video_dir", type=click.Path(path_type=Path))
+@click.option("--truth", type=click.Path(path_type=Path), required=True,
+              help="CSV of measured stiffness/density per video (format: see eval/real.py).")
+@click.option("--model", "train_dir", type=click.Path(path_type=Path), required=True,
+              help="A trained model's folder (run/train/<setting>/<variant>/<model>/s<seed>).")
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Folder for the tables.")
+def eval_real(video_dir: Path, truth: Path, train_dir: Path, out: Path) -> None:
+    """Correlate predicted material with measured stiffness and density (the paper's Table 4)."""
+    for p, what in ((video_dir, "video folder"), (truth, "truth CSV"), (train_dir, "model folder")):
+        if not p.exists():
+            raise ConfigError(f"{what} {p} does not exist")
+    from eval.real import evaluate_real
+
+    click.echo(f"wrote {evaluate_real(video_dir, truth, train_dir, out)}")
+
+
+# ---- report
+@cli.command()
+@click.argument("run_dir", type=click.Path(path_type=Path))
+def report(run_dir: Path) -> None:
+    """Write one self-contained HTML report of a run."""
+    run = Run.open(run_dir)
+    run.require(run.eval_dir, "eval")
+    from eval.report import write_report
+
+    click.echo(f"wrote {write_report(run)}")
+
+
+# ---- pipeline
+@cli.command()
+@_run_options
+def pipeline(run_dir, preset_name, out, overrides) -> None:
+    """Run sim, render, train, eval and report in turn (each skips what is done)."""
+    run = resolve_run(run_dir, preset_name, out, overrides)
+    click.echo(f"run folder: {run.root}  (config: {run.root / 'config.json'})")
+    timings: dict[str, float] = {}
+    summaries: dict[str, object] = {}
+
+    def stage(name: str, fn) -> None:
+        click.echo(f"== {name}")
+        t0 = time.perf_counter()
+        summaries[name] = fn(run)
+        timings[name] = round(time.perf_counter() - t0, 2)
+        _echo_summary(name, summaries[name], timings[name])
+
+    from sim.stage import run_sim
+
+    stage("sim", run_sim)
+    from render.stage import run_render
+
+    stage("render", run_render)
+    from learn.stage import run_train
+
+    stage("train", run_train)
+    from eval.stage import run_eval
+
+    stage("eval", run_eval)
+    from eval.report import write_report
+
+    stage("report", lambda r: str(write_report(r)))
+    atomic_write_json(run.root / "pipeline.json", {"seconds": timings, "summaries": summaries})
+    click.echo(f"report: {summaries['report']}")
+
+
+def main() -> None:
+    try:
+        cli(standalone_mode=False)
+    except click.exceptions.Abort:
+        click.echo("aborted", err=True)
+        sys.exit(130)
+    except click.ClickException as e:
+        e.show()
+        sys.exit(e.exit_code)
+    except ConfigError as e:
+        click.echo(f"error: {e}", err=True)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()
