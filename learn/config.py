@@ -24,3 +24,12 @@ class TrainConfig:
     augment: bool = False
     device: str = "auto"
     num_threads: int = 0                    # torch CPU threads, 0 = torch's default
+    schedule: str = "cosine"                # learning-rate schedule over epochs: "cosine" or "step"
+    readout: str = "mean"                   # "mean": loss on every step, probabilities averaged (LRCN);
+                                            # "last": loss and prediction from the last step only
+    dropout: float = 0.5                    # on fc6, as in AlexNet
+    factored: bool = False                  # extra 6-way stretching and 9-way bending heads
+    pretrained: str = ""                    # local weights file for the CNN; never downloaded
+    amp: bool = True                        # bf16 autocast (CUDA only; ignored on CPU)
+    compile: bool = False                   # torch.compile the model (CUDA only; ignored on CPU)
+    num_workers: int = 0                    # DataLoader worker processes

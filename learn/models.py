@@ -1,0 +1,179 @@
+"""The paper's CNN+LSTM and its three baselines, built by name.
+
+Every model maps a batch of clips, float (B, T, 3, H, W) in [0, 1], to per-step
+logits (B, T, 54) (plus (B, T, 6) stretching and (B, T, 9) bending logits with
+``factored``). How steps become one answer is the model's ``readout``:
+``"mean"`` trains on every step and averages the step probabilities (LRCN's
+own recipe), ``"last"`` trains and predicts from the last step only.
+
+    lrcn   AlexNet-style CNN + fc6 per frame, an LSTM over the frames (Section 5)
+    base1  the CNN + fc6 alone, one prediction per frame, averaged over the clip
+    base2  base1's CNN frozen (weights put in by the trainer), an LSTM trained on top
+    base3  lrcn with a vanilla (tanh) RNN instead of the LSTM
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+NUM_CLASSES = 54
+NUM_STRETCH = 6      # class index = NUM_BEND * stretching index + bending index
+NUM_BEND = 9
+READOUTS = ("mean", "last")
+# The frames' mean and spread (roughly ImageNet's), taken out inside the model so
+# that every caller feeds plain [0, 1] pixels.
+_PIXEL_MEAN, _PIXEL_STD = 0.45, 0.225
+
+
+class FrameCNN(nn.Module):
+    """Five conv layers in AlexNet's pattern (ReLU, local response norm, max-pool) and fc6.
+
+    Channels scale from ``width`` as AlexNet's 64-192-384-256-256 do; the total
+    stride is 16, then an adaptive pool to at most 6x6 (AlexNet's grid at 224 px).
+    """
+
+    def __init__(self, image_size: int, width: int, fc6: int, dropout: float = 0.5):
+        super().__init__()
+        if image_size % 16 or not 32 <= image_size <= 224:
+            raise ValueError(f"image_size={image_size}: must be a multiple of 16 from 32 to 224")
+        c1, c2, c3, c4, c5 = width, 3 * width, 6 * width, 4 * width, 4 * width
+        self.features = nn.Sequential(
+            nn.Conv2d(3, c1, 7, stride=2, padding=3), nn.ReLU(inplace=True), nn.LocalResponseNorm(5),
+            nn.MaxPool2d(3, 2, padding=1),
+            nn.Conv2d(c1, c2, 5, padding=2), nn.ReLU(inplace=True), nn.LocalResponseNorm(5),
+            nn.MaxPool2d(3, 2, padding=1),
+            nn.Conv2d(c2, c3, 3, padding=1), nn.ReLU(inplace=True),
+            nn.Conv2d(c3, c4, 3, padding=1), nn.ReLU(inplace=True),
+            nn.Conv2d(c4, c5, 3, padding=1), nn.ReLU(inplace=True),
+            nn.MaxPool2d(3, 2, padding=1),
+        )
+        grid = min(image_size // 16, 6)
+        self.pool = nn.AdaptiveAvgPool2d(grid)
+        self.fc6 = nn.Sequential(nn.Flatten(), nn.Linear(c5 * grid * grid, fc6), nn.ReLU(inplace=True),
+                                 nn.Dropout(dropout))
+        self.out_features = fc6
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, 3, H, W) in [0, 1] -> (N, fc6)."""
+        return self.fc6(self.pool(self.features((x - _PIXEL_MEAN) / _PIXEL_STD)))
+
+
+class ClipClassifier(nn.Module):
+    """A FrameCNN on every frame, optionally a recurrent layer over frames, per-step heads."""
+
+    def __init__(self, cnn: FrameCNN, temporal: str | None, hidden: int, readout: str = "mean",
+                 factored: bool = False, freeze_cnn: bool = False, num_classes: int = NUM_CLASSES):
+        super().__init__()
+        if readout not in READOUTS:
+            raise ValueError(f"readout={readout!r}: known readouts are {', '.join(READOUTS)}")
+        self.cnn, self.readout, self.freeze_cnn = cnn, readout, freeze_cnn
+        if temporal == "lstm":
+            self.temporal = nn.LSTM(cnn.out_features, hidden, batch_first=True)
+        elif temporal == "rnn":
+            self.temporal = nn.RNN(cnn.out_features, hidden, nonlinearity="tanh", batch_first=True)
+        elif temporal is None:
+            self.temporal = None
+        else:
+            raise ValueError(f"temporal={temporal!r}: expected 'lstm', 'rnn' or None")
+        features = hidden if self.temporal is not None else cnn.out_features
+        self.head = nn.Linear(features, num_classes)
+        self.factored = factored
+        if factored:
+            self.head_stretch = nn.Linear(features, NUM_STRETCH)
+            self.head_bend = nn.Linear(features, NUM_BEND)
+        if freeze_cnn:
+            self.cnn.requires_grad_(False)
+
+    def train(self, mode: bool = True) -> "ClipClassifier":
+        super().train(mode)
+        if self.freeze_cnn:
+            self.cnn.eval()  # a frozen CNN also keeps its dropout off
+        return self
+
+    def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        """(B, T, 3, H, W) -> {"logits": (B, T, 54)[, "stretch": (B, T, 6), "bend": (B, T, 9)]}."""
+        b, t = x.shape[:2]
+        feats = self.cnn(x.flatten(0, 1)).unflatten(0, (b, t))
+        if self.temporal is not None:
+            feats, _ = self.temporal(feats)
+        out = {"logits": self.head(feats)}
+        if self.factored:
+            out["stretch"] = self.head_stretch(feats)
+            out["bend"] = self.head_bend(feats)
+        return out
+
+    def _steps(self, z: torch.Tensor) -> torch.Tensor:
+        return z if self.readout == "mean" else z[:, -1:]
+
+    def loss(self, out: dict[str, torch.Tensor], labels: torch.Tensor) -> torch.Tensor:
+        """Cross-entropy on the steps the readout uses (and on both factors when factored)."""
+        def ce(z: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+            z = self._steps(z).float()
+            return F.cross_entropy(z.flatten(0, 1), y[:, None].expand(-1, z.shape[1]).flatten())
+
+        total = ce(out["logits"], labels)
+        if self.factored:
+            total = total + ce(out["stretch"], labels // NUM_BEND) + ce(out["bend"], labels % NUM_BEND)
+        return total
+
+    def probs(self, out: dict[str, torch.Tensor]) -> torch.Tensor:
+        """(B, 54) class probabilities of each clip under the readout."""
+        return self._steps(out["logits"]).float().softmax(-1).mean(1)
+
+
+# ---------------------------------------------------------------- registry
+
+# name -> (recurrent layer, CNN frozen, readout forced whatever the config says)
+_SPECS: dict[str, tuple[str | None, bool, str | None]] = {
+    "lrcn": ("lstm", False, None),
+    "base1": (None, False, "mean"),   # a per-frame classifier: its answer is always the clip average
+    "base2": ("lstm", True, None),
+    "base3": ("rnn", False, None),
+}
+MODEL_NAMES = tuple(_SPECS)
+
+
+def build_model(name: str, *, image_size: int, width: int, fc6: int, hidden: int, dropout: float = 0.5,
+                readout: str = "mean", factored: bool = False, num_classes: int = NUM_CLASSES) -> ClipClassifier:
+    """A model by registry name; ``model_args(cfg)`` gives the keyword arguments from a TrainConfig."""
+    if name not in _SPECS:
+        raise ValueError(f"unknown model {name!r}; known models: {', '.join(MODEL_NAMES)}")
+    temporal, freeze_cnn, forced_readout = _SPECS[name]
+    return ClipClassifier(FrameCNN(image_size, width, fc6, dropout), temporal, hidden,
+                          forced_readout or readout, factored, freeze_cnn, num_classes)
+
+
+def model_args(cfg) -> dict:
+    """The ``build_model`` keyword arguments a TrainConfig asks for (stored in checkpoints)."""
+    return dict(image_size=cfg.image_size, width=cfg.width, fc6=cfg.fc6, hidden=cfg.hidden,
+                dropout=cfg.dropout, readout=cfg.readout, factored=cfg.factored)
+
+
+def load_cnn_weights(model: ClipClassifier, source: Path | str | dict) -> None:
+    """Put CNN (conv layers + fc6) weights into ``model``.
+
+    ``source`` is a weights file or a state dict: a whole clothgap checkpoint
+    (its ``"model"`` entry, keys ``cnn.*``), a model state dict, or a bare
+    FrameCNN state dict. Every CNN tensor must be present with the right shape.
+    """
+    where = str(source) if not isinstance(source, dict) else "the given state dict"
+    if not isinstance(source, dict):
+        path = Path(source)
+        if not path.is_file():
+            raise FileNotFoundError(f"CNN weights file {path} does not exist (nothing is ever downloaded)")
+        source = torch.load(path, map_location="cpu", weights_only=True)
+    state = source.get("model", source)
+    if any(k.startswith("cnn.") for k in state):
+        state = {k[len("cnn."):]: v for k, v in state.items() if k.startswith("cnn.")}
+    own = model.cnn.state_dict()
+    missing = sorted(set(own) - set(state))
+    wrong = sorted(k for k in own if k in state and state[k].shape != own[k].shape)
+    if missing or wrong:
+        detail = ", ".join([f"{k} missing" for k in missing] +
+                           [f"{k} {tuple(state[k].shape)} != {tuple(own[k].shape)}" for k in wrong])
+        raise ValueError(f"CNN weights in {where} do not fit this model ({detail}); "
+                         "were they trained with the same image_size and width/fc6?")
+    model.cnn.load_state_dict({k: state[k] for k in own})
