@@ -1,0 +1,253 @@
+"""Adaptive remeshing on a restricted quadtree (the "adaptive" rows of the paper's Table 3).
+
+ArcSim, which the paper used, remeshes with edge splits, flips and collapses
+driven by a sizing field. Here the same idea is kept on a structure that is
+cheap to rebuild every frame and easy to batch: a quadtree over the square
+cloth's material space whose leaves are refined where the cloth is curved and
+coarsened where it is flat, between uniform level 1 (the base grid) and level
+``max_level`` (the finest lattice, uniform level 3 by default).
+
+* Every vertex lies on the finest lattice, so a vertex keeps its identity (and
+  its exact position and velocity) across remeshes while it stays in the mesh.
+* Neighbouring leaves differ by at most one level (2:1 balance). A leaf whose
+  neighbour is finer has a hanging midpoint on that edge and is fanned around
+  its centre; a leaf without one is split along a diagonal. The result is a
+  conforming triangle mesh with no T-junctions.
+* Vertices that appear are placed on the current deformed surface by
+  barycentric interpolation in the old triangle that holds them (positions and
+  velocities), so remeshing adds no motion of its own.
+
+Lattice coordinates are integers (i along u, j along v), uv = (i, j) * size / N
+with N = (n_base - 1) * 2**(max_level - 1) fine cells per side.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class QuadMesh:
+    """A conforming triangulation of a restricted quadtree over the cloth square."""
+
+    n_fine: int               # fine cells per side (N)
+    size: float               # side of the cloth, metres
+    level: np.ndarray         # (N, N) int: level (1..max_level) of the leaf covering each fine cell
+    max_level: int
+    lattice: np.ndarray       # (V, 2) int: lattice coordinates of each vertex
+    faces: np.ndarray         # (F, 3) int32, counter-clockwise in uv
+    face_leaf: np.ndarray     # (F,) int: the leaf (index into ``leaves``) each face lies in
+    leaves: np.ndarray        # (L, 3) int: (i0, j0, s) of each leaf, s its size in fine cells
+
+    @property
+    def uv(self) -> np.ndarray:
+        return (self.lattice * (self.size / self.n_fine)).astype(np.float32)
+
+    @property
+    def num_vertices(self) -> int:
+        return len(self.lattice)
+
+
+def _block_reduce(a: np.ndarray, s: int, fn) -> np.ndarray:
+    n = a.shape[0] // s
+    return fn(fn(a.reshape(n, s, n, s), axis=3), axis=1)
+
+
+def _expand(b: np.ndarray, s: int) -> np.ndarray:
+    return np.repeat(np.repeat(b, s, axis=0), s, axis=1)
+
+
+def _neighbour_max(level: np.ndarray) -> np.ndarray:
+    """Largest level among each fine cell's four edge neighbours."""
+    p = np.pad(level, 1, constant_values=0)
+    return np.maximum.reduce([p[:-2, 1:-1], p[2:, 1:-1], p[1:-1, :-2], p[1:-1, 2:]])
+
+
+def build_levels(target: np.ndarray, max_level: int) -> np.ndarray:
+    """Leaf levels from a per-fine-cell target level: refine until every target
+    is met, then restore 2:1 balance between edge neighbours."""
+    n = target.shape[0]
+    level = np.ones_like(target, dtype=np.int64)
+    for lv in range(1, max_level):
+        s = 2 ** (max_level - lv)
+        at_lv = _block_reduce(level, s, np.min) == lv
+        refine = at_lv & (_block_reduce(target, s, np.max) > lv)
+        level = np.where(_expand(refine, s), lv + 1, level)
+    while True:  # 2:1 balance; converges in at most max_level passes
+        changed = False
+        nbr = _neighbour_max(level)
+        for lv in range(1, max_level - 1):
+            s = 2 ** (max_level - lv)
+            at_lv = (_block_reduce(level, s, np.min) == lv) & (_block_reduce(level, s, np.max) == lv)
+            refine = at_lv & (_block_reduce(nbr, s, np.max) >= lv + 2)
+            if refine.any():
+                level = np.where(_expand(refine, s), lv + 1, level)
+                changed = True
+        if not changed:
+            assert level.shape == (n, n)
+            return level
+
+
+def triangulate(level: np.ndarray, max_level: int, size: float) -> QuadMesh:
+    """The conforming triangulation of the quadtree whose leaf levels are ``level``."""
+    n = level.shape[0]
+    leaves = []
+    for lv in range(1, max_level + 1):
+        s = 2 ** (max_level - lv)
+        is_leaf = (_block_reduce(level, s, np.min) == lv) & (_block_reduce(level, s, np.max) == lv)
+        bi, bj = np.nonzero(is_leaf)
+        leaves.append(np.stack([bi * s, bj * s, np.full_like(bi, s)], axis=1))
+    leaves = np.concatenate(leaves).astype(np.int64)
+
+    padded = np.pad(level, 1, constant_values=0)
+
+    def finer_across(i, j, s, side):
+        """Is the neighbour across this edge of leaf (i, j, s) finer than the leaf?"""
+        lv = level[i, j]
+        h = s // 2
+        if side == 0:    # v = j (bottom): cells (i .. i+s-1, j-1)
+            cells = padded[1 + i + h - 1: 1 + i + h + 1, j]
+        elif side == 1:  # u = i + s (right)
+            cells = padded[1 + i + s, 1 + j + h - 1: 1 + j + h + 1]
+        elif side == 2:  # v = j + s (top)
+            cells = padded[1 + i + h - 1: 1 + i + h + 1, 1 + j + s]
+        else:            # u = i (left)
+            cells = padded[i, 1 + j + h - 1: 1 + j + h + 1]
+        return s > 1 and cells.max() > lv
+
+    points: dict[tuple[int, int], int] = {}
+
+    def vid(p: tuple[int, int]) -> int:
+        if p not in points:
+            points[p] = len(points)
+        return points[p]
+
+    faces, face_leaf = [], []
+    for li, (i, j, s) in enumerate(leaves):
+        c00, c10, c11, c01 = (i, j), (i + s, j), (i + s, j + s), (i, j + s)
+        h = s // 2
+        mids = [(i + h, j), (i + s, j + h), (i + h, j + s), (i, j + h)]
+        hanging = [finer_across(i, j, s, side) for side in range(4)]
+        if not any(hanging):
+            a, b, c, d = vid(c00), vid(c10), vid(c11), vid(c01)
+            if ((i // s) + (j // s)) % 2 == 0:  # alternate diagonals: no directional bias
+                tris = [(a, b, c), (a, c, d)]
+            else:
+                tris = [(a, b, d), (b, c, d)]
+        else:
+            ring = []
+            for corner, mid, hang in zip((c00, c10, c11, c01), mids, hanging):
+                ring.append(vid(corner))
+                if hang:
+                    ring.append(vid(mid))
+            centre = vid((i + h, j + h))
+            tris = [(ring[k], ring[(k + 1) % len(ring)], centre) for k in range(len(ring))]
+        faces += tris
+        face_leaf += [li] * len(tris)
+    lattice = np.array(sorted(points, key=points.get), dtype=np.int64)
+    return QuadMesh(n, size, level, max_level, lattice, np.array(faces, np.int32),
+                    np.array(face_leaf, np.int64), leaves)
+
+
+def uniform(n_base: int, size: float, level: int, max_level: int = 3) -> QuadMesh:
+    """The quadtree with every leaf at ``level`` (uniform remeshing at that level)."""
+    n = (n_base - 1) * 2 ** (max_level - 1)
+    return triangulate(np.full((n, n), level, np.int64), max_level, size)
+
+
+def edge_curvature(mesh: QuadMesh, positions: np.ndarray) -> np.ndarray:
+    """Per-face max curvature theta * l / (A0 + A1) of its interior edges (paper eq. 3 per edge)."""
+    f = mesh.faces
+    x = positions[f]
+    n = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-20
+    uv = mesh.uv.astype(np.float64)
+    t = uv[f]
+    area = 0.5 * np.abs(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]))
+    e = np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1).reshape(-1, 2)
+    key = np.sort(e, axis=1)
+    face_of = np.repeat(np.arange(len(f)), 3)
+    order = np.lexsort((key[:, 1], key[:, 0]))
+    key, face_of = key[order], face_of[order]
+    same = np.all(key[1:] == key[:-1], axis=1)
+    f0, f1, k = face_of[:-1][same], face_of[1:][same], key[:-1][same]
+    theta = np.arccos(np.clip(np.einsum("ij,ij->i", n[f0], n[f1]), -1.0, 1.0))
+    length = np.linalg.norm(uv[k[:, 0]] - uv[k[:, 1]], axis=1)
+    c = theta * length / (area[f0] + area[f1])
+    out = np.zeros(len(f))
+    np.maximum.at(out, f0, c)
+    np.maximum.at(out, f1, c)
+    return out
+
+
+def target_levels(mesh: QuadMesh, positions: np.ndarray, refine_angle: float = 0.3) -> np.ndarray:
+    """Per-fine-cell target level: fine enough that an edge turns by at most
+    ``refine_angle`` radians at the local curvature (ArcSim's curvature sizing)."""
+    curv = edge_curvature(mesh, positions)
+    leaf_curv = np.zeros(len(mesh.leaves))
+    np.maximum.at(leaf_curv, mesh.face_leaf, curv)
+    h1 = mesh.size / (mesh.n_fine / 2 ** (mesh.max_level - 1))  # edge length at level 1
+    need = np.log2(np.maximum(h1 * leaf_curv / refine_angle, 1.0))
+    leaf_target = np.clip(1 + np.ceil(need).astype(np.int64), 1, mesh.max_level)
+    target = np.ones_like(mesh.level)
+    for (i, j, s), t in zip(mesh.leaves, leaf_target):
+        target[i:i + s, j:j + s] = t
+    return target
+
+
+def transfer(old: QuadMesh, new: QuadMesh, fields: list[np.ndarray]) -> list[np.ndarray]:
+    """Carry per-vertex fields (positions, velocities) from ``old`` to ``new``:
+    kept vertices exactly, new ones barycentrically in the old triangle holding them."""
+    n = old.n_fine
+    key = lambda lat: lat[:, 0] * (n + 1) + lat[:, 1]  # noqa: E731 - lattice point -> integer
+    old_keys, new_keys = key(old.lattice), key(new.lattice)
+    order = np.argsort(old_keys)
+    pos = np.searchsorted(old_keys[order], new_keys).clip(0, len(old_keys) - 1)
+    kept = old_keys[order][pos] == new_keys
+    src = order[pos]
+    out = [np.empty((new.num_vertices,) + f.shape[1:], f.dtype) for f in fields]
+    for o, f in zip(out, fields):
+        o[kept] = f[src[kept]]
+    added = np.nonzero(~kept)[0]
+    if len(added) == 0:
+        return out
+    # the old leaf under each added vertex, and that leaf's (at most 8) faces
+    cell_leaf = np.empty((n, n), np.int64)
+    for li, (i, j, s) in enumerate(old.leaves):
+        cell_leaf[i:i + s, j:j + s] = li
+    counts = np.bincount(old.face_leaf, minlength=len(old.leaves))
+    first = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    by_leaf = np.argsort(old.face_leaf, kind="stable")
+    p = new.lattice[added].astype(np.float64)
+    leaf = cell_leaf[np.minimum(new.lattice[added, 0], n - 1), np.minimum(new.lattice[added, 1], n - 1)]
+    slot = np.arange(8)
+    valid = slot[None, :] < counts[leaf][:, None]
+    cand = by_leaf[np.minimum(first[leaf][:, None] + slot[None, :], len(by_leaf) - 1)]   # (A, 8) faces
+    tri = old.lattice[old.faces[cand]].astype(np.float64)                                 # (A, 8, 3, 2)
+    a, b, c = tri[..., 0, :], tri[..., 1, :], tri[..., 2, :]
+    d = p[:, None, :] - a
+    e1, e2 = b - a, c - a
+    det = e1[..., 0] * e2[..., 1] - e1[..., 1] * e2[..., 0]
+    l1 = (d[..., 0] * e2[..., 1] - d[..., 1] * e2[..., 0]) / det
+    l2 = (e1[..., 0] * d[..., 1] - e1[..., 1] * d[..., 0]) / det
+    w = np.stack([1 - l1 - l2, l1, l2], axis=-1)                                          # (A, 8, 3)
+    score = np.where(valid, w.min(axis=-1), -np.inf)
+    best = score.argmax(axis=1)
+    rows = np.arange(len(added))
+    wb, fb = w[rows, best], old.faces[cand[rows, best]]                                     # (A, 3), (A, 3)
+    for o, f in zip(out, fields):
+        o[added] = np.einsum("ak,ak...->a...", wb, f[fb])
+    return out
+
+
+def remesh(mesh: QuadMesh, positions: np.ndarray, velocities: np.ndarray,
+           refine_angle: float = 0.3) -> tuple[QuadMesh, np.ndarray, np.ndarray]:
+    """One adaptive remeshing step: refine where curved, coarsen where flat."""
+    level = build_levels(target_levels(mesh, positions, refine_angle), mesh.max_level)
+    if np.array_equal(level, mesh.level):
+        return mesh, positions, velocities
+    new = triangulate(level, mesh.max_level, mesh.size)
+    pos, vel = transfer(mesh, new, [positions, velocities])
+    return new, pos, vel

@@ -1,0 +1,80 @@
+"""Adaptive remeshing: conforming, refines where curved, coarsens where flat, moves nothing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim import remesh as R
+
+
+def _flat(mesh):
+    uv = mesh.uv.astype(np.float64)
+    return np.c_[uv[:, 0], np.zeros(len(uv)), uv[:, 1]]
+
+
+def _folded(mesh, at=0.25, width=0.02, height=0.05):
+    pos = _flat(mesh)
+    pos[:, 1] = height * np.exp(-(((pos[:, 0] - at) / width) ** 2))
+    return pos
+
+
+def _check_conforming(mesh):
+    t = mesh.uv[mesh.faces].astype(np.float64)
+    area = 0.5 * ((t[:, 1, 0] - t[:, 0, 0]) * (t[:, 2, 1] - t[:, 0, 1]) - (t[:, 1, 1] - t[:, 0, 1]) * (t[:, 2, 0] - t[:, 0, 0]))
+    assert (area > 0).all(), "every face counter-clockwise in uv"
+    assert area.sum() == pytest.approx(mesh.size ** 2)
+    f = mesh.faces
+    edges, counts = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), 1), axis=0,
+                              return_counts=True)
+    assert counts.max() == 2, "no edge shared by three faces"
+    lat = mesh.lattice[edges[counts == 1]]
+    on_border = ((lat[:, 0, 0] == lat[:, 1, 0]) & np.isin(lat[:, 0, 0], [0, mesh.n_fine])) | \
+                ((lat[:, 0, 1] == lat[:, 1, 1]) & np.isin(lat[:, 0, 1], [0, mesh.n_fine]))
+    assert on_border.all(), "open edges only on the cloth's border: no T-junctions"
+
+
+@pytest.mark.parametrize("level,side", [(1, 16), (2, 31), (3, 61)])
+def test_uniform_levels(level, side):
+    m = R.uniform(16, 0.5, level)
+    assert m.num_vertices == side * side
+    _check_conforming(m)
+
+
+def test_refines_at_a_fold_and_coarsens_when_flat():
+    m = R.uniform(16, 0.5, 1)
+    m2, pos, vel = R.remesh(m, _folded(m), np.zeros((m.num_vertices, 3)))
+    _check_conforming(m2)
+    assert m2.num_vertices > m.num_vertices
+    fine = m2.level == 3
+    cols = np.nonzero(fine.any(axis=1))[0] * m2.size / m2.n_fine
+    assert abs(cols.mean() - 0.25) < 0.05, "refinement sits on the fold"
+    assert (m2.level[-10:] == 1).all(), "flat cloth far from the fold stays coarse"
+    m3, _, _ = R.remesh(m2, _flat(m2), np.zeros((m2.num_vertices, 3)))
+    assert m3.num_vertices == m.num_vertices, "a flattened cloth coarsens back to the base grid"
+
+
+def test_transfer_keeps_vertices_and_interpolates_linearly():
+    m = R.uniform(16, 0.5, 1)
+    m2, _, _ = R.remesh(m, _folded(m), np.zeros((m.num_vertices, 3)))
+    uv, uv2 = m.uv.astype(np.float64), m2.uv.astype(np.float64)
+    field = np.c_[2 * uv[:, 0] + uv[:, 1], uv[:, 1] - uv[:, 0], np.ones(len(uv))]
+    (moved,) = R.transfer(m, m2, [field])
+    expect = np.c_[2 * uv2[:, 0] + uv2[:, 1], uv2[:, 1] - uv2[:, 0], np.ones(len(uv2))]
+    np.testing.assert_allclose(moved, expect, atol=1e-6)  # uv are float32
+    # a vertex in both meshes keeps its exact value, even for a non-linear field
+    rnd = np.random.default_rng(0).random((m.num_vertices, 3))
+    (kept,) = R.transfer(m, m2, [rnd])
+    both = {tuple(p): k for k, p in enumerate(m.lattice.tolist())}
+    for v, p in enumerate(m2.lattice.tolist()):
+        if tuple(p) in both:
+            assert (kept[v] == rnd[both[tuple(p)]]).all()
+
+
+def test_balance_keeps_neighbours_within_one_level():
+    n = 60
+    target = np.ones((n, n), np.int64)
+    target[30, 30] = 3
+    level = R.build_levels(target, 3)
+    assert level[30, 30] == 3
+    assert np.abs(np.diff(level, axis=0)).max() <= 1 and np.abs(np.diff(level, axis=1)).max() <= 1
