@@ -1,0 +1,123 @@
+"""Figures of the eval stage and the report (matplotlib, Agg backend, PNG).
+
+Each function draws one figure and returns it; ``save`` writes a PNG and closes
+it (figures are many, memory is not).
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from eval import classes  # noqa: E402
+
+
+def save(fig, path: Path, dpi: int = 110) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.png")
+    fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
+    plt.close(fig)
+    tmp.replace(path)
+    return path
+
+
+def png_bytes(fig, dpi: int = 110) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def confusion(counts: np.ndarray, title: str, true_classes: list[int] | None = None):
+    """Row-normalised confusion matrix over the classes that occur.
+
+    Rows: the true classes (the run's classes when given), columns: those plus any
+    class predicted. A 54 x 54 grid of mostly empty rows would hide a 4-class study.
+    """
+    rows = sorted(set(true_classes) if true_classes else set(np.flatnonzero(counts.sum(axis=1))))
+    cols = sorted(set(rows) | set(np.flatnonzero(counts.sum(axis=0))))
+    sub = counts[np.ix_(rows, cols)].astype(float)
+    norm = sub / np.maximum(sub.sum(axis=1, keepdims=True), 1)
+    size = max(3.0, 0.22 * len(cols) + 1.5)
+    fig, ax = plt.subplots(figsize=(size + 1.0, max(2.5, 0.22 * len(rows) + 1.5)))
+    im = ax.imshow(norm, cmap="viridis", vmin=0, vmax=1, aspect="auto")
+    fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label="fraction of true class")
+    few = len(cols) <= 16
+    ax.set_xticks(range(len(cols)), [classes.label(c) if few else str(c) for c in cols],
+                  rotation=90, fontsize=7 if few else 5)
+    ax.set_yticks(range(len(rows)), [classes.label(c) if few else str(c) for c in rows], fontsize=7 if few else 5)
+    if len(rows) * len(cols) <= 100:
+        for i in range(len(rows)):
+            for j in range(len(cols)):
+                if sub[i, j]:
+                    ax.text(j, i, f"{int(sub[i, j])}", ha="center", va="center", fontsize=7,
+                            color="white" if norm[i, j] < 0.6 else "black")
+    ax.set_xlabel("predicted class")
+    ax.set_ylabel("true class")
+    ax.set_title(title, fontsize=9)
+    return fig
+
+
+def learning_curves(metrics: pd.DataFrame, title: str):
+    """Loss and accuracy per epoch from a train folder's metrics.csv."""
+    fig, (ax_loss, ax_acc) = plt.subplots(1, 2, figsize=(7.5, 2.8))
+    for col, style in (("train", "-"), ("val", "--")):
+        if f"{col}_loss" in metrics and metrics[f"{col}_loss"].notna().any():
+            ax_loss.plot(metrics["epoch"], metrics[f"{col}_loss"], style, label=col)
+        if f"{col}_acc" in metrics and metrics[f"{col}_acc"].notna().any():
+            ax_acc.plot(metrics["epoch"], 100 * metrics[f"{col}_acc"], style, label=col)
+    ax_loss.set(xlabel="epoch", ylabel="loss")
+    ax_acc.set(xlabel="epoch", ylabel="accuracy %")
+    for ax in (ax_loss, ax_acc):
+        ax.grid(alpha=0.3)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=8)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
+def gap_heatmap(matrix: pd.DataFrame, title: str):
+    """Accuracy (%) with rows = train variant, columns = test variant; diagonal = in-domain."""
+    fig, ax = plt.subplots(figsize=(1.2 * matrix.shape[1] + 2.2, 0.8 * matrix.shape[0] + 1.6))
+    values = 100 * matrix.to_numpy(dtype=float)
+    im = ax.imshow(values, cmap="magma", vmin=0, vmax=100)
+    fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label="accuracy %")
+    ax.set_xticks(range(matrix.shape[1]), matrix.columns, rotation=30, ha="right")
+    ax.set_yticks(range(matrix.shape[0]), matrix.index)
+    for i in range(values.shape[0]):
+        for j in range(values.shape[1]):
+            if np.isfinite(values[i, j]):
+                ax.text(j, i, f"{values[i, j]:.0f}", ha="center", va="center",
+                        color="white" if values[i, j] < 60 else "black", fontsize=9)
+    ax.set_xlabel("tested on")
+    ax.set_ylabel("trained on")
+    ax.set_title(title, fontsize=9)
+    return fig
+
+
+def frame_grid(images: dict[str, list[np.ndarray]], frame_labels: list[str]):
+    """Rows = variants (or videos), columns = frames: the same clip side by side."""
+    names = list(images)
+    ncols = max(len(v) for v in images.values())
+    fig, axes = plt.subplots(len(names), ncols, figsize=(1.6 * ncols + 0.6, 1.6 * len(names) + 0.2), squeeze=False)
+    for i, name in enumerate(names):
+        for j in range(ncols):
+            ax = axes[i, j]
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if j < len(images[name]):
+                ax.imshow(images[name][j])
+            if j == 0:
+                ax.set_ylabel(name, fontsize=8)
+            if i == len(names) - 1 and j < len(frame_labels):
+                ax.set_xlabel(frame_labels[j], fontsize=7)
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,273 @@
+"""The eval stage: every finished model on every rendered test variant, then the tables.
+
+``run_eval(run)`` reads only what earlier stages wrote (contracts in
+docs/contracts.md) and writes under ``run.eval_dir``::
+
+    predictions/<setting>/<train_variant>/<model>/s<seed>/<test_variant>.csv
+                           one row per 10-frame test sub-sequence (resumable: kept if present)
+    results.csv            one row per (setting, train variant, model, test variant), seeds pooled
+    table3.csv, table3.md  the paper's Table 3 shape (in-domain rows)
+    domain_gap.csv         every (train, test) variant pair: accuracy, drop, gap, intervals
+    axis_ranking.csv       render axes ranked by how much of the gap each closes (>1 variant)
+    figures/confusion/<setting>/<train_variant>/<model>/<test_variant>.png
+    figures/gap/<setting>/<model>.png
+    summary.json
+
+Test variants are all variants rendered for a setting (``render/*/<setting>``),
+not only those in the config, so a held-out variant rendered later is picked up.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pandas as pd
+
+from clothgap import seeding
+from clothgap.config import ConfigError, to_dict
+from clothgap.runs import Run, atomic_write_json, atomic_write_text, is_done
+from eval import figures, metrics, tables
+from eval import predictions as preds
+
+# (train_dir, clip_dirs) -> predict_clips-shaped frame; the default calls learn.predict.
+Predictor = Callable[[Path, list[Path]], pd.DataFrame]
+
+# Keys of a rendered clip's ``render`` meta that describe quality or seeding, not appearance.
+_NOT_AXES = {"resolution", "spp", "backend", "seed", "seeds", "write_hdr", "name", "description"}
+
+
+@dataclass(frozen=True)
+class TrainedModel:
+    setting: str
+    variant: str
+    model: str
+    seed: int
+    folder: Path
+
+    @property
+    def checkpoint(self) -> Path:
+        return self.folder / "checkpoint.pt"
+
+
+def _default_predictor(train_dir: Path, clip_dirs: list[Path]) -> pd.DataFrame:
+    from learn.predict import predict_clips
+
+    return predict_clips(train_dir, clip_dirs)
+
+
+def finished_models(run: Run) -> list[TrainedModel]:
+    """Every train folder of the config's grid that holds a DONE marker."""
+    cfg = run.config
+    found = []
+    for setting in cfg.sim.settings():
+        for variant in cfg.render.variants:
+            for model in cfg.train.models:
+                for seed in cfg.train.seeds:
+                    folder = run.train_dir(setting, variant, model, seed)
+                    if is_done(folder):
+                        found.append(TrainedModel(setting, variant, model, seed, folder))
+    return found
+
+
+def rendered_variants(run: Run, setting: str) -> list[str]:
+    """Variants with at least one finished clip of ``setting`` (configured ones first)."""
+    root = run.root / "render"
+    names = sorted(p.name for p in root.iterdir() if p.is_dir()) if root.is_dir() else []
+    names = [n for n in names if run.done_clips(run.render_dir(n, setting))]
+    configured = [v for v in run.config.render.variants if v in names]
+    return configured + [n for n in names if n not in configured]
+
+
+def test_clips(run: Run, setting: str) -> list[str]:
+    path = run.split_path(setting)
+    if not path.is_file():
+        raise ConfigError(f"no split {path}: run `clothgap train {run.root}` first (it writes the splits)")
+    split = json.loads(path.read_text())
+    if "test" not in split:
+        raise ConfigError(f"{path} has no 'test' list of clip ids")
+    return list(split["test"])
+
+
+def _flatten(data: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in data.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(_flatten(value, f"{name}."))
+        else:
+            out[name] = value
+    return out
+
+
+def variant_settings(run: Run, variant: str) -> dict:
+    """The appearance settings a variant was rendered with, flattened (from a rendered meta.json).
+
+    Falls back to the render registry when no clip says; quality keys (spp,
+    resolution, seeds) are dropped because they are not what variants compare.
+    """
+    for setting in run.config.sim.settings():
+        folder = run.render_dir(variant, setting)
+        for clip in run.done_clips(folder):
+            meta = json.loads((folder / clip / "meta.json").read_text())
+            render = meta.get("render")
+            if isinstance(render, dict):
+                flat = _flatten(render)
+                return {k: v for k, v in flat.items() if k.rsplit(".", 1)[-1] not in _NOT_AXES}
+    try:
+        from render.variants import get_variant
+
+        return get_variant(variant).settings()
+    except Exception:  # the registry may not know a user's variant; no axes then
+        return {}
+
+
+def texture_family(settings: dict, variant: str) -> str:
+    """The texture family (random / grid / color / ...) of a variant, for Table 3's rows."""
+    for key, value in settings.items():
+        if key.rsplit(".", 1)[-1] == "texture" and isinstance(value, str):
+            return value
+    return variant
+
+
+class _Rngs:
+    """Bootstrap generators derived from the run seed and the cell: reruns give the same intervals."""
+
+    def __init__(self, seed: int):
+        self.seed = seed
+
+    def __call__(self, *key: str) -> np.random.Generator:
+        return seeding.rng(self.seed, 0, seeding.EVAL, "bootstrap", *[str(k) for k in key])
+
+
+def prediction_path(run: Run, m: TrainedModel, test_variant: str) -> Path:
+    return run.eval_dir / "predictions" / m.setting / m.variant / m.model / f"s{m.seed}" / f"{test_variant}.csv"
+
+
+def _rel(run: Run, path: Path) -> str:
+    try:
+        return str(path.relative_to(run.root))
+    except ValueError:
+        return str(path)
+
+
+def predict_all(run: Run, models: list[TrainedModel], predictor: Predictor,
+                progress: bool) -> tuple[dict[tuple, tables.Cell], dict[str, int]]:
+    """Predictions of every model on every rendered test variant, gathered into cells."""
+    cells: dict[tuple, tables.Cell] = {}
+    counts = {"predicted": 0, "reused": 0, "no_test_clips": 0}
+    for m in models:
+        test_ids = test_clips(run, m.setting)
+        for test_variant in rendered_variants(run, m.setting):
+            path = prediction_path(run, m, test_variant)
+            if path.is_file():
+                frame = preds.load(path)
+                counts["reused"] += 1
+            else:
+                folder = run.render_dir(test_variant, m.setting)
+                clip_dirs = [folder / c for c in test_ids if is_done(folder / c)]
+                if not clip_dirs:
+                    counts["no_test_clips"] += 1
+                    continue
+                t0 = time.perf_counter()
+                raw = predictor(m.folder, clip_dirs)
+                preds.save(raw, path)
+                frame = preds.load(path)
+                counts["predicted"] += 1
+                if progress:
+                    print(f"[eval] {_rel(run, m.folder)} on {test_variant}: {len(clip_dirs)} clips, "
+                          f"{len(frame)} sub-sequences, {time.perf_counter() - t0:.1f} s", flush=True)
+            frame = frame.assign(seed=m.seed)
+            key = (m.setting, m.variant, m.model, test_variant)
+            if key in cells:
+                cells[key].frame = pd.concat([cells[key].frame, frame], ignore_index=True)
+                cells[key].sources.append(_rel(run, m.checkpoint))
+            else:
+                cells[key] = tables.Cell(*key, frame=frame, sources=[_rel(run, m.checkpoint)])
+    return cells, counts
+
+
+def _confusion_figures(run: Run, cells: dict[tuple, tables.Cell]) -> list[str]:
+    true_classes = list(run.config.sim.class_indices())
+    written = []
+    for (setting, train_v, model, test_v), cell in sorted(cells.items()):
+        counts = metrics.confusion_matrix(cell.frame["class_index"], cell.frame["pred"])
+        acc = metrics.accuracy(cell.frame["class_index"], cell.frame["pred"])
+        title = f"{setting}: {model} trained on {train_v}, tested on {test_v} (acc {100 * acc:.1f}%)"
+        path = run.eval_dir / "figures" / "confusion" / setting / train_v / model / f"{test_v}.png"
+        figures.save(figures.confusion(counts, title, true_classes), path)
+        written.append(_rel(run, path))
+    return written
+
+
+def _gap_figures(run: Run, gap: pd.DataFrame) -> list[str]:
+    written = []
+    for (setting, model), _ in gap.groupby(["setting", "model"]):
+        matrix = tables.gap_matrix(gap, setting, model)
+        if matrix.shape[1] < 2 and matrix.shape[0] < 2:
+            continue
+        path = run.eval_dir / "figures" / "gap" / setting / f"{model}.png"
+        figures.save(figures.gap_heatmap(matrix, f"{setting}, {model}: accuracy by train/test variant"), path)
+        written.append(_rel(run, path))
+    return written
+
+
+def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None) -> dict:
+    """Evaluate every finished model of the run on every rendered test variant; write the tables.
+
+    ``predictor`` replaces ``learn.predict.predict_clips`` (tests inject a stub).
+    Returns a short summary (the full one is ``eval/summary.json``).
+    """
+    cfg = run.config
+    models = finished_models(run)
+    if not models:
+        raise ConfigError(f"no finished train folder under {run.root / 'train'} for the config's "
+                          f"settings/variants/models/seeds: run `clothgap train {run.root}` first")
+    cells, counts = predict_all(run, models, predictor or _default_predictor, progress)
+    if not cells:
+        raise ConfigError(f"no rendered test clips found for any model under {run.root / 'render'}: "
+                          f"run `clothgap render {run.root}` first")
+    rng_for = _Rngs(cfg.seed)
+    opts = {"resamples": cfg.eval.bootstrap, "confidence": cfg.eval.confidence, "rng_for": rng_for}
+    ordered = [cells[k] for k in sorted(cells)]
+    results = tables.results_frame(ordered, **opts)
+    out = run.eval_dir
+    atomic_write_text(out / "results.csv", results.to_csv(index=False, float_format="%.6g"))
+
+    variants = sorted({k[1] for k in cells} | {k[3] for k in cells})
+    settings_of = {v: variant_settings(run, v) for v in variants}
+    texture_of = {v: texture_family(settings_of[v], v) for v in variants}
+    table3 = tables.table3(results, texture_of)
+    atomic_write_text(out / "table3.csv", table3.to_csv(index=False, float_format="%.6g"))
+    atomic_write_text(out / "table3.md", f"# Table 3 ({cfg.name}: `{run.root}`)\n\n" + tables.table3_markdown(table3))
+
+    gap = tables.domain_gap(cells, results, **opts)
+    atomic_write_text(out / "domain_gap.csv", gap.to_csv(index=False, float_format="%.6g"))
+    ranking = tables.rank_axes(gap, settings_of)
+    atomic_write_text(out / "axis_ranking.csv", ranking.to_csv(index=False, float_format="%.6g"))
+
+    figs = {"confusion": _confusion_figures(run, cells), "gap": _gap_figures(run, gap)}
+    in_domain = results[results["in_domain"]]
+    headline = {f"{r.setting}/{r.train_variant}/{r.model}": round(float(r.acc), 4) for r in in_domain.itertuples()}
+    summary = {
+        "run": str(run.root), "config": "config.json", "name": cfg.name,
+        "bootstrap": {"resamples": cfg.eval.bootstrap, "confidence": cfg.eval.confidence, "unit": "sequence"},
+        "models": [{"setting": m.setting, "variant": m.variant, "model": m.model, "seed": m.seed,
+                    "checkpoint": _rel(run, m.checkpoint)} for m in models],
+        "test_variants": variants, "texture_of": texture_of,
+        "variant_axes": tables.differing_axes(settings_of),
+        "in_domain_accuracy": headline,
+        "results": json.loads(results.to_json(orient="records")),
+        "axis_ranking": json.loads(ranking.to_json(orient="records")),
+        "files": {"results": "eval/results.csv", "table3": "eval/table3.csv", "table3_md": "eval/table3.md",
+                  "domain_gap": "eval/domain_gap.csv", "axis_ranking": "eval/axis_ranking.csv",
+                  "figures": figs},
+        "predictions": counts,
+        "config_snapshot": to_dict(cfg),
+    }
+    atomic_write_json(out / "summary.json", summary)
+    return {"cells": len(cells), **counts, "in_domain_accuracy": headline}

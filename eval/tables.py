@@ -1,0 +1,246 @@
+"""From prediction frames to the study's tables: results, Table 3, domain gap, axis ranking.
+
+Pure functions over pandas frames (no run folders), so they are tested on small
+synthetic predictions. A *cell* is one (setting, train variant, model, test
+variant) with the predictions of all its training seeds stacked: seeds share the
+test clips, so a sequence bootstrap over the stacked rows gives the interval of
+the seed-averaged score.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import pandas as pd
+
+from eval import metrics
+from eval import predictions as preds
+
+MODEL_ORDER = ("base1", "base2", "base3", "lrcn")
+MODEL_TITLES = {"base1": "Base-1 (CNN, RGB-I)", "base2": "Base-2 (fixed CNN+LSTM, RGB-V)",
+                "base3": "Base-3 (CNN+RNN, RGB-V)", "lrcn": "CNN+LSTM (RGB-V)"}
+DETAIL_SCORES = ("top3", "stretch_acc", "bend_acc", "class_dist", "seq_acc")
+
+# rng_for(key...) -> Generator: the stage passes clothgap.seeding-derived generators
+RngFactory = Callable[..., np.random.Generator]
+
+
+@dataclass
+class Cell:
+    setting: str
+    train_variant: str
+    model: str
+    test_variant: str
+    frame: pd.DataFrame                      # flat predictions, plus a ``seed`` column
+    sources: list[str] = field(default_factory=list)   # checkpoint paths that made the rows
+
+    @property
+    def key(self) -> tuple[str, str, str, str]:
+        return (self.setting, self.train_variant, self.model, self.test_variant)
+
+
+def split_setting(setting: str) -> tuple[str, str]:
+    """'wind-uniform1' -> ('wind', 'uniform1')."""
+    motion, _, remeshing = setting.partition("-")
+    return motion, remeshing or "?"
+
+
+def model_sort_key(model: str) -> tuple[int, str]:
+    return (MODEL_ORDER.index(model) if model in MODEL_ORDER else len(MODEL_ORDER), model)
+
+
+def score_cell(cell: Cell, *, resamples: int, confidence: float, rng: np.random.Generator) -> dict:
+    """Every score of one cell with sequence-bootstrap intervals, plus sequence-level accuracy."""
+    frame = cell.frame
+    probs = preds.probs_of(frame)
+    groups = frame["clip_id"].to_numpy()
+    out = metrics.summarize(frame["class_index"].to_numpy(), frame["pred"].to_numpy(), probs, groups,
+                            resamples=resamples, confidence=confidence, rng=rng)
+    # One decision per (seed, clip): mean probabilities over that clip's sub-sequences.
+    seq = pd.concat([preds.per_sequence(f) for _, f in frame.groupby("seed")], ignore_index=True)
+    seq_correct = (seq["class_index"] == seq["pred"]).to_numpy(float)
+    out.update(metrics.bootstrap_mean(seq_correct, seq["clip_id"].to_numpy(), resamples=resamples,
+                                      confidence=confidence, rng=rng).as_dict("seq_acc"))
+    return out
+
+
+def results_frame(cells: list[Cell], *, resamples: int, confidence: float, rng_for: RngFactory) -> pd.DataFrame:
+    """One row per cell: identity, provenance and every score."""
+    rows = []
+    for cell in cells:
+        motion, remeshing = split_setting(cell.setting)
+        row = {"setting": cell.setting, "motion": motion, "remeshing": remeshing,
+               "train_variant": cell.train_variant, "model": cell.model, "test_variant": cell.test_variant,
+               "in_domain": cell.train_variant == cell.test_variant,
+               "seeds": " ".join(str(s) for s in sorted(cell.frame["seed"].unique()))}
+        row.update(score_cell(cell, resamples=resamples, confidence=confidence, rng=rng_for("score", *cell.key)))
+        row["checkpoints"] = " ".join(cell.sources)
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+# ------------------------------------------------------------------ Table 3
+
+def table3(results: pd.DataFrame, texture_of: dict[str, str]) -> pd.DataFrame:
+    """The paper's Table 3 shape: rows motion x remeshing x texture, columns per model.
+
+    Only in-domain cells (trained and tested on the same variant) belong here, as
+    in the paper; cross-variant results are the domain-gap table's job. A variant
+    column is kept because two variants may share a texture family.
+    """
+    cols = ["motion", "remeshing", "texture", "variant"]
+    inside = results[results["in_domain"]]
+    if inside.empty:
+        return pd.DataFrame(columns=cols)
+    rows: dict[tuple, dict] = {}
+    for _, r in inside.iterrows():
+        key = (r["motion"], r["remeshing"], texture_of.get(r["train_variant"], r["train_variant"]), r["train_variant"])
+        row = rows.setdefault(key, dict(zip(cols, key)))
+        m = r["model"]
+        for score in ("acc", *DETAIL_SCORES):
+            for suffix in ("", "_lo", "_hi"):
+                row[f"{m}_{score}{suffix}"] = r[f"{score}{suffix}"]
+        row[f"{m}_sequences"] = r["sequences"]
+        row[f"{m}_seeds"] = r["seeds"]
+        row[f"{m}_checkpoints"] = r["checkpoints"]
+    table = pd.DataFrame(list(rows.values()))
+    models = sorted(inside["model"].unique(), key=model_sort_key)
+    ordered = cols + [c for m in models for c in table.columns if c.startswith(f"{m}_")]
+    return table[ordered].sort_values(cols, ignore_index=True)
+
+
+def table3_models(table: pd.DataFrame) -> list[str]:
+    return sorted({c[: -len("_acc")] for c in table.columns if c.endswith("_acc")
+                   and not c.endswith(("_seq_acc", "_stretch_acc", "_bend_acc"))}, key=model_sort_key)
+
+
+def _pct(row, prefix: str) -> str:
+    return metrics.Estimate(row[prefix], row[f"{prefix}_lo"], row[f"{prefix}_hi"]).fmt(100.0)
+
+
+def table3_markdown(table: pd.DataFrame) -> str:
+    """Accuracy per model (%, 95% sequence-bootstrap interval), then a detail table per model."""
+    if table.empty:
+        return "No in-domain results: no model was both trained and tested on one variant.\n"
+    models = table3_models(table)
+    head = ["Motion", "Re-mesh", "Texture", "Variant"] + [MODEL_TITLES.get(m, m) for m in models]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for _, r in table.iterrows():
+        cells = [r["motion"], r["remeshing"], r["texture"], r["variant"]]
+        cells += [_pct(r, f"{m}_acc") if pd.notna(r.get(f"{m}_acc")) else "" for m in models]
+        lines.append("| " + " | ".join(str(c) for c in cells) + " |")
+    out = ["Accuracy over 54 classes, % of 10-frame sub-sequences, with a 95% interval from "
+           "resampling test sequences.", "", *lines, ""]
+    detail_head = ["Motion", "Re-mesh", "Texture", "Variant", "Top-3 %", "Stretch-factor %", "Bend-factor %",
+                   "Class distance (grid steps)", "Per-video %", "Test sequences", "Seeds", "Checkpoint(s)"]
+    for m in models:
+        out += [f"Details: {MODEL_TITLES.get(m, m)}", "", "| " + " | ".join(detail_head) + " |",
+                "|" + "---|" * len(detail_head)]
+        for _, r in table.iterrows():
+            if pd.isna(r.get(f"{m}_acc")):
+                continue
+            cells = [r["motion"], r["remeshing"], r["texture"], r["variant"],
+                     _pct(r, f"{m}_top3"), _pct(r, f"{m}_stretch_acc"), _pct(r, f"{m}_bend_acc"),
+                     metrics.Estimate(r[f"{m}_class_dist"], r[f"{m}_class_dist_lo"],
+                                      r[f"{m}_class_dist_hi"]).fmt(1.0, 2),
+                     _pct(r, f"{m}_seq_acc"), int(r[f"{m}_sequences"]), r[f"{m}_seeds"],
+                     f"`{r[f'{m}_checkpoints']}`"]
+            out.append("| " + " | ".join(str(c) for c in cells) + " |")
+        out.append("")
+    return "\n".join(out)
+
+
+# ------------------------------------------------------------------ domain gap
+
+def domain_gap(cells: dict[tuple, Cell], results: pd.DataFrame, *, resamples: int, confidence: float,
+               rng_for: RngFactory) -> pd.DataFrame:
+    """Accuracy for every (train variant, test variant) pair and its drops, paired by clip.
+
+    ``drop`` = acc(trained on A, tested on A) - acc(A on B): what leaving the
+    training domain costs. ``gap`` = acc(B on B) - acc(A on B): how far A's model
+    stays from one trained in the test domain itself (the sim-to-"real" gap when B
+    stands in for reality). Both intervals resample clip ids jointly for the two
+    terms, since the same clip id has the same simulation under every variant.
+    """
+    rows = []
+    for _, r in results.iterrows():
+        s, a, m, b = r["setting"], r["train_variant"], r["model"], r["test_variant"]
+        cell = cells[(s, a, m, b)]
+        own = cells.get((s, a, m, a))
+        target = cells.get((s, b, m, b))
+        row = {k: r[k] for k in ("setting", "model", "train_variant", "test_variant", "in_domain", "seeds",
+                                 "sequences", "acc", "acc_lo", "acc_hi")}
+        for name, ref in (("drop", own), ("gap", target)):
+            if ref is None:
+                est = metrics.Estimate(float("nan"), float("nan"), float("nan"))
+            else:
+                est = metrics.bootstrap_mean_difference(
+                    metrics.correct(ref.frame["class_index"], ref.frame["pred"]), ref.frame["clip_id"],
+                    metrics.correct(cell.frame["class_index"], cell.frame["pred"]), cell.frame["clip_id"],
+                    resamples=resamples, confidence=confidence, rng=rng_for(name, s, a, m, b))
+            row[f"{name}_reference_acc"] = (metrics.accuracy(ref.frame["class_index"], ref.frame["pred"])
+                                            if ref is not None else float("nan"))
+            row.update(est.as_dict(name))
+        row["checkpoints"] = r["checkpoints"]
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def gap_matrix(gap: pd.DataFrame, setting: str, model: str) -> pd.DataFrame:
+    """Accuracy matrix: rows train variant, columns test variant."""
+    sub = gap[(gap["setting"] == setting) & (gap["model"] == model)]
+    return sub.pivot(index="train_variant", columns="test_variant", values="acc")
+
+
+# ------------------------------------------------------------------ render axes
+
+def differing_axes(variant_settings: dict[str, dict]) -> list[str]:
+    """Settings whose value is not the same in every variant."""
+    keys = sorted({k for s in variant_settings.values() for k in s})
+    return [k for k in keys if len({repr(s.get(k)) for s in variant_settings.values()}) > 1]
+
+
+def rank_axes(gap: pd.DataFrame, variant_settings: dict[str, dict]) -> pd.DataFrame:
+    """Which render axis closes most of the gap to a test variant.
+
+    For a test variant T and two training variants A, B where B agrees with T on
+    axis x and A does not, ``acc(B on T) - acc(A on T)`` is what moving x to T's
+    value bought. Pairs that differ ONLY in x measure x alone (``clean``); pairs
+    that differ in more axes are confounded and count only when an axis has no
+    clean pair. ``share`` is that gain over A's gap to T (1 = all of it).
+    Ranked by mean gain, largest first.
+    """
+    axes = differing_axes(variant_settings)
+    cols = ["axis", "mean_gain", "mean_share", "pairs", "clean", "examples"]
+    if len(variant_settings) < 2 or not axes or gap.empty:
+        return pd.DataFrame(columns=cols)
+    acc = {(r.setting, r.model, r.train_variant, r.test_variant): r.acc for r in gap.itertuples()}
+    evidence: dict[str, dict[bool, list]] = {x: {True: [], False: []} for x in axes}
+    for (s, m, a, t), acc_a in acc.items():
+        if t not in variant_settings or a not in variant_settings or a == t:
+            continue
+        gap_a = acc.get((s, m, t, t), np.nan) - acc_a
+        for b in variant_settings:
+            acc_b = acc.get((s, m, b, t))
+            if b == a or acc_b is None:
+                continue
+            va, vb, vt = variant_settings[a], variant_settings[b], variant_settings[t]
+            diff = [k for k in axes if repr(va.get(k)) != repr(vb.get(k))]
+            for x in diff:
+                if repr(vb.get(x)) == repr(vt.get(x)) != repr(va.get(x)):
+                    gain = acc_b - acc_a
+                    share = gain / gap_a if np.isfinite(gap_a) and gap_a > 0 else np.nan
+                    evidence[x][diff == [x]].append((gain, share, f"{s}/{m}: {a}->{b} on {t}"))
+    rows = []
+    for x in axes:
+        clean = bool(evidence[x][True])
+        items = evidence[x][True] or evidence[x][False]
+        if not items:
+            continue
+        gains, shares, names = zip(*items)
+        rows.append({"axis": x, "mean_gain": float(np.mean(gains)),
+                     "mean_share": float(np.nanmean(shares)) if np.isfinite(shares).any() else np.nan,
+                     "pairs": len(items), "clean": clean, "examples": "; ".join(names[:3])})
+    return pd.DataFrame(rows, columns=cols).sort_values("mean_gain", ascending=False, ignore_index=True)

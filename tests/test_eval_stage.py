@@ -1,0 +1,141 @@
+"""eval.stage / eval.tables on a fake run: rendered clips, splits and train folders on disk,
+and a stub predictor instead of a trained network (fast, and independent of learn/)."""
+
+import json
+import zlib
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from PIL import Image
+
+from clothgap.config import preset
+from clothgap.runs import Run, clip_id, mark_done
+from eval import tables
+from eval.stage import run_eval
+
+CLASSES = (0, 8, 45, 53)
+VARIANT_SETTINGS = {  # two render axes: texture and tonemap
+    "paper": {"texture": "random", "tonemap": "srgb_clip"},
+    "grid": {"texture": "grid", "tonemap": "srgb_clip"},
+    "reinhard": {"texture": "random", "tonemap": "reinhard"},
+}
+# How often the stub is right: in-domain 0.9, otherwise lower by how many axes differ.
+HIT_RATE = {0: 0.9, 1: 0.5, 2: 0.2}
+
+
+def make_fake_run(root: Path, variants=("paper", "grid"), models=("lrcn",), seeds=(0,), per_class=4,
+                  frames=4) -> Run:
+    cfg = preset("smoke")
+    cfg = replace(cfg, render=replace(cfg.render, variants=tuple(variants)),
+                  train=replace(cfg.train, models=tuple(models), seeds=tuple(seeds)),
+                  eval=replace(cfg.eval, bootstrap=100))
+    run = Run.create_or_resume(root, cfg)
+    setting = cfg.sim.settings()[0]
+    ids = []
+    for i, cls in enumerate(np.repeat(CLASSES, per_class)):
+        cid = clip_id(i)
+        ids.append(cid)
+        for v in variants:
+            folder = run.render_dir(v, setting) / cid
+            (folder / "ldr").mkdir(parents=True)
+            for f in range(frames):
+                img = np.full((16, 16, 3), (40 * f + 10 * i) % 255, np.uint8)
+                img[:, :, ["paper", "grid", "reinhard"].index(v)] = 200
+                Image.fromarray(img).save(folder / "ldr" / f"{f:04d}.png")
+            meta = {"clip_id": cid, "index": i, "setting": setting, "motion": "wind", "remeshing": "uniform1",
+                    "class_index": int(cls), "variant": v,
+                    "render": {"variant": VARIANT_SETTINGS[v], "resolution": 16, "spp": 1, "seeds": [1]}}
+            (folder / "meta.json").write_text(json.dumps(meta))
+            mark_done(folder)
+    test = ids[::2]
+    run.split_path(setting).parent.mkdir(parents=True, exist_ok=True)
+    run.split_path(setting).write_text(json.dumps({"by": "sequence", "seed": 0, "train": ids[1::2], "val": [],
+                                                   "test": test}))
+    for v in variants:
+        for m in models:
+            for s in seeds:
+                folder = run.train_dir(setting, v, m, s)
+                folder.mkdir(parents=True)
+                (folder / "checkpoint.pt").write_bytes(b"stub")
+                pd.DataFrame({"epoch": [1, 2, 3], "train_loss": [3.0, 2.0, 1.5], "train_acc": [0.2, 0.4, 0.6],
+                              "val_loss": [np.nan] * 3, "val_acc": [np.nan] * 3, "lr": [1e-3] * 3,
+                              "seconds": [1.0] * 3}).to_csv(folder / "metrics.csv", index=False)
+                mark_done(folder)
+    return run
+
+
+def stub_predictor(train_dir: Path, clip_dirs: list[Path]) -> pd.DataFrame:
+    """Three sub-sequences per clip; right with a rate set by how far train and test variants differ."""
+    train_variant = train_dir.parts[-3]
+    rows = []
+    for d in clip_dirs:
+        meta = json.loads((d / "meta.json").read_text())
+        axes = sum(VARIANT_SETTINGS[train_variant][k] != VARIANT_SETTINGS[meta["variant"]][k]
+                   for k in VARIANT_SETTINGS["paper"])
+        rng = np.random.default_rng(zlib.crc32(f"{train_dir}{d}".encode()))
+        for start in (0, 5, 10):
+            truth = meta["class_index"]
+            pred = truth if rng.random() < HIT_RATE[axes] else int(rng.choice([c for c in CLASSES if c != truth]))
+            probs = np.full(54, 0.1 / 53)
+            probs[pred] = 0.9
+            rows.append({"clip_id": meta["clip_id"], "start": start, "class_index": truth, "pred": pred,
+                         "probs": probs})
+    return pd.DataFrame(rows)
+
+
+def test_run_eval_writes_tables_and_resumes(tmp_path):
+    run = make_fake_run(tmp_path / "run", models=("lrcn", "base1"), seeds=(0, 1))
+    out = run_eval(run, progress=False, predictor=stub_predictor)
+    assert out["cells"] == 2 * 2 * 2 and out["predicted"] == 2 * 2 * 2 * 2
+
+    ev = run.eval_dir
+    pred_csv = ev / "predictions" / "wind-uniform1" / "paper" / "lrcn" / "s1" / "grid.csv"
+    frame = pd.read_csv(pred_csv)
+    assert len(frame) == 8 * 3 and "prob_53" in frame
+
+    table3 = pd.read_csv(ev / "table3.csv")
+    assert list(table3["texture"]) == ["grid", "random"]          # texture family from the rendered meta
+    assert {"base1_acc", "lrcn_acc", "lrcn_acc_lo", "lrcn_top3", "lrcn_bend_acc", "lrcn_class_dist",
+            "lrcn_seq_acc", "lrcn_checkpoints"} <= set(table3.columns)
+    assert table3.columns.get_loc("base1_acc") < table3.columns.get_loc("lrcn_acc")   # paper's column order
+    assert (table3["lrcn_acc_lo"] <= table3["lrcn_acc"]).all() and (table3["lrcn_acc"] <= table3["lrcn_acc_hi"]).all()
+    md = (ev / "table3.md").read_text()
+    assert "CNN+LSTM" in md and "train/wind-uniform1/paper/lrcn/s0/checkpoint.pt" in md
+
+    gap = pd.read_csv(ev / "domain_gap.csv")
+    assert len(gap) == 8
+    off = gap[(gap.train_variant == "paper") & (gap.test_variant == "grid") & (gap.model == "lrcn")].iloc[0]
+    on = gap[(gap.train_variant == "paper") & (gap.test_variant == "paper") & (gap.model == "lrcn")].iloc[0]
+    assert off["drop"] == pytest.approx(on["acc"] - off["acc"])
+    assert off["drop"] > 0 and off["drop_lo"] <= off["drop"] <= off["drop_hi"]
+    assert on["drop"] == 0
+
+    summary = json.loads((ev / "summary.json").read_text())
+    assert summary["variant_axes"] == ["variant.texture"]
+    assert summary["files"]["figures"]["confusion"] and (run.root / summary["files"]["figures"]["confusion"][0]).is_file()
+
+    again = run_eval(run, progress=False, predictor=stub_predictor)     # resumable: nothing predicted again
+    assert again["predicted"] == 0 and again["reused"] == 16
+
+
+def test_axis_ranking_prefers_the_axis_that_closes_the_gap():
+    settings = {k: {"variant.texture": v["texture"], "variant.tonemap": v["tonemap"]} for k, v in VARIANT_SETTINGS.items()}
+    # Tested on "grid": training on grid itself 0.9; changing texture (paper->grid) closes a lot,
+    # the tonemap does not matter for a grid target.
+    acc = {("paper", "grid"): 0.5, ("grid", "grid"): 0.9, ("reinhard", "grid"): 0.2}
+    rows = [{"setting": "s", "model": "lrcn", "train_variant": a, "test_variant": t, "acc": v}
+            for (a, t), v in acc.items()]
+    ranking = tables.rank_axes(pd.DataFrame(rows), settings)
+    assert list(ranking["axis"]) == ["variant.texture", "variant.tonemap"]
+    top = ranking.iloc[0]
+    assert top["clean"] and top["mean_gain"] == pytest.approx(0.4) and top["mean_share"] == pytest.approx(1.0)
+
+
+def test_missing_split_is_named(tmp_path):
+    run = make_fake_run(tmp_path / "run")
+    run.split_path("wind-uniform1").unlink()
+    with pytest.raises(Exception, match="splits/wind-uniform1.json"):
+        run_eval(run, progress=False, predictor=stub_predictor)
