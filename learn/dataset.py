@@ -201,7 +201,7 @@ class SubsequenceDataset(torch.utils.data.Dataset):
             shift = int(torch.randint(-(self.clip_stride // 2), self.clip_stride // 2 + 1, (1,), generator=gen))
             start = min(max(start + shift, 0), clip.num_frames - self.clip_len)
         rows = self.cache.frames[clip.offset + start: clip.offset + start + self.clip_len]
-        frames = torch.from_numpy(np.ascontiguousarray(rows)).permute(0, 3, 1, 2)
+        frames = torch.from_numpy(np.array(rows)).permute(0, 3, 1, 2)
         if gen is not None:
             frames = augment_frames(frames, gen)
         return frames.contiguous(), clip.class_index

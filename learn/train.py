@@ -1,0 +1,255 @@
+"""Train one model on one render variant of one setting, resumable epoch by epoch.
+
+``train_one`` writes into ``run.train_dir(setting, variant, model, seed)``:
+
+    config.json     the resolved settings (train config, model args, seeds, data sizes)
+    metrics.csv     epoch, train_loss, train_acc, val_loss, val_acc, lr, seconds
+    tb/             TensorBoard scalars
+    last.pt         model, optimizer, scheduler and RNG states after each epoch
+    checkpoint.pt   the final model in the contract format (docs/contracts.md)
+    DONE            written last
+
+A killed run resumes from ``last.pt`` and ends with the same weights as an
+uninterrupted one: the data order and augmentations of an epoch depend only on
+(seed, epoch), and every other random state is restored.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+import random
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader
+
+from clothgap import seeding
+from clothgap.config import ConfigError
+from clothgap.runs import Run, atomic_write_json, atomic_write_text, fresh_dir, is_done, mark_done
+from learn.dataset import SubsequenceDataset, build_cache, to_input
+from learn.models import NUM_CLASSES, ClipClassifier, build_model, load_cnn_weights, model_args
+from learn.split import get_or_make_split
+
+METRIC_COLUMNS = ("epoch", "train_loss", "train_acc", "val_loss", "val_acc", "lr", "seconds")
+SCHEDULES = ("cosine", "step")
+
+
+def resolve_device(name: str) -> torch.device:
+    """``"auto"`` is CUDA when there is one, else CPU; anything else goes to torch as given."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"train.device={name!r} but torch sees no CUDA device; use 'auto' or 'cpu'")
+    return device
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def training_seed(run: Run, model_name: str, seed: int) -> int:
+    """The torch/numpy/python seed of one training run (the same for every variant: paired)."""
+    return seeding.derive_int(run.config.seed, seed, seeding.TRAIN, model_name)
+
+
+def make_scheduler(optimizer: torch.optim.Optimizer, name: str, epochs: int):
+    """Per-epoch learning-rate schedule: cosine to zero, or x0.1 at each third of the run."""
+    if name == "cosine":
+        return torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=max(epochs, 1))
+    if name == "step":
+        return torch.optim.lr_scheduler.StepLR(optimizer, step_size=max(epochs // 3, 1), gamma=0.1)
+    raise ConfigError(f"train.schedule={name!r}: known schedules are {', '.join(SCHEDULES)}")
+
+
+def run_epoch(model: ClipClassifier, loader: DataLoader, device: torch.device, optimizer=None,
+              amp: bool = False, progress: bool = False, desc: str = "") -> tuple[float, float]:
+    """One pass over ``loader``: trains when given an optimizer, else evaluates. Returns (loss, accuracy)."""
+    from tqdm import tqdm
+
+    training = optimizer is not None
+    model.train(training)
+    total_loss, correct, count = 0.0, 0, 0
+    with torch.set_grad_enabled(training):
+        for frames, labels in tqdm(loader, desc=desc, disable=not progress, leave=False):
+            x, y = to_input(frames, device), labels.to(device)
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
+                out = model(x)
+            core = getattr(model, "_orig_mod", model)  # the module behind torch.compile
+            loss = core.loss(out, y)
+            if training:
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                optimizer.step()
+            total_loss += loss.item() * len(y)
+            correct += (core.probs(out).argmax(-1) == y).sum().item()
+            count += len(y)
+    return (total_loss / count, correct / count) if count else (math.nan, math.nan)
+
+
+# ---------------------------------------------------------------- files of a training folder
+
+def _save_state(path: Path, state: dict) -> None:
+    """Write ``last.pt`` atomically: a kill mid-write leaves the previous epoch's state."""
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(state, tmp)
+    tmp.replace(path)
+
+
+def _write_metrics(path: Path, rows: list[dict]) -> None:
+    lines = [",".join(METRIC_COLUMNS)]
+    lines += [",".join(f"{row[c]:.6g}" if isinstance(row[c], float) else str(row[c]) for c in METRIC_COLUMNS)
+              for row in rows]
+    atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def _rng_states() -> dict:
+    states = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+    if torch.cuda.is_available():
+        states["cuda"] = torch.cuda.get_rng_state_all()
+    return states
+
+
+def _set_rng_states(states: dict) -> None:
+    torch.set_rng_state(states["torch"])
+    np.random.set_state(states["numpy"])
+    random.setstate(states["python"])
+    if "cuda" in states and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(states["cuda"])
+
+
+def _resumable_state(out: Path, resolved: dict) -> dict | None:
+    """``last.pt`` of an unfinished run with the same settings, else None (the folder is then redone)."""
+    last, config = out / "last.pt", out / "config.json"
+    if not (last.is_file() and config.is_file()):
+        return None
+    stored = json.loads(config.read_text())
+    if any(stored.get(k) != resolved[k] for k in ("train", "model_args", "torch_seed", "cnn_init")):
+        return None
+    return torch.load(last, map_location="cpu", weights_only=False)
+
+
+# ---------------------------------------------------------------- the frozen CNN of base2
+
+def _cnn_init(run: Run, setting: str, variant: str, model_name: str, seed: int, progress: bool) -> str:
+    """Where the CNN's starting weights come from: a file path, or "random".
+
+    base2 freezes base1's CNN: the base1 checkpoint of the same (setting,
+    variant, seed) in this run, trained first when missing, unless the config
+    names ``train.pretrained`` weights, which are then used instead of training
+    base1. The other models start from ``train.pretrained`` when given.
+    """
+    pretrained = run.config.train.pretrained
+    if model_name != "base2":
+        return pretrained or "random"
+    base1 = run.train_dir(setting, variant, "base1", seed)
+    if is_done(base1):
+        return str(base1 / "checkpoint.pt")
+    if pretrained:
+        return pretrained
+    return str(train_one(run, setting, variant, "base1", seed, progress) / "checkpoint.pt")
+
+
+# ---------------------------------------------------------------- training
+
+def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, progress: bool = True) -> Path:
+    """Train ``model_name`` on ``variant``'s clips of ``setting``; returns the finished folder.
+
+    A finished folder (``DONE``) is returned as is; an unfinished one with a
+    matching ``last.pt`` resumes after its last epoch; anything else starts over.
+    """
+    cfg = run.config.train
+    out = run.train_dir(setting, variant, model_name, seed)
+    if is_done(out):
+        return out
+    if cfg.num_threads:
+        torch.set_num_threads(cfg.num_threads)
+    device = resolve_device(cfg.device)
+    cnn_init = _cnn_init(run, setting, variant, model_name, seed, progress)
+    torch_seed = training_seed(run, model_name, seed)
+
+    split = get_or_make_split(run, setting)
+    cache = build_cache(run, variant, setting, cfg.image_size, progress)
+    train_set = SubsequenceDataset(cache, split["train"], cfg.clip_len, cfg.clip_stride, cfg.augment, torch_seed)
+    val_set = SubsequenceDataset(cache, split["val"], cfg.clip_len, cfg.clip_stride)
+    if not len(train_set):
+        raise ConfigError(f"no training sub-sequences for {setting}/{variant}: {len(split['train'])} train clips, "
+                          f"clip_len={cfg.clip_len}; are the clips rendered and long enough?")
+    args = model_args(cfg)
+    resolved = {"train": dataclasses.asdict(cfg), "model": model_name, "model_args": args, "setting": setting,
+                "variant": variant, "seed": seed, "run_seed": run.config.seed, "torch_seed": torch_seed,
+                "cnn_init": cnn_init, "device": str(device), "train_subsequences": len(train_set),
+                "val_subsequences": len(val_set)}
+    state = _resumable_state(out, resolved)
+    if state is None:
+        fresh_dir(out)
+        atomic_write_json(out / "config.json", resolved)
+
+    seed_everything(torch_seed)
+    model = build_model(model_name, **args)
+    if cnn_init != "random":
+        load_cnn_weights(model, cnn_init)
+    model.to(device)
+    params = [p for p in model.parameters() if p.requires_grad]
+    optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    scheduler = make_scheduler(optimizer, cfg.schedule, cfg.epochs)
+    metrics: list[dict] = []
+    start_epoch = 0
+    if state is not None:
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        _set_rng_states(state["rng"])
+        metrics, start_epoch = state["metrics"], state["epoch"] + 1
+
+    on_cuda = device.type == "cuda"
+    amp = cfg.amp and on_cuda
+    net = torch.compile(model) if cfg.compile and on_cuda else model
+    loader_args = dict(batch_size=cfg.batch_size, num_workers=cfg.num_workers, pin_memory=on_cuda)
+    val_loader = DataLoader(val_set, shuffle=False, **loader_args)
+
+    from torch.utils.tensorboard import SummaryWriter
+    from tqdm import tqdm
+
+    writer = SummaryWriter(str(out / "tb"), purge_step=start_epoch)
+    name = f"{model_name} {setting}/{variant} s{seed}"
+    bar = tqdm(range(start_epoch, cfg.epochs), desc=name, disable=not progress, initial=start_epoch,
+               total=cfg.epochs)
+    for epoch in bar:
+        started = time.perf_counter()
+        train_set.set_epoch(epoch)
+        order = torch.Generator().manual_seed(seeding.derive_int(torch_seed, epoch, seeding.TRAIN, "order"))
+        loader = DataLoader(train_set, shuffle=True, generator=order, **loader_args)
+        train_loss, train_acc = run_epoch(net, loader, device, optimizer, amp, progress, f"epoch {epoch}")
+        val_loss, val_acc = run_epoch(net, val_loader, device, None, amp) if len(val_set) else (math.nan, math.nan)
+        lr = optimizer.param_groups[0]["lr"]
+        scheduler.step()
+        row = {"epoch": epoch, "train_loss": train_loss, "train_acc": train_acc, "val_loss": val_loss,
+               "val_acc": val_acc, "lr": lr, "seconds": time.perf_counter() - started}
+        metrics.append(row)
+        for key in ("train_loss", "train_acc", "val_loss", "val_acc", "lr"):
+            if not math.isnan(row[key]):
+                writer.add_scalar(key, row[key], epoch)
+        writer.flush()
+        _write_metrics(out / "metrics.csv", metrics)
+        _save_state(out / "last.pt", {"model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                                      "scheduler": scheduler.state_dict(), "rng": _rng_states(),
+                                      "epoch": epoch, "metrics": metrics})
+        bar.set_postfix(loss=f"{train_loss:.3f}", acc=f"{train_acc:.2f}")
+    writer.close()
+
+    torch.save({"model": model.state_dict(), "model_name": model_name, "model_args": args,
+                "num_classes": NUM_CLASSES, "setting": setting, "variant": variant, "seed": seed,
+                "config": resolved}, out / "checkpoint.pt")
+    final = metrics[-1] if metrics else {}
+    summary = {k: final.get(k) for k in METRIC_COLUMNS[1:5]}
+    mark_done(out, {"epochs": cfg.epochs, "seconds": sum(r["seconds"] for r in metrics),
+                    **{k: None if v is None or math.isnan(v) else v for k, v in summary.items()}})
+    return out
