@@ -1,0 +1,365 @@
+"""Warp kernels of the batched implicit cloth solver (one module, compiled once, shared by all callers).
+
+Everything is batched: particles, faces and hinges of many cloths live in one
+array set, each element carrying its cloth id, and per-cloth quantities
+(material tables, wind, CG dot products) are indexed by that id. See
+``sim.solver`` for the algorithm these kernels implement.
+
+Conventions: ``free`` is 1 for a simulated vertex and 0 for a pinned one (pinned
+rows of the linear system are filtered out); dot products of the conjugate
+gradient are accumulated per cloth with atomic adds into ``acc[iteration, cloth]``.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+PI = 3.14159265358979
+
+
+# ---------------------------------------------------------------- material model (Wang et al. 2011)
+
+@wp.func
+def wang_stretch_k(table: wp.array2d(dtype=float), c: int, c00: float, c01: float, c11: float):
+    """(k0, k1, k2, k3) at right Cauchy-Green tensor C = [[c00, c01], [c01, c11]], doubled, clamped >= 0."""
+    lmax = 0.5 * (c00 + c11) + wp.sqrt(0.25 * (c00 - c11) * (c00 - c11) + c01 * c01)
+    vx = lmax - c11
+    vy = c01
+    if c01 == 0.0:
+        if c00 >= c11:
+            vx = 1.0
+            vy = 0.0
+        else:
+            vx = 0.0
+            vy = 1.0
+    theta = wp.abs(wp.atan2(vy, vx))
+    x = wp.clamp(theta / (PI / 8.0), 0.0, 4.0 - 1.0e-6)
+    ai = int(wp.floor(x))
+    ta = x - float(ai)
+    s = wp.clamp(6.0 * (wp.sqrt(wp.max(lmax, 0.0)) - 1.0), 0.0, 1.0 - 1.0e-6)
+    k = wp.vec4()
+    for l in range(4):
+        high = (1.0 - ta) * table[c, (1 + ai) * 4 + l] + ta * table[c, (2 + ai) * 4 + l]
+        k[l] = 2.0 * wp.max((1.0 - s) * table[c, l] + s * high, 0.0)
+    return k
+
+
+@wp.func
+def wang_bend_ke(table: wp.array2d(dtype=float), c: int, curvature: float, y: float):
+    """ke at curvature (1/m) for an edge whose direction coordinate is y in [0, 2] (0, 45, 90 deg rows)."""
+    v = wp.clamp(0.1 * curvature, 0.0, 4.0)
+    vi = wp.min(int(wp.floor(v)), 3)
+    tv = v - float(vi)
+    bi = wp.min(int(wp.floor(y)), 1)
+    tb = y - float(bi)
+    ke = ((1.0 - tb) * (1.0 - tv) * table[c, bi * 5 + vi] + (1.0 - tb) * tv * table[c, bi * 5 + vi + 1]
+          + tb * (1.0 - tv) * table[c, (bi + 1) * 5 + vi] + tb * tv * table[c, (bi + 1) * 5 + vi + 1])
+    return wp.max(ke, 0.0)
+
+
+# ---------------------------------------------------------------- per-step preparation
+
+@wp.kernel
+def begin_step(mass: wp.array(dtype=float), gravity: wp.vec3,
+               force: wp.array(dtype=wp.vec3), diag: wp.array(dtype=wp.vec3), kv: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    force[i] = mass[i] * gravity
+    diag[i] = wp.vec3(0.0)
+    kv[i] = wp.vec3(0.0)
+
+
+@wp.kernel
+def face_prepare(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), tri: wp.array2d(dtype=int),
+                 dm_inv: wp.array(dtype=wp.mat22), area: wp.array(dtype=float), cloth: wp.array(dtype=int),
+                 stretch: wp.array2d(dtype=float), wind: wp.array(dtype=wp.vec3),
+                 air_density: float, air_drag: float,
+                 force: wp.array(dtype=wp.vec3), diag: wp.array(dtype=wp.vec3),
+                 f0_out: wp.array(dtype=wp.vec3), f1_out: wp.array(dtype=wp.vec3),
+                 kmat_out: wp.array(dtype=wp.vec4), smat_out: wp.array(dtype=wp.vec3)):
+    """Stretching force (Wang), wind force, the Jacobi diagonal, and the per-face data the
+    Hessian-vector product reuses: F's columns, the PSD-projected stiffness and stress."""
+    f = wp.tid()
+    c = cloth[f]
+    i = tri[f, 0]
+    j = tri[f, 1]
+    k = tri[f, 2]
+    a = area[f]
+    d = dm_inv[f]
+    e1 = x[j] - x[i]
+    e2 = x[k] - x[i]
+    f0 = e1 * d[0, 0] + e2 * d[1, 0]
+    f1 = e1 * d[0, 1] + e2 * d[1, 1]
+    c00 = wp.dot(f0, f0)
+    c11 = wp.dot(f1, f1)
+    c01 = wp.dot(f0, f1)
+    g00 = 0.5 * (c00 - 1.0)
+    g11 = 0.5 * (c11 - 1.0)
+    g01 = 0.5 * c01
+    kk = wang_stretch_k(stretch, c, c00, c01, c11)
+    # second Piola-Kirchhoff stress (times area): dW/dG with k held constant
+    s00 = a * (kk[0] * g00 + kk[1] * g11)
+    s11 = a * (kk[1] * g00 + kk[2] * g11)
+    s01 = a * kk[3] * g01 * 0.5
+    dw0 = s00 * f0 + s01 * f1
+    dw1 = s01 * f0 + s11 * f1
+    # coefficients of vertex i, j, k in F's columns
+    cj0 = d[0, 0]
+    cj1 = d[0, 1]
+    ck0 = d[1, 0]
+    ck1 = d[1, 1]
+    ci0 = -(cj0 + ck0)
+    ci1 = -(cj1 + ck1)
+
+    # wind: pressure on the normal component of the relative air velocity, drag on the tangential one
+    nrm = wp.cross(e1, e2)
+    nl = wp.length(nrm)
+    fw = wp.vec3(0.0)
+    if nl > 0.0:
+        n = nrm / nl
+        w = wind[c] - (v[i] + v[j] + v[k]) / 3.0
+        wn = wp.dot(w, n)
+        fw = (air_density * a * wp.abs(wn) * wn * n + air_drag * a * (w - wn * n)) / 3.0
+
+    wp.atomic_add(force, i, fw - (ci0 * dw0 + ci1 * dw1))
+    wp.atomic_add(force, j, fw - (cj0 * dw0 + cj1 * dw1))
+    wp.atomic_add(force, k, fw - (ck0 * dw0 + ck1 * dw1))
+
+    # Gauss-Newton stiffness with the 2x2 (k0, k1; k1, k2) block made PSD ...
+    kb = wp.sqrt(kk[0] * kk[2])
+    k1 = wp.clamp(kk[1], -kb, kb)
+    km = wp.vec4(a * kk[0], a * k1, a * kk[2], a * kk[3])
+    # ... plus the geometric stiffness S (x) I with S projected onto PSD matrices
+    mid = 0.5 * (s00 + s11)
+    rad = wp.sqrt(0.25 * (s00 - s11) * (s00 - s11) + s01 * s01)
+    lmin = mid - rad
+    lmax = mid + rad
+    p00 = s00
+    p01 = s01
+    p11 = s11
+    if lmax <= 0.0:
+        p00 = 0.0
+        p01 = 0.0
+        p11 = 0.0
+    elif lmin < 0.0:
+        ex = lmax - s11
+        ey = s01
+        el = wp.sqrt(ex * ex + ey * ey)
+        if el > 0.0:
+            ex = ex / el
+            ey = ey / el
+        else:
+            ex = 1.0
+            ey = 0.0
+            if s11 > s00:
+                ex = 0.0
+                ey = 1.0
+        p00 = lmax * ex * ex
+        p01 = lmax * ex * ey
+        p11 = lmax * ey * ey
+    f0_out[f] = f0
+    f1_out[f] = f1
+    kmat_out[f] = km
+    smat_out[f] = wp.vec3(p00, p01, p11)
+
+    # Jacobi diagonal of the (projected) stiffness
+    q0 = wp.cw_mul(f0, f0)
+    q1 = wp.cw_mul(f1, f1)
+    q01 = wp.cw_mul(f0, f1)
+    one = wp.vec3(1.0)
+    h00 = km[0] * q0 + 0.25 * km[3] * q1 + p00 * one
+    h01 = (km[1] + 0.25 * km[3]) * q01 + p01 * one
+    h11 = km[2] * q1 + 0.25 * km[3] * q0 + p11 * one
+    wp.atomic_add(diag, i, ci0 * ci0 * h00 + 2.0 * ci0 * ci1 * h01 + ci1 * ci1 * h11)
+    wp.atomic_add(diag, j, cj0 * cj0 * h00 + 2.0 * cj0 * cj1 * h01 + cj1 * cj1 * h11)
+    wp.atomic_add(diag, k, ck0 * ck0 * h00 + 2.0 * ck0 * ck1 * h01 + ck1 * ck1 * h11)
+
+
+@wp.kernel
+def hinge_prepare(x: wp.array(dtype=wp.vec3), hinge: wp.array2d(dtype=int), rest_length: wp.array(dtype=float),
+                  rest_area: wp.array(dtype=float), direction: wp.array(dtype=float), cloth: wp.array(dtype=int),
+                  bend: wp.array2d(dtype=float),
+                  force: wp.array(dtype=wp.vec3), diag: wp.array(dtype=wp.vec3),
+                  stiffness_out: wp.array(dtype=float), grad_out: wp.array2d(dtype=wp.vec3)):
+    """Bending force (Wang) of one hinge, E = kb/2 theta^2 with kb = ke l^2 / (4 (A0 + A1)),
+    and its Gauss-Newton data (kb and the dihedral-angle gradient) for the Hessian-vector product."""
+    h = wp.tid()
+    x0 = x[hinge[h, 0]]
+    x1 = x[hinge[h, 1]]
+    x2 = x[hinge[h, 2]]
+    x3 = x[hinge[h, 3]]
+    e = x1 - x0
+    le = wp.length(e)
+    na = wp.cross(e, x2 - x0)
+    nb = wp.cross(x3 - x0, e)
+    la = wp.length(na)
+    lb = wp.length(nb)
+    zero = wp.vec3(0.0)
+    stiffness_out[h] = 0.0
+    for q in range(4):
+        grad_out[h, q] = zero
+    if le > 1.0e-9 and la > 1.0e-12 and lb > 1.0e-12:
+        na = na / la
+        nb = nb / lb
+        theta = wp.atan2(wp.dot(wp.cross(na, nb), e) / le, wp.dot(na, nb))
+        # gradient of the signed dihedral angle (opposite vertices along -n / height)
+        g2 = -na * (le / la)
+        g3 = -nb * (le / lb)
+        a2 = wp.dot(x2 - x0, e) / (le * le)
+        a3 = wp.dot(x3 - x0, e) / (le * le)
+        g0 = -(1.0 - a2) * g2 - (1.0 - a3) * g3
+        g1 = -a2 * g2 - a3 * g3
+        l0 = rest_length[h]
+        asum = rest_area[h]
+        ke = wang_bend_ke(bend, cloth[h], wp.abs(theta) * l0 / asum, direction[h])
+        kb = ke * l0 * l0 / (4.0 * asum)
+        s = -kb * theta
+        wp.atomic_add(force, hinge[h, 0], s * g0)
+        wp.atomic_add(force, hinge[h, 1], s * g1)
+        wp.atomic_add(force, hinge[h, 2], s * g2)
+        wp.atomic_add(force, hinge[h, 3], s * g3)
+        wp.atomic_add(diag, hinge[h, 0], kb * wp.cw_mul(g0, g0))
+        wp.atomic_add(diag, hinge[h, 1], kb * wp.cw_mul(g1, g1))
+        wp.atomic_add(diag, hinge[h, 2], kb * wp.cw_mul(g2, g2))
+        wp.atomic_add(diag, hinge[h, 3], kb * wp.cw_mul(g3, g3))
+        stiffness_out[h] = kb
+        grad_out[h, 0] = g0
+        grad_out[h, 1] = g1
+        grad_out[h, 2] = g2
+        grad_out[h, 3] = g3
+
+
+# ---------------------------------------------------------------- Hessian-vector products
+
+@wp.kernel
+def face_hessian_product(p: wp.array(dtype=wp.vec3), tri: wp.array2d(dtype=int), dm_inv: wp.array(dtype=wp.mat22),
+                         cloth: wp.array(dtype=int), f0_in: wp.array(dtype=wp.vec3), f1_in: wp.array(dtype=wp.vec3),
+                         kmat: wp.array(dtype=wp.vec4), smat: wp.array(dtype=wp.vec3), scale: float, slot: int,
+                         out: wp.array(dtype=wp.vec3), acc: wp.array2d(dtype=float)):
+    """out += scale * K_stretch p, and acc[slot, cloth] += scale * p.K p (per face)."""
+    f = wp.tid()
+    i = tri[f, 0]
+    j = tri[f, 1]
+    k = tri[f, 2]
+    d = dm_inv[f]
+    cj0 = d[0, 0]
+    cj1 = d[0, 1]
+    ck0 = d[1, 0]
+    ck1 = d[1, 1]
+    ci0 = -(cj0 + ck0)
+    ci1 = -(cj1 + ck1)
+    pi = p[i]
+    pj = p[j]
+    pk = p[k]
+    df0 = ci0 * pi + cj0 * pj + ck0 * pk
+    df1 = ci1 * pi + cj1 * pj + ck1 * pk
+    f0 = f0_in[f]
+    f1 = f1_in[f]
+    km = kmat[f]
+    sm = smat[f]
+    dg00 = wp.dot(f0, df0)
+    dg11 = wp.dot(f1, df1)
+    dg01 = 0.5 * (wp.dot(f0, df1) + wp.dot(f1, df0))
+    ds00 = km[0] * dg00 + km[1] * dg11
+    ds11 = km[1] * dg00 + km[2] * dg11
+    ds01 = 0.5 * km[3] * dg01
+    g0 = ds00 * f0 + ds01 * f1 + sm[0] * df0 + sm[1] * df1
+    g1 = ds01 * f0 + ds11 * f1 + sm[1] * df0 + sm[2] * df1
+    ki = scale * (ci0 * g0 + ci1 * g1)
+    kj = scale * (cj0 * g0 + cj1 * g1)
+    kk = scale * (ck0 * g0 + ck1 * g1)
+    wp.atomic_add(out, i, ki)
+    wp.atomic_add(out, j, kj)
+    wp.atomic_add(out, k, kk)
+    wp.atomic_add(acc, slot, cloth[f], wp.dot(pi, ki) + wp.dot(pj, kj) + wp.dot(pk, kk))
+
+
+@wp.kernel
+def hinge_hessian_product(p: wp.array(dtype=wp.vec3), hinge: wp.array2d(dtype=int), cloth: wp.array(dtype=int),
+                          stiffness: wp.array(dtype=float), grad: wp.array2d(dtype=wp.vec3), scale: float, slot: int,
+                          out: wp.array(dtype=wp.vec3), acc: wp.array2d(dtype=float)):
+    """out += scale * kb g g^T p (Gauss-Newton bending stiffness), acc[slot, cloth] += scale * p.K p."""
+    h = wp.tid()
+    kb = stiffness[h]
+    if kb > 0.0:
+        s = float(0.0)
+        for q in range(4):
+            s += wp.dot(grad[h, q], p[hinge[h, q]])
+        w = scale * kb * s
+        for q in range(4):
+            wp.atomic_add(out, hinge[h, q], w * grad[h, q])
+        wp.atomic_add(acc, slot, cloth[h], w * s)
+
+
+# ---------------------------------------------------------------- conjugate gradient on (M (1 + h a) + h^2 K) dv = b
+
+@wp.kernel
+def cg_start(force: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), kv: wp.array(dtype=wp.vec3),
+             mass: wp.array(dtype=float), free: wp.array(dtype=float), cloth: wp.array(dtype=int),
+             dt: float, damping: float, diag: wp.array(dtype=wp.vec3),
+             dv: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.vec3),
+             p: wp.array(dtype=wp.vec3), ap: wp.array(dtype=wp.vec3),
+             rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float)):
+    """Right-hand side b = h (f - a M v) - h^2 K v, Jacobi preconditioner (diag becomes its inverse),
+    first search direction, and the first dot products."""
+    i = wp.tid()
+    c = cloth[i]
+    m_eff = mass[i] * (1.0 + dt * damping)
+    b = dt * (force[i] - damping * mass[i] * v[i]) - dt * dt * kv[i]
+    ri = free[i] * b
+    dinv = wp.cw_div(wp.vec3(1.0), wp.vec3(m_eff) + dt * dt * diag[i])
+    zi = wp.cw_mul(ri, dinv)
+    diag[i] = dinv
+    dv[i] = wp.vec3(0.0)
+    r[i] = ri
+    z[i] = zi
+    p[i] = zi
+    ap[i] = m_eff * zi
+    wp.atomic_add(rz, 0, c, wp.dot(ri, zi))
+    wp.atomic_add(pap, 0, c, m_eff * wp.dot(zi, zi))
+
+
+@wp.kernel
+def cg_update(mass: wp.array(dtype=float), free: wp.array(dtype=float), cloth: wp.array(dtype=int),
+              dinv: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3), ap: wp.array(dtype=wp.vec3),
+              slot: int, dv: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.vec3),
+              rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float)):
+    """dv += alpha p, r -= alpha A p, z = P r, accumulating the next r.z."""
+    i = wp.tid()
+    c = cloth[i]
+    den = pap[slot, c]
+    alpha = float(0.0)
+    if den > 0.0:
+        alpha = rz[slot, c] / den
+    dv[i] = dv[i] + alpha * p[i]
+    ri = r[i] - alpha * free[i] * ap[i]
+    zi = wp.cw_mul(ri, dinv[i])
+    r[i] = ri
+    z[i] = zi
+    wp.atomic_add(rz, slot + 1, c, wp.dot(ri, zi))
+
+
+@wp.kernel
+def cg_direction(mass: wp.array(dtype=float), cloth: wp.array(dtype=int), dt: float, damping: float,
+                 z: wp.array(dtype=wp.vec3), slot: int, p: wp.array(dtype=wp.vec3), ap: wp.array(dtype=wp.vec3),
+                 rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float)):
+    """p = z + beta p; starts A p with its mass part and accumulates that part of p.A p."""
+    i = wp.tid()
+    c = cloth[i]
+    den = rz[slot, c]
+    beta = float(0.0)
+    if den > 0.0:
+        beta = rz[slot + 1, c] / den
+    m_eff = mass[i] * (1.0 + dt * damping)
+    pi = z[i] + beta * p[i]
+    p[i] = pi
+    ap[i] = m_eff * pi
+    wp.atomic_add(pap, slot + 1, c, m_eff * wp.dot(pi, pi))
+
+
+@wp.kernel
+def integrate(dv: wp.array(dtype=wp.vec3), free: wp.array(dtype=float), dt: float,
+              x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    vi = free[i] * (v[i] + dv[i])
+    v[i] = vi
+    x[i] = x[i] + dt * vi

@@ -1,0 +1,127 @@
+"""The Wang et al. 2011 data-driven cloth materials: tables on disk and a numpy reference model.
+
+Tables live in ``assets/materials/<name>.json`` (schema ``clothgap.material/1``:
+named fields with units). ``stretching_stiffness`` and ``bending_stiffness`` are
+the reference evaluation of the model exactly as ArcSim uses it (see
+``/work/shared/reference/wang2011-model.md``); the Warp kernels in
+``sim.solver`` evaluate the same formulas and the tests compare the two.
+
+Source: Wang, Ramamoorthi, O'Brien, Data-Driven Elastic Models for Cloth,
+SIGGRAPH 2011, http://graphics.berkeley.edu/papers/Wang-DDE-2011-08/
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+MATERIALS_DIR = Path(__file__).resolve().parent.parent / "assets" / "materials"
+SCHEMA = "clothgap.material/1"
+
+
+@dataclass(frozen=True)
+class Material:
+    """One fabric: area density and the raw (unscaled, un-doubled) Wang tables."""
+
+    name: str
+    garment: str
+    fibre: str
+    density: float              # kg/m^2
+    stretching: np.ndarray      # (6, 4) N/m: row 0 low strain, rows 1..5 high strain at 0..90 deg
+    bending: np.ndarray         # (3, 5) N*m: edge direction 0/45/90 deg x curvature 0..40 1/m
+
+    def scaled(self, p: float, k: float) -> "Material":
+        """The paper's sub-space: every stretching entry times p, every bending entry times k."""
+        return Material(f"{self.name}*(p={p:g},k={k:g})", self.garment, self.fibre, self.density,
+                        self.stretching * p, self.bending * k)
+
+
+def list_materials() -> list[str]:
+    """Names of the fabrics in ``assets/materials``."""
+    return sorted(p.stem for p in MATERIALS_DIR.glob("*.json"))
+
+
+@lru_cache(maxsize=None)
+def load_material(name: str) -> Material:
+    """A fabric by name; an unknown name raises ``KeyError`` listing the known ones."""
+    path = MATERIALS_DIR / f"{name}.json"
+    if not path.is_file():
+        raise KeyError(f"unknown material {name!r}; known materials: {', '.join(list_materials())}")
+    doc = json.loads(path.read_text())
+    if doc.get("schema") != SCHEMA:
+        raise ValueError(f"{path}: expected schema {SCHEMA!r}, got {doc.get('schema')!r}")
+    st = doc["stretching"]
+    stretching = np.array([st["low_strain"], *st["high_strain"]], dtype=np.float64)
+    bending = np.array(doc["bending"]["ke"], dtype=np.float64)
+    if stretching.shape != (6, 4) or bending.shape != (3, 5):
+        raise ValueError(f"{path}: stretching must be 6x4 and bending 3x5, got "
+                         f"{stretching.shape} and {bending.shape}")
+    return Material(doc["name"], doc["garment"], doc["fibre"], float(doc["density"]["value"]),
+                    stretching, bending)
+
+
+# ---------------------------------------------------------------- reference model (numpy)
+
+def green_strain(F: np.ndarray) -> np.ndarray:
+    """G = (F^T F - I) / 2 for a 3x2 deformation gradient."""
+    F = np.asarray(F, dtype=np.float64)
+    return 0.5 * (F.T @ F - np.eye(2))
+
+
+def stretching_stiffness(stretching: np.ndarray, G: np.ndarray) -> np.ndarray:
+    """k = (k0, k1, k2, k3) in N/m at Green strain ``G`` (2x2), already doubled and clamped >= 0."""
+    st = np.asarray(stretching, dtype=np.float64)
+    C = 2.0 * np.asarray(G, dtype=np.float64) + np.eye(2)
+    c00, c01, c11 = C[0, 0], C[0, 1], C[1, 1]
+    lmax = 0.5 * (c00 + c11) + math.sqrt(0.25 * (c00 - c11) ** 2 + c01 * c01)
+    if c01 == 0.0:
+        vec = (1.0, 0.0) if c00 >= c11 else (0.0, 1.0)
+    else:
+        vec = (lmax - c11, c01)       # normalisation does not change the angle
+    theta = abs(math.atan2(vec[1], vec[0]))
+    x = min(max(theta / (math.pi / 8.0), 0.0), 4.0 - 1e-6)
+    ai = int(math.floor(x))
+    ta = x - ai
+    s = min(max(6.0 * (math.sqrt(max(lmax, 0.0)) - 1.0), 0.0), 1.0 - 1e-6)
+    high = (1.0 - ta) * st[1 + ai] + ta * st[2 + ai]
+    k = (1.0 - s) * st[0] + s * high
+    return 2.0 * np.maximum(k, 0.0)
+
+
+def stretching_energy(stretching: np.ndarray, F: np.ndarray, area: float) -> float:
+    """W = A (k0 G00^2 + 2 k1 G00 G11 + k2 G11^2 + k3 G01^2) / 2, k at the current strain."""
+    G = green_strain(F)
+    k = stretching_stiffness(stretching, G)
+    return 0.5 * area * (k[0] * G[0, 0] ** 2 + 2 * k[1] * G[0, 0] * G[1, 1] + k[2] * G[1, 1] ** 2
+                         + k[3] * G[0, 1] ** 2)
+
+
+def bending_stiffness(bending: np.ndarray, curvature: float, edge_angle: float) -> float:
+    """ke in N*m at ``curvature`` (1/m, theta l / (A0 + A1)) for an edge at ``edge_angle`` (rad) in (u, v)."""
+    b = np.asarray(bending, dtype=np.float64)
+    v = min(max(0.1 * curvature, 0.0), 4.0)
+    vi = min(int(math.floor(v)), 3)
+    tv = v - vi
+    y = abs(edge_angle) * 4.0 / math.pi
+    if y > 4.0:
+        y = 8.0 - y
+    if y > 2.0:
+        y = 4.0 - y
+    bi = min(int(math.floor(y)), 1)
+    tb = y - bi
+    ke = ((1 - tb) * (1 - tv) * b[bi, vi] + (1 - tb) * tv * b[bi, vi + 1]
+          + tb * (1 - tv) * b[bi + 1, vi] + tb * tv * b[bi + 1, vi + 1])
+    return max(ke, 0.0)
+
+
+def bending_energy(bending: np.ndarray, theta: float, theta0: float, edge_length: float,
+                   area0: float, area1: float, edge_angle: float) -> float:
+    """E = ke l^2 / (2 (A0 + A1)) (theta - theta0)^2 / 4 for one hinge."""
+    curvature = abs(theta) * edge_length / (area0 + area1)
+    ke = bending_stiffness(bending, curvature, edge_angle)
+    return ke * edge_length ** 2 / (2.0 * (area0 + area1)) * (theta - theta0) ** 2 / 4.0

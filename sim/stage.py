@@ -1,0 +1,185 @@
+"""The sim stage: every (setting, clip index) of a run -> ``sim/<setting>/<clip_id>/`` (see docs/contracts.md).
+
+Clip ``index`` has class ``class_indices[index % n_classes]`` and sequence number
+``index // n_classes``. Its material jitter comes from the ``material`` random
+stream and its motion from ``motion-<motion>``, both keyed by the clip index
+only, so a clip index gets the same material (and, within a motion, the same
+forces) under every remeshing level.
+
+Unfinished clips are simulated in batches of ``sim.batch_size`` cloths. A cloth
+whose simulation fails the health check (non-finite, too fast, or over-stretched)
+is retried once with twice the substeps; if it fails again its folder gets a
+``FAILED`` file with the reason and no ``DONE``.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from clothgap import seeding
+from clothgap.runs import Run, atomic_write_json, clip_id, fresh_dir, is_done, mark_done
+from sim import classes
+from sim.clip import SimClip
+from sim.config import SimConfig
+from sim.materials import load_material
+from sim.mesh import ClothMesh, square_cloth, vertices_per_side
+from sim.motions import MOTIONS, ClipScene, wind_scene
+from sim.solver import BatchSolver, SolverParams, resolve_device
+
+# Health check of every recorded frame: beyond these a cloth has exploded.
+MAX_SPEED_MPS = 30.0
+MAX_EDGE_STRETCH = 2.5          # current / rest edge length
+
+
+@dataclass(frozen=True)
+class Setting:
+    name: str
+    motion: str
+    remeshing: str
+    level: int
+
+
+def parse_setting(name: str) -> Setting:
+    """'<motion>-uniform<L>' -> Setting; anything else is a clear error."""
+    motion, _, remeshing = name.partition("-")
+    if motion not in MOTIONS:
+        raise ValueError(f"setting {name!r}: unknown motion {motion!r}; known motions: {', '.join(MOTIONS)}")
+    m = re.fullmatch(r"uniform([123])", remeshing)
+    if not m:
+        raise ValueError(f"setting {name!r}: remeshing {remeshing!r} is not supported by the sim stage; "
+                         "supported: uniform1, uniform2, uniform3")
+    return Setting(name, motion, remeshing, int(m.group(1)))
+
+
+@dataclass
+class ClipResult:
+    positions: np.ndarray | None      # (T, V, 3) float32 when ok
+    reason: str | None                # why it failed, else None
+
+
+def _edges(mesh: ClothMesh) -> np.ndarray:
+    f = mesh.faces
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    return np.unique(e, axis=0)
+
+
+def health(x: np.ndarray, x_prev: np.ndarray, frame_dt: float, edges: np.ndarray, rest: np.ndarray) -> str | None:
+    """None when a recorded frame is plausible, else the reason."""
+    if not np.all(np.isfinite(x)):
+        return "non-finite positions"
+    speed = float(np.linalg.norm(x - x_prev, axis=1).max()) / frame_dt
+    if speed > MAX_SPEED_MPS:
+        return f"vertex speed {speed:.1f} m/s exceeds {MAX_SPEED_MPS} m/s"
+    stretch = float((np.linalg.norm(x[edges[:, 1]] - x[edges[:, 0]], axis=1) / rest).max())
+    if stretch > MAX_EDGE_STRETCH:
+        return f"edge stretched {stretch:.2f}x its rest length (limit {MAX_EDGE_STRETCH}x)"
+    return None
+
+
+def simulate_scenes(scenes: list[ClipScene], *, fps: float, frames: int, substeps: int, settle_s: float,
+                    cg_iterations: int = 30, device: str = "cpu") -> list[ClipResult]:
+    """Simulate a batch: settle without wind for ``settle_s``, then record ``frames`` frames with the wind on."""
+    dt = 1.0 / (fps * substeps)
+    solver = BatchSolver([s.spec for s in scenes], SolverParams(dt=dt, cg_iterations=cg_iterations), device)
+    solver.step(int(round(settle_s / dt)))
+    solver.set_wind(np.stack([s.wind for s in scenes]))
+    checks = []
+    for s in scenes:
+        e = _edges(s.spec.mesh)
+        checks.append((e, np.linalg.norm(s.spec.mesh.uv[e[:, 1]] - s.spec.mesh.uv[e[:, 0]], axis=1)))
+    reasons: list[str | None] = [None] * len(scenes)
+    prev = solver.positions()
+    recorded = []
+    for t in range(frames):
+        solver.step(substeps)
+        cur = solver.positions()
+        for c, (x, xp) in enumerate(zip(cur, prev)):
+            if reasons[c] is None:
+                why = health(x, xp, 1.0 / fps, *checks[c])
+                reasons[c] = None if why is None else f"frame {t}: {why}"
+        recorded.append(cur)
+        prev = cur
+    return [ClipResult(None, r) if r else ClipResult(np.stack([f[c] for f in recorded]), None)
+            for c, r in enumerate(reasons)]
+
+
+def clip_material(cfg: SimConfig, seed: int, index: int) -> tuple[int, float, float]:
+    """(class_index, p, k) of a clip: its class and the jittered coefficients from its material stream."""
+    cls = cfg.class_indices()
+    class_index = cls[index % len(cls)]
+    p, k = classes.jitter_class(class_index, cfg.jitter, seeding.rng(seed, index, seeding.SIM, "material"))
+    return class_index, p, k
+
+
+def build_scene(cfg: SimConfig, seed: int, index: int, setting: Setting, mesh: ClothMesh) -> tuple[ClipScene, dict]:
+    """The scene of one clip and the label part of its meta."""
+    class_index, p, k = clip_material(cfg, seed, index)
+    basis = load_material(cfg.basis)
+    motion_rng = seeding.rng(seed, index, seeding.SIM, f"motion-{setting.motion}")
+    scene = wind_scene(mesh, cfg.cloth_size_m, basis.scaled(p, k), motion_rng)
+    p_class, k_class = classes.class_values(class_index)
+    meta = {"class_index": class_index, "p_class": p_class, "k_class": k_class, "p": p, "k": k,
+            "basis": cfg.basis, "density": basis.density}
+    return scene, meta
+
+
+def run_sim(run: Run, progress: bool = True) -> dict:
+    """Simulate every unfinished clip of every setting of the run; returns counts per outcome."""
+    from tqdm import tqdm
+
+    cfg = run.config.sim
+    device = resolve_device(cfg.device)
+    settings = [parse_setting(s) for s in cfg.settings()]
+    for c in cfg.class_indices():
+        classes.class_indices(c)          # validate early
+    n_classes = len(cfg.class_indices())
+    summary = {"simulated": 0, "skipped": 0, "failed": 0, "retried": 0, "seconds": 0.0}
+    start = time.perf_counter()
+    for setting in settings:
+        out = run.sim_dir(setting.name)
+        todo = [i for i in range(cfg.num_clips()) if not is_done(out / clip_id(i))]
+        summary["skipped"] += cfg.num_clips() - len(todo)
+        n = vertices_per_side(cfg.grid_vertices, setting.level)
+        mesh = square_cloth(cfg.cloth_size_m, cfg.grid_vertices, setting.level)
+        bar = tqdm(total=len(todo), desc=f"sim {setting.name}", unit="clip", disable=not progress)
+        for b in range(0, len(todo), cfg.batch_size):
+            batch = todo[b:b + cfg.batch_size]
+            built = [build_scene(cfg, run.config.seed, i, setting, mesh) for i in batch]
+            scenes = [s for s, _ in built]
+            results = simulate_scenes(scenes, fps=cfg.fps, frames=cfg.frames, substeps=cfg.substeps,
+                                      settle_s=cfg.settle_s, cg_iterations=cfg.cg_iterations, device=device)
+            substeps = [cfg.substeps] * len(batch)
+            failed = [j for j, r in enumerate(results) if r.reason]
+            if failed:
+                summary["retried"] += len(failed)
+                retry = simulate_scenes([scenes[j] for j in failed], fps=cfg.fps, frames=cfg.frames,
+                                        substeps=2 * cfg.substeps, settle_s=cfg.settle_s,
+                                        cg_iterations=cfg.cg_iterations, device=device)
+                for j, r in zip(failed, retry):
+                    if r.reason:
+                        r.reason = f"{results[j].reason}; retry with {2 * cfg.substeps} substeps: {r.reason}"
+                    results[j] = r
+                    substeps[j] = 2 * cfg.substeps
+            for i, (scene, labels), result, sub in zip(batch, built, results, substeps):
+                folder = fresh_dir(out / clip_id(i))
+                meta = {"clip_id": clip_id(i), "index": i, "sequence": i // n_classes, "setting": setting.name,
+                        "motion": setting.motion, "remeshing": setting.remeshing, **labels,
+                        "seed": run.config.seed, "fps": cfg.fps, "frames": cfg.frames, "substeps": sub,
+                        "dt": 1.0 / (cfg.fps * sub), "settle_s": cfg.settle_s, "cloth_size_m": cfg.cloth_size_m,
+                        "vertices_per_side": n, "motion_params": scene.motion_params}
+                if result.reason:
+                    atomic_write_json(folder / "FAILED", {**meta, "status": "failed", "reason": result.reason})
+                    summary["failed"] += 1
+                    continue
+                meta["status"] = "ok"
+                SimClip.from_fixed(meta, result.positions, mesh.faces, mesh.uv).save(folder)
+                mark_done(folder, {"status": "ok"})
+                summary["simulated"] += 1
+            bar.update(len(batch))
+        bar.close()
+    summary["seconds"] = round(time.perf_counter() - start, 3)
+    return summary
