@@ -139,3 +139,25 @@ def test_missing_split_is_named(tmp_path):
     run.split_path("wind-uniform1").unlink()
     with pytest.raises(Exception, match="splits/wind-uniform1.json"):
         run_eval(run, progress=False, predictor=stub_predictor)
+
+
+def test_report_is_self_contained(tmp_path):
+    import re
+
+    from eval.report import write_report
+
+    run = make_fake_run(tmp_path / "run", variants=("paper", "grid"), models=("lrcn",))
+    run_eval(run, progress=False, predictor=stub_predictor)
+    analysis = run.root / "sim_analysis"
+    analysis.mkdir()
+    pd.DataFrame({"material": ["camel-ponte-roma"], "p_est": [1.0], "k_est": [0.52]}).to_csv(
+        analysis / "table2.csv", index=False)
+    path = write_report(run)
+    doc = path.read_text()
+    assert path == run.root / "report" / "report.html"
+    for section in ("Table 3", "Confusion matrices", "Learning curves", "Sample frames", "Domain gap", "table2.csv"):
+        assert section in doc
+    assert "train/wind-uniform1/paper/lrcn/s0/checkpoint.pt" in doc
+    refs = re.findall(r'(?:src|href)\s*=\s*"([^"]*)"', doc)
+    assert refs and all(r.startswith(("data:image/png;base64,", "#")) for r in refs)
+    assert "<link" not in doc and "@import" not in doc and "url(" not in doc

@@ -1,0 +1,314 @@
+"""One self-contained HTML report of a run: ``report/report.html``.
+
+Everything is inside the file (figures as base64 PNG, styles inline), so it can
+be mailed or attached to an issue. Sections appear only when their inputs exist:
+the eval tables (``clothgap eval``), learning curves (train folders), sample
+frames (render folders), the sim stage's sensitivity analysis (``sim_analysis/``)
+and real-video / measured-fabric tables (``eval/real*/``, ``eval/measured*/``).
+Every table row names the run folder, config and checkpoint(s) it came from.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from PIL import Image
+
+from clothgap.config import to_dict
+from clothgap.runs import Run, atomic_write_text, is_done
+from eval import figures, tables
+from eval.metrics import Estimate
+
+_CSS = """
+body{font-family:-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:0;color:#1d232a;background:#f6f7f9}
+main{max-width:1180px;margin:0 auto;padding:24px 32px 64px;background:#fff}
+h1{font-size:1.6em;margin-bottom:.2em}h2{border-bottom:2px solid #e3e6ea;padding-bottom:.2em;margin-top:2em}
+h3{font-size:1.05em;margin:1.4em 0 .4em}
+.meta{color:#5b6570;font-size:.9em}code{background:#f0f2f4;padding:1px 4px;border-radius:3px;font-size:.88em}
+table{border-collapse:collapse;margin:.6em 0 1em;font-size:.86em}
+th,td{border:1px solid #dde1e5;padding:4px 8px;text-align:left;vertical-align:top}
+th{background:#eef1f4}tr:nth-child(even) td{background:#fafbfc}
+td.num{text-align:right;font-variant-numeric:tabular-nums;white-space:nowrap}
+.ci{color:#7a848e;font-size:.85em}.figs{display:flex;flex-wrap:wrap;gap:14px}
+figure{margin:0}figure img{max-width:100%;border:1px solid #e3e6ea}figcaption{font-size:.8em;color:#5b6570}
+nav a{margin-right:12px}details{margin:.5em 0}summary{cursor:pointer;color:#2a5d9f}
+pre{background:#f0f2f4;padding:10px;overflow:auto;font-size:.8em;max-height:420px}
+.note{background:#fff8e1;border-left:4px solid #f2c94c;padding:6px 10px;font-size:.9em}
+"""
+
+
+def _esc(x) -> str:
+    return html.escape(str(x))
+
+
+def _img(png: bytes, caption: str = "", width: int | None = None) -> str:
+    data = base64.b64encode(png).decode("ascii")
+    style = f' style="max-width:{width}px"' if width else ""
+    cap = f"<figcaption>{_esc(caption)}</figcaption>" if caption else ""
+    return f'<figure><img alt="{_esc(caption)}"{style} src="data:image/png;base64,{data}">{cap}</figure>'
+
+
+def _img_file(path: Path, caption: str, width: int | None = None) -> str:
+    return _img(path.read_bytes(), caption, width)
+
+
+def _table(frame: pd.DataFrame, pct: tuple[str, ...] = ()) -> str:
+    """A frame as an HTML table; ``pct`` columns (fractions) shown as percent with their _lo/_hi."""
+    shown = [c for c in frame.columns if not (c.endswith(("_lo", "_hi")) and c[:-3] in pct)]
+    head = "".join(f"<th>{_esc(c)}</th>" for c in shown)
+    rows = []
+    for _, r in frame.iterrows():
+        cells = []
+        for c in shown:
+            v = r[c]
+            if c in pct and pd.notna(v):
+                lo, hi = r.get(f"{c}_lo", np.nan), r.get(f"{c}_hi", np.nan)
+                ci = f' <span class="ci">[{100 * lo:.1f}, {100 * hi:.1f}]</span>' if pd.notna(lo) else ""
+                cells.append(f'<td class="num">{100 * v:.1f}{ci}</td>')
+            elif isinstance(v, (float, np.floating)):
+                cells.append(f'<td class="num">{"" if pd.isna(v) else f"{v:.4g}"}</td>')
+            else:
+                cells.append(f"<td>{_esc(v)}</td>")
+        rows.append("<tr>" + "".join(cells) + "</tr>")
+    return f"<table><tr>{head}</tr>{''.join(rows)}</table>"
+
+
+def _est(r, prefix: str, scale: float = 100.0, digits: int = 1) -> str:
+    est = Estimate(r[prefix], r[f"{prefix}_lo"], r[f"{prefix}_hi"])
+    if not np.isfinite(est.value):
+        return "<td></td>"
+    return (f'<td class="num">{est.value * scale:.{digits}f} <span class="ci">[{est.low * scale:.{digits}f}, '
+            f"{est.high * scale:.{digits}f}]</span></td>")
+
+
+# ------------------------------------------------------------------ sections
+
+def _section_config(run: Run) -> str:
+    cfg = run.config
+    rows = [("run folder", f"<code>{_esc(run.root.resolve())}</code>"),
+            ("config", f"<code>{_esc(run.root / 'config.json')}</code>"),
+            ("settings", _esc(", ".join(cfg.sim.settings()))),
+            ("classes", _esc(", ".join(map(str, cfg.sim.class_indices())) if cfg.sim.classes else "all 54")),
+            ("sequences per class", _esc(cfg.sim.sequences_per_class)),
+            ("render variants", _esc(", ".join(cfg.render.variants))),
+            ("models / seeds", _esc(f"{', '.join(cfg.train.models)} / {', '.join(map(str, cfg.train.seeds))}")),
+            ("intervals", _esc(f"{100 * cfg.eval.confidence:g}% percentile bootstrap over test sequences, "
+                               f"{cfg.eval.bootstrap} resamples"))]
+    body = "<table>" + "".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in rows) + "</table>"
+    full = _esc(json.dumps(to_dict(cfg), indent=2))
+    return f'<h2 id="config">Run and config</h2>{body}<details><summary>Full resolved config</summary><pre>{full}</pre></details>'
+
+
+def _section_table3(run: Run) -> str:
+    path = run.eval_dir / "table3.csv"
+    if not path.is_file():
+        return '<h2 id="table3">Table 3</h2><p class="note">No eval tables yet: run <code>clothgap eval</code>.</p>'
+    table = pd.read_csv(path)
+    if table.empty:
+        return '<h2 id="table3">Table 3</h2><p class="note">No in-domain results in this run.</p>'
+    models = tables.table3_models(table)
+    head = "".join(f"<th>{h}</th>" for h in ("Motion", "Re-mesh", "Texture", "Variant"))
+    head += "".join(f"<th>{_esc(tables.MODEL_TITLES.get(m, m))}</th>" for m in models)
+    rows = []
+    for _, r in table.iterrows():
+        cells = "".join(f"<td>{_esc(r[c])}</td>" for c in ("motion", "remeshing", "texture", "variant"))
+        cells += "".join(_est(r, f"{m}_acc") if pd.notna(r.get(f"{m}_acc")) else "<td></td>" for m in models)
+        rows.append(f"<tr>{cells}</tr>")
+    out = [f'<h2 id="table3">Table 3: accuracy on simulated test sequences</h2>',
+           "<p>Accuracy over 54 classes (% of 10-frame test sub-sequences) of each model trained and tested on the "
+           "same render variant, with the 95% interval from resampling test <em>sequences</em>. "
+           f"Source: <code>{_esc(run.eval_dir / 'table3.csv')}</code>. Paper (wind, Unif-1, Rand): "
+           "Base-1 53.6, Base-2 53.3, CNN+LSTM 64.7.</p>",
+           f"<table><tr>{head}</tr>{''.join(rows)}</table>"]
+    detail_cols = (("top3", "Top-3 %", 100.0, 1), ("stretch_acc", "Stretch factor %", 100.0, 1),
+                   ("bend_acc", "Bend factor %", 100.0, 1), ("class_dist", "Class distance (steps)", 1.0, 2),
+                   ("seq_acc", "Per video %", 100.0, 1))
+    for m in models:
+        head = "".join(f"<th>{h}</th>" for h in ("Setting", "Variant", *[d[1] for d in detail_cols],
+                                                  "Sequences", "Seeds", "Checkpoint(s)"))
+        rows = []
+        for _, r in table[table[f"{m}_acc"].notna()].iterrows():
+            cells = f"<td>{_esc(r['motion'])}-{_esc(r['remeshing'])}</td><td>{_esc(r['variant'])}</td>"
+            cells += "".join(_est(r, f"{m}_{key}", scale, digits) for key, _, scale, digits in detail_cols)
+            cells += (f'<td class="num">{int(r[f"{m}_sequences"])}</td><td>{_esc(r[f"{m}_seeds"])}</td>'
+                      f"<td><code>{_esc(r[f'{m}_checkpoints'])}</code></td>")
+            rows.append(f"<tr>{cells}</tr>")
+        out.append(f"<h3>{_esc(tables.MODEL_TITLES.get(m, m))}: details</h3>"
+                   f"<table><tr>{head}</tr>{''.join(rows)}</table>")
+    return "".join(out)
+
+
+def _section_confusion(run: Run) -> str:
+    root = run.eval_dir / "figures" / "confusion"
+    pngs = sorted(root.rglob("*.png")) if root.is_dir() else []
+    if not pngs:
+        return ""
+    inside, outside = [], []
+    for p in pngs:
+        setting, train_v, model = p.relative_to(root).parts[:3]
+        caption = f"{setting}, {model}: trained on {train_v}, tested on {p.stem}"
+        (inside if p.stem == train_v else outside).append(_img_file(p, caption, 460))
+    out = ['<h2 id="confusion">Confusion matrices</h2><p>Rows: true class (p, k), columns: predicted class; '
+           'colour = fraction of the true class, numbers = sub-sequence counts. '
+           f"Files: <code>{_esc(root)}</code>.</p>", f'<div class="figs">{"".join(inside)}</div>']
+    if outside:
+        out.append(f'<details><summary>Cross-variant confusion matrices ({len(outside)})</summary>'
+                   f'<div class="figs">{"".join(outside)}</div></details>')
+    return "".join(out)
+
+
+def _section_learning(run: Run) -> str:
+    cfg = run.config
+    figs = []
+    for setting in cfg.sim.settings():
+        for variant in cfg.render.variants:
+            for model in cfg.train.models:
+                for seed in cfg.train.seeds:
+                    folder = run.train_dir(setting, variant, model, seed)
+                    path = folder / "metrics.csv"
+                    if not path.is_file():
+                        continue
+                    try:
+                        frame = pd.read_csv(path)
+                    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError):
+                        continue
+                    if "epoch" not in frame or frame.empty:
+                        continue
+                    rel = folder.relative_to(run.root)
+                    state = "" if is_done(folder) else " (unfinished)"
+                    fig = figures.learning_curves(frame, f"{rel}{state}")
+                    figs.append(_img(figures.png_bytes(fig), f"{rel}/metrics.csv", 560))
+    if not figs:
+        return ""
+    return ('<h2 id="learning">Learning curves</h2><p>Per epoch, from each train folder\'s <code>metrics.csv</code>.</p>'
+            f'<div class="figs">{"".join(figs)}</div>')
+
+
+def _load_rgb(path: Path) -> np.ndarray:
+    with Image.open(path) as im:
+        return np.asarray(im.convert("RGB"))
+
+
+def _section_frames(run: Run) -> str:
+    """The same clip in every rendered variant, a few frames each (a paired view of the variants)."""
+    render_root = run.root / "render"
+    if not render_root.is_dir():
+        return ""
+    out = []
+    for setting in run.config.sim.settings():
+        variants = [v.name for v in sorted(render_root.iterdir()) if run.done_clips(run.render_dir(v.name, setting))]
+        if not variants:
+            continue
+        common = set.intersection(*(set(run.done_clips(run.render_dir(v, setting))) for v in variants))
+        if not common:
+            continue
+        clip = sorted(common)[0]
+        images, labels = {}, []
+        for v in variants:
+            frames = sorted((run.render_dir(v, setting) / clip / "ldr").glob("*.png"))
+            if not frames:
+                continue
+            picks = sorted({0, len(frames) // 2, len(frames) - 1})
+            images[v] = [_load_rgb(frames[i]) for i in picks]
+            labels = [f"frame {i}" for i in picks]
+        if images:
+            fig = figures.frame_grid(images, labels)
+            out.append(_img(figures.png_bytes(fig), f"{setting}, clip {clip} (render/<variant>/{setting}/{clip}/ldr)"))
+    if not out:
+        return ""
+    return ('<h2 id="frames">Sample frames per render variant</h2><p>One clip (same simulation) under every '
+            f'variant that was rendered.</p><div class="figs">{"".join(out)}</div>')
+
+
+def _section_gap(run: Run) -> str:
+    path = run.eval_dir / "domain_gap.csv"
+    if not path.is_file():
+        return ""
+    gap = pd.read_csv(path)
+    if gap.empty:
+        return ""
+    out = ['<h2 id="gap">Domain gap</h2><p><b>drop</b> = in-domain accuracy of the training variant minus '
+           "accuracy on the test variant; <b>gap</b> = accuracy of a model trained on the test variant minus this "
+           "one's, both with paired 95% sequence-bootstrap intervals. "
+           f"Source: <code>{_esc(path)}</code>.</p>"]
+    fig_root = run.eval_dir / "figures" / "gap"
+    pngs = sorted(fig_root.rglob("*.png")) if fig_root.is_dir() else []
+    if pngs:
+        out.append('<div class="figs">' + "".join(_img_file(p, str(p.relative_to(run.root)), 420) for p in pngs)
+                   + "</div>")
+    cols = ["setting", "model", "train_variant", "test_variant", "sequences", "acc", "acc_lo", "acc_hi",
+            "drop", "drop_lo", "drop_hi", "gap", "gap_lo", "gap_hi", "checkpoints"]
+    out.append(_table(gap[[c for c in cols if c in gap]], pct=("acc", "drop", "gap")))
+    rank_path = run.eval_dir / "axis_ranking.csv"
+    if rank_path.is_file():
+        ranking = pd.read_csv(rank_path)
+        if not ranking.empty:
+            out.append("<h3>Render axes ranked by the gap they close</h3><p><b>mean_gain</b>: accuracy gained on a "
+                       "test variant by training on a variant that matches it on this axis (fraction; "
+                       "<b>clean</b> = the two training variants differ in this axis only); <b>mean_share</b>: "
+                       "that gain over the gap it started from.</p>" + _table(ranking))
+    return "".join(out)
+
+
+def _csv_table(path: Path) -> str:
+    try:
+        return _table(pd.read_csv(path))
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as e:
+        return f'<p class="note">{_esc(path.name)} could not be read: {_esc(e)}</p>'
+
+
+def _section_sim_analysis(run: Run) -> str:
+    root = run.root / "sim_analysis"
+    if not root.is_dir():
+        return ""
+    csvs = sorted(root.rglob("*.csv"), key=lambda p: ("table2" not in p.name.lower(), p.name))
+    pngs = sorted(root.rglob("*.png"))
+    if not csvs and not pngs:
+        return ""
+    out = ['<h2 id="sim">Material sub-space: sensitivity and Table 2</h2>'
+           f"<p>From the sim stage's analysis in <code>{_esc(root)}</code> (the paper's Fig. 3 and Table 2).</p>"]
+    if pngs:
+        out.append('<div class="figs">' + "".join(_img_file(p, str(p.relative_to(run.root)), 520) for p in pngs)
+                   + "</div>")
+    for p in csvs:
+        out.append(f"<h3>{_esc(p.relative_to(run.root))}</h3>{_csv_table(p)}")
+    return "".join(out)
+
+
+def _section_extra_tables(run: Run) -> str:
+    """Real-video (Table 4) and measured-fabric outputs written under eval/real*/ or eval/measured*/."""
+    parts = []
+    for pattern, title in (("real*", "Real videos (Table 4)"), ("measured*", "Measured fabrics (Table 2 classes)")):
+        for folder in sorted(run.eval_dir.glob(pattern)):
+            if not folder.is_dir():
+                continue
+            for p in sorted(folder.glob("*.csv")):
+                parts.append(f"<h3>{_esc(title)}: <code>{_esc(p.relative_to(run.root))}</code></h3>{_csv_table(p)}")
+            parts += [_img_file(p, str(p.relative_to(run.root)), 520) for p in sorted(folder.glob("*.png"))]
+    return '<h2 id="real">Real and measured data</h2>' + "".join(parts) if parts else ""
+
+
+def write_report(run: Run) -> Path:
+    """Write ``report/report.html`` for the run (sections for whatever stages have finished)."""
+    sections = [("config", "Config", _section_config(run)), ("table3", "Table 3", _section_table3(run)),
+                ("confusion", "Confusion", _section_confusion(run)), ("learning", "Learning", _section_learning(run)),
+                ("frames", "Frames", _section_frames(run)), ("gap", "Domain gap", _section_gap(run)),
+                ("sim", "Sub-space", _section_sim_analysis(run)), ("real", "Real", _section_extra_tables(run))]
+    sections = [s for s in sections if s[2]]
+    nav = "".join(f'<a href="#{sid}">{_esc(title)}</a>' for sid, title, _ in sections)
+    stamp = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    doc = (f'<!DOCTYPE html><html lang="en"><head><meta charset="utf-8"><title>clothgap report: '
+           f"{_esc(run.config.name)}</title><style>{_CSS}</style></head><body><main>"
+           f"<h1>clothgap: {_esc(run.config.name)}</h1>"
+           f'<p class="meta">Run <code>{_esc(run.root.resolve())}</code>, written {stamp}. Rebuilds Yang, Liang, '
+           "Lin, <i>Learning-based Cloth Material Recovery from Video</i> (ICCV 2017) as a sim-to-real gap study.</p>"
+           f"<nav>{nav}</nav>{''.join(s[2] for s in sections)}</main></body></html>\n")
+    path = run.report_dir / "report.html"
+    atomic_write_text(path, doc)
+    return path
