@@ -1,0 +1,129 @@
+"""The render stage: every finished sim clip, under every variant of the run, to frames on disk.
+
+``run_render(run)`` walks ``variants x settings x done sim clips``, skips clip
+folders that are already finished (``DONE``), and renders the rest, one Mitsuba
+scene per clip (``render.scene.ClipRenderer``). Each clip folder gets::
+
+    hdr/0000.exr ...   linear RGBA cloth radiance (float32), when render.write_hdr
+    ldr/0000.png ...   8-bit sRGB RGB, composited and tone-mapped: what the network reads
+    meta.json          the sim meta + variant, render settings (backend, seeds, draws), num_frames
+    DONE               written last
+
+A clip that fails to render gets a ``FAILED`` file with the reason and no
+``DONE``; the stage goes on with the next clip and lists the failures in its
+summary, so one bad clip does not cost a long run.
+"""
+
+from __future__ import annotations
+
+import time
+import traceback
+import warnings
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+from tqdm import tqdm
+
+from clothgap.runs import Run, atomic_write_json, fresh_dir, is_done, mark_done
+from render.backend import load_mitsuba
+from render.backgrounds import Backgrounds
+from render.config import RenderConfig
+from render.exr import write_exr
+from render.scene import ClipRenderer
+from render.variants import RenderVariant, get_variant
+from render.video import compress_frames
+from sim.clip import SimClip
+
+FAILED = "FAILED"
+
+
+def clip_index_of(clip: SimClip, clip_dir: Path) -> int:
+    """The clip's index (seeds are per index): from its meta, else from its folder name (``c00012``)."""
+    if "index" in clip.meta:
+        return int(clip.meta["index"])
+    try:
+        return int(clip_dir.name.lstrip("c"))
+    except ValueError:
+        raise ValueError(f"{clip_dir}: meta.json has no 'index' and the folder name is not a clip id") from None
+
+
+def render_clip(clip: SimClip, variant: RenderVariant, out_dir: Path, *, config: RenderConfig, run_seed: int,
+                clip_index: int, backgrounds: Backgrounds | None = None) -> dict:
+    """Render all frames of ``clip`` into ``out_dir`` (hdr/, ldr/, meta.json); returns the meta written.
+
+    Does not write ``DONE``: the caller marks the folder finished once it is satisfied.
+    """
+    start = time.perf_counter()
+    renderer = ClipRenderer(clip, variant, resolution=config.resolution, spp=config.spp, run_seed=run_seed,
+                            clip_index=clip_index, backend=config.backend, backgrounds=backgrounds)
+    ldr_frames = []
+    for t in range(clip.num_frames):
+        frame = renderer.render_frame(t)
+        if config.write_hdr:
+            write_exr(out_dir / "hdr" / f"{t:04d}.exr", frame.hdr)
+        ldr_frames.append(frame.ldr)
+    if variant.video_crf > 0:
+        ldr_frames = compress_frames(ldr_frames, crf=variant.video_crf, fps=float(clip.meta.get("fps", 25.0)))
+    (out_dir / "ldr").mkdir(parents=True, exist_ok=True)
+    for t, ldr in enumerate(ldr_frames):
+        Image.fromarray(np.ascontiguousarray(ldr)).save(out_dir / "ldr" / f"{t:04d}.png")
+    meta = dict(clip.meta)
+    meta.update({
+        "variant": variant.name,
+        "render": {**variant.settings(), "resolution": config.resolution, "spp": config.spp,
+                   "write_hdr": config.write_hdr, **renderer.info, "scene_builds": renderer.rebuilds,
+                   "seconds": round(time.perf_counter() - start, 3)},
+        "num_frames": clip.num_frames,
+    })
+    atomic_write_json(out_dir / "meta.json", meta)
+    return meta
+
+
+def run_render(run: Run, progress: bool = True) -> dict:
+    """Render every finished sim clip of ``run`` under each of its variants; returns a summary.
+
+    Summary: ``backend``, ``rendered``, ``skipped`` (already done), ``failed``
+    (``[{variant, setting, clip_id, error}]``), ``skipped_backgrounds`` (unreadable
+    background files), ``seconds``, ``seconds_per_clip``, ``seconds_per_frame``.
+    """
+    config = run.config.render
+    variants = [get_variant(name) for name in config.variants]  # unknown names fail before any work
+    mi = load_mitsuba(config.backend)
+    jobs = [(variant, setting, clip_id)
+            for variant in variants
+            for setting in run.config.sim.settings()
+            for clip_id in run.done_clips(run.sim_dir(setting))]
+    backgrounds = {v.name: Backgrounds(v, config.resolution) for v in variants}
+    summary: dict = {"backend": mi.variant(), "rendered": 0, "skipped": 0, "failed": [], "frames": 0}
+    start = time.perf_counter()
+    render_seconds = 0.0
+    for variant, setting, clip_id in tqdm(jobs, desc="render", unit="clip", disable=not progress):
+        out_dir = run.render_dir(variant.name, setting) / clip_id
+        if is_done(out_dir):
+            summary["skipped"] += 1
+            continue
+        fresh_dir(out_dir)
+        clip_dir = run.sim_dir(setting) / clip_id
+        clip_start = time.perf_counter()
+        try:
+            clip = SimClip.load(clip_dir)
+            meta = render_clip(clip, variant, out_dir, config=config, run_seed=run.config.seed,
+                               clip_index=clip_index_of(clip, clip_dir), backgrounds=backgrounds[variant.name])
+        except Exception as e:  # one bad clip must not stop the run; it is recorded and reported
+            reason = f"{type(e).__name__}: {e}"
+            atomic_write_json(out_dir / FAILED, {"error": reason, "traceback": traceback.format_exc()})
+            summary["failed"].append({"variant": variant.name, "setting": setting, "clip_id": clip_id,
+                                      "error": reason})
+            warnings.warn(f"render {variant.name}/{setting}/{clip_id} failed: {reason}", stacklevel=2)
+            continue
+        render_seconds += time.perf_counter() - clip_start
+        mark_done(out_dir, {"frames": meta["num_frames"]})
+        summary["rendered"] += 1
+        summary["frames"] += meta["num_frames"]
+    summary["skipped_backgrounds"] = {f: r for b in backgrounds.values() for f, r in b.skipped.items()}
+    summary["seconds"] = round(time.perf_counter() - start, 3)
+    if summary["rendered"]:
+        summary["seconds_per_clip"] = round(render_seconds / summary["rendered"], 4)
+        summary["seconds_per_frame"] = round(render_seconds / summary["frames"], 5)
+    return summary
