@@ -256,13 +256,15 @@ class BatchSolver:
         winds = np.asarray(winds, dtype=np.float32).reshape(self.num_cloths, 3)
         self.wind.assign(winds)
 
-    def _split(self, a: np.ndarray) -> list[np.ndarray]:
+    def _split(self, a: wp.array) -> list[np.ndarray]:
+        # .numpy() of a CPU array is a view of the live buffer: copy before the next step changes it
+        a = a.numpy().copy()
         o = self.vertex_offsets
         return [a[o[c]:o[c + 1]] for c in range(self.num_cloths)]
 
     def positions(self) -> list[np.ndarray]:
         """Current positions, one (V, 3) float32 array per cloth."""
-        return self._split(self.x.numpy())
+        return self._split(self.x)
 
     def velocities(self) -> list[np.ndarray]:
-        return self._split(self.v.numpy())
+        return self._split(self.v)

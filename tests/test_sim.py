@@ -1,0 +1,329 @@
+"""The sim stage: material model check values, class grid, solver physics, and the stage's folders.
+
+Everything runs on the CPU with small meshes; all solver tests share the one
+compiled ``sim.kernels`` module (cached in ~/.cache/warp after the first run).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import warp as wp
+
+from clothgap.config import StudyConfig
+from clothgap.runs import Run, clip_id, is_done
+from sim import classes, kernels
+from sim.clip import SimClip
+from sim.config import SimConfig
+from sim.materials import bending_stiffness, green_strain, list_materials, load_material, stretching_stiffness
+from sim.mesh import ClothMesh, hinges_of, square_cloth, vertices_per_side
+from sim.motions import hanging_positions
+from sim.solver import BatchSolver, ClothSpec, SolverParams
+
+BASIS = load_material("camel-ponte-roma")
+
+
+# ---------------------------------------------------------------- material model
+
+def test_wang_check_values():
+    at_rest = stretching_stiffness(BASIS.stretching, np.zeros((2, 2)))
+    np.testing.assert_allclose(at_rest, [62.3, 0.0, 88.1, 63.8], atol=0.05)
+    F = np.array([[1.1, 0.0], [0.0, 1.0], [0.0, 0.0]])
+    stretched = stretching_stiffness(BASIS.stretching, green_strain(F))
+    np.testing.assert_allclose(stretched, [119.4, 21.9, 357.6, 58.8], atol=0.05)
+
+
+def test_all_ten_fabrics_load_with_provenance():
+    names = list_materials()
+    assert len(names) == 10 and "royal-target" in names
+    for name in names:
+        m = load_material(name)
+        assert m.stretching.shape == (6, 4) and m.bending.shape == (3, 5) and m.density > 0
+        assert m.garment and "%" in m.fibre
+
+
+def test_unknown_material_lists_known_names():
+    with pytest.raises(KeyError, match="camel-ponte-roma"):
+        load_material("no-such-cloth")
+
+
+# ---------------------------------------------------------------- class grid
+
+def test_class_grid_order_and_round_trip():
+    assert classes.NUM_CLASSES == 54
+    assert classes.class_values(0) == (0.5, 0.5) and classes.class_values(53) == (20.0, 20.0)
+    assert classes.class_values(9 * 2 + 4) == (2.0, 4.0)
+    for c in range(54):
+        assert classes.nearest_class(*classes.class_values(c)) == c
+    with pytest.raises(ValueError):
+        classes.class_values(54)
+
+
+def test_nearest_class_reproduces_paper_table2():
+    # (p~, k~) -> (p, k) from Table 2 of the paper
+    rows = [((1.3817, 2.3), (1, 2)), ((2.9343, 12), (3, 10)), ((1, 0.52), (1, 0.5)), ((15.8108, 3.5), (20, 4)),
+            ((0.5613, 1.7), (0.5, 2)), ((3.6079, 3), (3, 3)), ((22.2857, 19), (20, 20))]
+    for (pt, kt), pk in rows:
+        assert classes.class_values(classes.nearest_class(pt, kt)) == pk
+
+
+def test_jitter_stays_in_its_class():
+    rng = np.random.default_rng(0)
+    for c in range(54):
+        for _ in range(20):
+            p, k = classes.jitter_class(c, 0.3, rng)
+            assert classes.nearest_class(p, k) == c
+    p, k = classes.jitter_class(5, 0.0, rng)
+    assert (p, k) == classes.class_values(5)
+
+
+# ---------------------------------------------------------------- mesh
+
+def test_uniform_levels_vertex_counts():
+    for level in (1, 2, 3):
+        m = square_cloth(0.5, 5, level)
+        n = vertices_per_side(5, level)
+        assert m.num_vertices == n * n
+        assert len(m.faces) == 2 * (n - 1) ** 2
+        assert len(m.hinges) == 3 * (n - 1) ** 2 - 2 * (n - 1)   # interior edges
+
+
+# ---------------------------------------------------------------- solver
+
+def _hanging(n=9, size=0.4, p=1.0, k=1.0, wind=(0.0, 0.0, 0.0), level=1):
+    mesh = square_cloth(size, n, level)
+    pos, top = hanging_positions(mesh, size)
+    m = BASIS.scaled(p, k)
+    return ClothSpec(mesh, pos, m.stretching, m.bending, m.density, pinned=top, wind=wind)
+
+
+def _reference_energy(spec: ClothSpec, x: np.ndarray, frozen: dict | None = None) -> tuple[float, dict]:
+    """Total elastic energy from the numpy reference; with ``frozen`` stiffnesses held fixed."""
+    uv, faces = spec.mesh.uv, spec.mesh.faces
+    total, ks = 0.0, {}
+    areas = {}
+    for fi, (a, b, c) in enumerate(faces):
+        dm = np.stack([uv[b] - uv[a], uv[c] - uv[a]], 1)
+        area = 0.5 * np.linalg.det(dm)
+        areas[fi] = area
+        F = np.stack([x[b] - x[a], x[c] - x[a]], 1) @ np.linalg.inv(dm)
+        G = green_strain(F)
+        k = frozen["f", fi] if frozen else stretching_stiffness(spec.stretching, G)
+        ks["f", fi] = k
+        total += 0.5 * area * (k[0] * G[0, 0] ** 2 + 2 * k[1] * G[0, 0] * G[1, 1] + k[2] * G[1, 1] ** 2
+                               + k[3] * G[0, 1] ** 2)
+    face_of = {}
+    for fi, f in enumerate(faces):
+        for e in range(3):
+            face_of[int(f[e]), int(f[(e + 1) % 3])] = fi
+    for hi, (i0, i1, i2, i3) in enumerate(spec.mesh.hinges):
+        na = np.cross(x[i1] - x[i0], x[i2] - x[i0])
+        nb = np.cross(x[i3] - x[i0], x[i1] - x[i0])
+        theta = math.acos(np.clip(na @ nb / np.linalg.norm(na) / np.linalg.norm(nb), -1, 1))
+        l0 = np.linalg.norm(uv[i1] - uv[i0])
+        a0, a1 = areas[face_of[i0, i1]], areas[face_of[i1, i0]]
+        beta = math.atan2(*(uv[i1] - uv[i0])[::-1])
+        ke = frozen["h", hi] if frozen else bending_stiffness(spec.bending, theta * l0 / (a0 + a1), beta)
+        ks["h", hi] = ke
+        total += ke * l0 ** 2 / (2 * (a0 + a1)) * theta ** 2 / 4
+    return total, ks
+
+
+def _kernel_forces(solver: BatchSolver) -> np.ndarray:
+    """Internal forces (no gravity, no wind) as the step's kernels compute them."""
+    dev = solver.device
+    wp.launch(kernels.begin_step, solver.num_vertices, [solver.mass, wp.vec3(0.0, 0.0, 0.0), solver.force,
+                                                        solver.diag, solver.kv], device=dev)
+    wp.launch(kernels.face_prepare, solver.num_faces,
+              [solver.x, solver.v, solver.tri, solver.dm_inv, solver.area, solver.face_cloth, solver.stretch,
+               solver.wind, 0.0, 0.0, solver.force, solver.diag, solver.f0, solver.f1, solver.kmat, solver.smat],
+              device=dev)
+    wp.launch(kernels.hinge_prepare, solver.num_hinges,
+              [solver.x, solver.hinge, solver.hinge_length, solver.hinge_area, solver.hinge_dir,
+               solver.hinge_cloth, solver.bend, solver.force, solver.diag, solver.hinge_k, solver.hinge_grad],
+              device=dev)
+    return solver.force.numpy().astype(np.float64)
+
+
+def test_kernel_forces_are_minus_gradient_of_reference_energy():
+    spec = _hanging(n=4, size=0.1, p=1.0, k=200.0)   # strong bending so both terms matter
+    rng = np.random.default_rng(1)
+    x = spec.positions * np.array([1.08, 1.0, 0.97]) + rng.normal(scale=0.004, size=spec.positions.shape)
+    spec = replace(spec, positions=x)
+    f = _kernel_forces(BatchSolver([spec], device="cpu"))
+    _, frozen = _reference_energy(spec, x)
+    eps = 1e-6
+    grad = np.zeros_like(x)
+    for i in range(len(x)):
+        for d in range(3):
+            xp, xm = x.copy(), x.copy()
+            xp[i, d] += eps
+            xm[i, d] -= eps
+            grad[i, d] = (_reference_energy(spec, xp, frozen)[0] - _reference_energy(spec, xm, frozen)[0]) / (2 * eps)
+    np.testing.assert_allclose(f, -grad, rtol=2e-3, atol=2e-3 * np.abs(grad).max())
+
+
+def _run(specs, seconds, params=SolverParams()):
+    solver = BatchSolver(specs, params, device="cpu")
+    solver.step(int(round(seconds / params.dt)))
+    return solver
+
+
+def test_stiffer_stretching_stretches_less_under_gravity():
+    specs = [_hanging(p=p) for p in (0.5, 2.0, 20.0)]
+    solver = _run(specs, 1.0)
+    drop = [float(np.linalg.norm(x - s.positions, axis=1).max()) for x, s in zip(solver.positions(), specs)]
+    assert drop[0] > drop[1] > drop[2] > 0
+    assert drop[0] > 2 * drop[2]
+
+
+def _cantilever(k, length=0.24, width=0.04):
+    """A strip clamped horizontally at u = 0 (two columns pinned), free end at u = length."""
+    nu, nv = 13, 3
+    uu, vv = np.meshgrid(np.linspace(0, length, nu), np.linspace(0, width, nv))
+    uv = np.stack([uu.ravel(), vv.ravel()], 1)
+    faces = []
+    for j in range(nv - 1):
+        for i in range(nu - 1):
+            a, b, c, d = j * nu + i, j * nu + i + 1, (j + 1) * nu + i, (j + 1) * nu + i + 1
+            faces += [(a, b, d), (a, d, c)] if (i + j) % 2 == 0 else [(a, b, c), (b, d, c)]
+    faces = np.array(faces, np.int32)
+    mesh = ClothMesh(uv, faces, hinges_of(faces))
+    pos = np.stack([uv[:, 0], uv[:, 1], np.zeros(len(uv))], 1)
+    pinned = np.flatnonzero(uv[:, 0] <= length / (nu - 1) + 1e-9)
+    m = BASIS.scaled(20.0, k)
+    return ClothSpec(mesh, pos, m.stretching, m.bending, m.density, pinned=pinned)
+
+
+def test_cantilever_droop_grows_as_bending_stiffness_falls():
+    ks = (0.5, 2.0, 20.0, 200.0)
+    specs = [_cantilever(k) for k in ks]
+    solver = _run(specs, 1.5)
+    droop = [float(-x[:, 2].min()) for x in solver.positions()]
+    assert all(a > b for a, b in zip(droop, droop[1:])), droop
+    assert droop[-1] > 0
+
+
+def test_stiffer_bending_curves_less_in_wind():
+    specs = [_hanging(k=k, wind=(0.0, 2.0, 0.0)) for k in (0.5, 20.0)]
+    solver = _run(specs, 0.6)
+    curv = []
+    for x, s in zip(solver.positions(), specs):
+        h = s.mesh.hinges
+        na = np.cross(x[h[:, 1]] - x[h[:, 0]], x[h[:, 2]] - x[h[:, 0]])
+        nb = np.cross(x[h[:, 3]] - x[h[:, 0]], x[h[:, 1]] - x[h[:, 0]])
+        cos = np.einsum("ij,ij->i", na, nb) / np.linalg.norm(na, axis=1) / np.linalg.norm(nb, axis=1)
+        curv.append(float(np.arccos(np.clip(cos, -1, 1)).max()))
+    assert curv[0] > curv[1]
+
+
+def test_hanging_cloth_settles():
+    solver = _run([_hanging(p=1.0), _hanging(p=20.0)], 0.3)
+    early = [float(np.linalg.norm(v, axis=1).max()) for v in solver.velocities()]
+    solver.step(int(round(1.5 / solver.params.dt)))
+    late = [float(np.linalg.norm(v, axis=1).max()) for v in solver.velocities()]
+    assert all(lv < 0.2 * ev + 1e-4 for lv, ev in zip(late, early)), (early, late)
+    assert max(late) < 0.02
+
+
+def test_released_cloth_without_damping_does_not_gain_energy():
+    spec = _hanging(n=6, size=0.2, p=1.0, k=5.0)
+    rng = np.random.default_rng(3)
+    x0 = spec.positions * np.array([1.05, 1.0, 1.05]) + rng.normal(scale=0.003, size=spec.positions.shape)
+    x0[spec.pinned] = spec.positions[spec.pinned]
+    spec = replace(spec, positions=x0)
+    params = SolverParams(gravity=(0.0, 0.0, 0.0), damping=0.0, air_density=0.0, air_drag=0.0)
+    solver = BatchSolver([spec], params, device="cpu")
+    mass = solver.mass.numpy().astype(np.float64)
+    e0 = _reference_energy(spec, x0)[0]
+    for _ in range(10):
+        solver.step(10)
+        x, v = solver.positions()[0].astype(np.float64), solver.velocities()[0].astype(np.float64)
+        e = _reference_energy(spec, x)[0] + 0.5 * float(mass @ (v * v).sum(1))
+        assert np.isfinite(x).all() and e <= 1.01 * e0
+
+
+def test_extreme_classes_stay_finite_in_strong_wind():
+    specs = [_hanging(p=p, k=k, wind=(0.5, 4.0, 0.5), level=2) for p, k in ((0.5, 0.5), (20.0, 20.0))]
+    solver = _run(specs, 0.5)
+    for x, v in zip(solver.positions(), solver.velocities()):
+        assert np.isfinite(x).all() and np.linalg.norm(v, axis=1).max() < 30.0
+        assert np.abs(x).max() < 1.0
+
+
+def test_batched_equals_one_at_a_time():
+    specs = [_hanging(p=0.5, wind=(0.0, 1.5, 0.0)), _hanging(p=10.0, k=3.0, wind=(0.5, 1.0, 0.0))]
+    together = _run(specs, 0.1).positions()
+    alone = [_run([s], 0.1).positions()[0] for s in specs]
+    for a, b in zip(together, alone):
+        np.testing.assert_allclose(a, b, atol=1e-5)
+
+
+# ---------------------------------------------------------------- stage
+
+def _tiny_run(tmp_path, seed=0, **sim):
+    cfg = StudyConfig(name="tiny", seed=seed, sim=SimConfig(**{
+        "classes": (0, 53), "sequences_per_class": 1, "grid_vertices": 6, "frames": 3, "settle_s": 0.04,
+        "device": "cpu", "batch_size": 4, **sim}))
+    return Run.create_or_resume(tmp_path, cfg)
+
+
+def test_run_sim_writes_skips_and_redoes(tmp_path):
+    from sim.stage import run_sim
+
+    run = _tiny_run(tmp_path / "a")
+    assert run_sim(run, progress=False)["simulated"] == 2
+    folder = run.sim_dir("wind-uniform1")
+    assert [p.name for p in sorted(folder.iterdir())] == ["c00000", "c00001"]
+    for i, cls in enumerate((0, 53)):
+        clip = SimClip.load(folder / clip_id(i))
+        assert is_done(folder / clip_id(i))
+        assert clip.num_frames == 3 and clip.frame(0)[0].shape == (36, 3)
+        m = clip.meta
+        assert m["class_index"] == cls and m["status"] == "ok" and m["setting"] == "wind-uniform1"
+        assert classes.nearest_class(m["p"], m["k"]) == cls
+        for key in ("clip_id", "index", "motion", "remeshing", "p_class", "k_class", "basis", "density", "seed",
+                    "fps", "frames", "substeps", "dt", "motion_params"):
+            assert key in m
+    again = run_sim(run, progress=False)
+    assert again["simulated"] == 0 and again["skipped"] == 2
+    (folder / "c00001" / "DONE").unlink()
+    redo = run_sim(run, progress=False)
+    assert redo["simulated"] == 1 and is_done(folder / "c00001")
+
+    # same seed, same clips, bit for bit; material does not depend on the setting
+    other = _tiny_run(tmp_path / "b")
+    run_sim(other, progress=False)
+    a = SimClip.load(folder / "c00000")
+    b = SimClip.load(other.sim_dir("wind-uniform1") / "c00000")
+    np.testing.assert_array_equal(a.positions, b.positions)
+    assert a.meta["p"] == b.meta["p"] and a.meta["motion_params"] == b.meta["motion_params"]
+    third = _tiny_run(tmp_path / "c", seed=1)
+    run_sim(third, progress=False)
+    assert SimClip.load(third.sim_dir("wind-uniform1") / "c00000").meta["p"] != a.meta["p"]
+
+
+def test_exploding_clip_is_retried_then_marked_failed(tmp_path, monkeypatch):
+    import sim.stage
+
+    monkeypatch.setattr(sim.stage, "MAX_SPEED_MPS", 0.0)     # every frame now counts as an explosion
+    run = _tiny_run(tmp_path, classes=(0,))
+    summary = sim.stage.run_sim(run, progress=False)
+    assert summary["failed"] == 1 and summary["retried"] == 1
+    folder = run.sim_dir("wind-uniform1") / "c00000"
+    assert not is_done(folder)
+    reason = json.loads((folder / "FAILED").read_text())["reason"]
+    assert "retry with 16 substeps" in reason
+
+
+def test_unsupported_setting_is_a_clear_error():
+    from sim.stage import parse_setting
+
+    with pytest.raises(ValueError, match="uniform1, uniform2, uniform3"):
+        parse_setting("wind-adaptive")
+    with pytest.raises(ValueError, match="known motions"):
+        parse_setting("swim-uniform1")
