@@ -127,6 +127,11 @@ def resolve_backend(backend: str = "auto") -> str:
 
 def load_mitsuba(backend: str = "auto") -> ModuleType:
     """The ``mitsuba`` module with its variant set for ``backend`` ("auto" picks the fastest safe one)."""
+    if "drjit" not in sys.modules and not os.environ.get(LLVM_ENV):
+        # Whatever is asked for now, make a later switch to llvm_ad_rgb in this process safe.
+        found = find_libllvm()
+        if found is not None:
+            os.environ[LLVM_ENV] = str(found)
     variant = resolve_backend(backend)
     import mitsuba as mi
 

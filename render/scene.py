@@ -128,8 +128,11 @@ class ClipRenderer:
                 "type": "perspective", "fov": self.framing.fov_deg,
                 "to_world": mi.ScalarTransform4f().look_at(origin=self.framing.origin.tolist(),
                                                            target=self.framing.target.tolist(), up=[0, 0, 1]),
+                # A box filter gives each sample to exactly one pixel, as a sensor pixel integrates its own
+                # area; wider filters let neighbouring blocks/threads add to a pixel in a varying order,
+                # which made repeated renders differ in the last bit.
                 "film": {"type": "hdrfilm", "width": res, "height": res, "pixel_format": "rgba",
-                         "component_format": "float32"},
+                         "component_format": "float32", "rfilter": {"type": "box"}},
                 "sampler": {"type": "independent", "sample_count": self.spp},
             },
             "cloth": mesh,

@@ -1,0 +1,166 @@
+"""Rendered frames: HDR survives to EXR, seeds reproduce, alpha is kept, tone mapping is sane, the stage runs."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from clothgap.config import preset
+from clothgap.runs import Run, clip_id, is_done, mark_done
+from dataclasses import replace
+from render.backend import BackendError, MIN_LLVM_VERSION, _LLVM_NAME, find_libllvm, resolve_backend
+from render.exr import read_exr, write_exr
+from render.scene import ClipRenderer
+from render.synthetic import waving_sheet
+from render.tonemap import OPERATORS, tonemap
+from render.variants import USER_VARIANTS_ENV, get_variant
+
+BACKEND = "scalar_rgb"
+
+
+def render(variant="paper", clip_index=0, t=0, resolution=24, clip=None, **kw):
+    clip = clip or waving_sheet(frames=3, n=8)
+    renderer = ClipRenderer(clip, get_variant(variant), resolution=resolution, spp=2, run_seed=7,
+                            clip_index=clip_index, backend=BACKEND, **kw)
+    return renderer, renderer.render_frame(t)
+
+
+@pytest.mark.parametrize("half", [False, True])
+def test_hdr_above_one_survives_into_exr_exactly(tmp_path, half):
+    _, frame = render("grid")  # a light cloth under the key light
+    assert frame.hdr[..., :3].max() > 1.0, "the lighting must produce radiance above 1"
+    path = tmp_path / "f.exr"
+    write_exr(path, frame.hdr, half=half)
+    back = read_exr(path)
+    expected = frame.hdr.astype(np.float16 if half else np.float32)
+    assert back.dtype == expected.dtype and back.shape == expected.shape
+    assert np.array_equal(back, expected)
+    assert back[..., :3].max() > 1.0
+
+
+def test_same_seed_same_image_other_clip_other_image():
+    _, a = render(clip_index=3)
+    _, b = render(clip_index=3)
+    _, c = render(clip_index=4)
+    assert np.array_equal(a.hdr, b.hdr) and np.array_equal(a.ldr, b.ldr)
+    assert not np.array_equal(a.ldr, c.ldr)
+
+
+def test_turning_a_randomizer_on_does_not_change_the_others():
+    plain, _ = render("paper", clip_index=5)
+    noisy, _ = render("camera-noise", clip_index=5)
+    assert plain.info["draws"]["texture"] == noisy.info["draws"]["texture"]
+    assert np.array_equal(plain.texture.image, noisy.texture.image)
+    assert np.array_equal(plain.background, noisy.background)
+
+
+def test_alpha_is_cloth_coverage():
+    _, frame = render("paper", resolution=32)
+    alpha = frame.hdr[..., 3]
+    assert alpha.min() == 0.0 and alpha.max() == pytest.approx(1.0)
+    assert alpha[0, 0] == 0.0 and alpha[16, 16] == pytest.approx(1.0)  # a corner is background, the centre cloth
+    assert ((alpha > 0.01) & (alpha < 0.99)).any()  # partly covered edge pixels keep fractional alpha
+    assert np.all(frame.hdr[..., :3][alpha == 0] == 0)  # the background is not in the HDR frame
+
+
+def test_remeshed_clip_rebuilds_only_when_counts_change():
+    clip = waving_sheet(frames=6, n=8, remesh_every=2)
+    renderer = ClipRenderer(clip, get_variant("paper"), resolution=16, spp=1, run_seed=0, clip_index=0,
+                            backend=BACKEND)
+    for t in range(clip.num_frames):
+        renderer.render_frame(t)
+    assert renderer.rebuilds == 3
+
+
+@pytest.mark.parametrize("name", sorted(OPERATORS))
+def test_tonemap_operators_are_monotone_and_map_zero_to_zero(name):
+    ramp = np.concatenate([np.linspace(0, 2, 500), np.geomspace(2, 1e4, 500)])
+    display = OPERATORS[name](ramp)
+    assert display[0] == 0.0
+    assert np.all(np.diff(display) >= 0)
+    assert display.max() <= 1.0
+    grey = tonemap(np.repeat(ramp[None, :, None], 3, axis=2), name)
+    assert grey[0, 0].tolist() == [0, 0, 0]
+    assert np.all(np.diff(grey[0, :, 0].astype(int)) >= 0)
+
+
+def test_corrupt_background_is_reported_by_name_and_the_run_goes_on(tmp_path, monkeypatch):
+    backgrounds = tmp_path / "bg"
+    backgrounds.mkdir()
+    Image.fromarray(np.full((40, 60, 3), 120, np.uint8)).save(backgrounds / "room.png")
+    broken = {str(backgrounds / f"broken{i}.jpg") for i in range(5)}
+    for name in broken:
+        open(name, "wb").write(b"this is not a jpeg")
+    variants = tmp_path / "variants"
+    variants.mkdir()
+    (variants / "photos.toml").write_text(f'description = "photo backgrounds"\nbackground = "folder"\n'
+                                          f'background_dir = "{backgrounds}"\n')
+    monkeypatch.setenv(USER_VARIANTS_ENV, str(variants))
+    run = make_run(tmp_path / "run", variants=("photos",), clips=3)
+    from render.stage import run_render
+
+    with pytest.warns(UserWarning, match=r"background image .*broken\d\.jpg cannot be read") as record:
+        summary = run_render(run, progress=False)
+    assert summary["rendered"] == 3 and not summary["failed"]
+    assert summary["skipped_backgrounds"] and set(summary["skipped_backgrounds"]) <= broken
+    named = {m for w in record for m in re.findall(r"background image (\S+) cannot be read", str(w.message))}
+    assert named == set(summary["skipped_backgrounds"])  # every skipped file was reported by name
+
+
+def make_run(root, variants=("paper",), clips=2, frames=3):
+    cfg = preset("smoke")
+    cfg = replace(cfg, sim=replace(cfg.sim, frames=frames),
+                  render=replace(cfg.render, variants=variants, resolution=16, spp=1, backend=BACKEND))
+    run = Run.create_or_resume(root, cfg)
+    for setting in cfg.sim.settings():
+        for i in range(clips):
+            folder = run.sim_dir(setting) / clip_id(i)
+            waving_sheet(frames=frames, n=8, index=i, setting=setting).save(folder)
+            mark_done(folder)
+    return run
+
+
+def test_stage_writes_frames_meta_and_done_and_skips_done_clips(tmp_path):
+    from render.stage import run_render
+
+    run = make_run(tmp_path / "run", variants=("paper", "grid"))
+    summary = run_render(run, progress=False)
+    assert summary["rendered"] == 4 and summary["failed"] == [] and summary["backend"] == BACKEND
+    folder = run.render_dir("grid", run.config.sim.settings()[0]) / clip_id(1)
+    assert is_done(folder)
+    assert sorted(p.name for p in (folder / "ldr").iterdir()) == ["0000.png", "0001.png", "0002.png"]
+    assert read_exr(folder / "hdr" / "0002.exr").shape == (16, 16, 4)
+    with Image.open(folder / "ldr" / "0000.png") as im:
+        assert (im.mode, im.size) == ("RGB", (16, 16))
+    meta = json.loads((folder / "meta.json").read_text())
+    assert meta["variant"] == "grid" and meta["num_frames"] == 3 and meta["index"] == 1
+    assert meta["render"]["backend"] == BACKEND and meta["render"]["texture"] == "grid"
+    assert meta["render"]["sampler_seed"] > 0 and meta["render"]["spp"] == 1
+    again = run_render(run, progress=False)
+    assert again["rendered"] == 0 and again["skipped"] == 4
+
+
+def test_backend_choice():
+    with pytest.raises(BackendError, match="unknown render backend"):
+        resolve_backend("opengl")
+    assert resolve_backend("scalar_rgb") == "scalar_rgb"
+    found = find_libllvm()
+    if found is not None:
+        assert int(_LLVM_NAME.match(found.name).group(1)) >= MIN_LLVM_VERSION
+    assert resolve_backend("auto") in ("cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb")
+
+
+@pytest.mark.skipif(find_libllvm() is None, reason="no libLLVM 16+ on this machine")
+def test_llvm_backend_matches_scalar_roughly():
+    clip = waving_sheet(frames=1, n=8)
+    images = {}
+    for backend in ("llvm_ad_rgb", "scalar_rgb"):
+        renderer = ClipRenderer(clip, get_variant("grid"), resolution=16, spp=64, run_seed=0, clip_index=0,
+                                backend=backend)
+        images[backend] = renderer.render_frame(0).hdr
+    assert np.abs(images["llvm_ad_rgb"][..., 3] - images["scalar_rgb"][..., 3]).mean() < 0.02
+    assert abs(images["llvm_ad_rgb"][..., :3].mean() - images["scalar_rgb"][..., :3].mean()) < 0.05
