@@ -37,8 +37,10 @@ from eval import predictions as preds
 # (train_dir, clip_dirs) -> predict_clips-shaped frame; the default calls learn.predict.
 Predictor = Callable[[Path, list[Path]], pd.DataFrame]
 
-# Keys of a rendered clip's ``render`` meta that describe quality or seeding, not appearance.
-_NOT_AXES = {"resolution", "spp", "backend", "seed", "seeds", "write_hdr", "name", "description"}
+# Keys of a rendered clip's ``render`` meta that are per-clip draws, seeds or quality, not
+# appearance settings that variants compare (used when the render registry cannot say).
+_NOT_AXES = {"resolution", "spp", "backend", "write_hdr", "name", "description", "draws", "clip_index",
+             "seed_streams", "sampler_seed", "run_seed", "seed", "seeds"}
 
 
 @dataclass(frozen=True)
@@ -104,25 +106,38 @@ def _flatten(data: dict, prefix: str = "") -> dict:
     return out
 
 
-def variant_settings(run: Run, variant: str) -> dict:
-    """The appearance settings a variant was rendered with, flattened (from a rendered meta.json).
+def _axis_names() -> set[str] | None:
+    """The appearance settings a render variant defines (None when render.variants is unavailable)."""
+    try:
+        from render.variants import RenderVariant
+    except ImportError:
+        return None
+    return set(RenderVariant().settings())
 
-    Falls back to the render registry when no clip says; quality keys (spp,
-    resolution, seeds) are dropped because they are not what variants compare.
+
+def variant_settings(run: Run, variant: str) -> dict:
+    """The appearance settings a variant was rendered with, flattened, from a rendered meta.json.
+
+    Only the variant's own settings count as axes: per-clip draws, seeds and
+    quality (spp, resolution) are in the same meta but are not what variants
+    compare. Falls back to the render registry when no rendered clip says.
     """
+    allowed = _axis_names()
     for setting in run.config.sim.settings():
         folder = run.render_dir(variant, setting)
         for clip in run.done_clips(folder):
             meta = json.loads((folder / clip / "meta.json").read_text())
             render = meta.get("render")
             if isinstance(render, dict):
-                flat = _flatten(render)
-                return {k: v for k, v in flat.items() if k.rsplit(".", 1)[-1] not in _NOT_AXES}
+                if allowed is not None:
+                    return {k: v for k, v in render.items() if k in allowed}
+                return {k: v for k, v in _flatten(render).items()
+                        if not set(k.split(".")) & _NOT_AXES}
     try:
         from render.variants import get_variant
 
         return get_variant(variant).settings()
-    except Exception:  # the registry may not know a user's variant; no axes then
+    except (ImportError, ValueError):  # a user's variant the registry does not know: no axes
         return {}
 
 
