@@ -10,8 +10,10 @@ cloth exceeds 1 in linear radiance, so the tone-mapping operators matter.
 ``random`` draws, per clip, a procedural HDR environment (a soft ceiling-to-
 floor gradient with bright window-like patches) and one to three area lights of
 random direction, size, intensity and colour temperature (colour-science
-converts the temperature to linear sRGB). ``sunsky`` is daylight: Mitsuba's
-Hosek-Wilkie sun and sky with a random sun position and turbidity.
+converts the temperature to linear sRGB). ``daylight`` is a sun (a directional
+light, warmer when low) at a random position plus a procedural clear sky.
+(Mitsuba's own ``sunsky`` plugin was tried first, but with a z-up world its
+horizon check and orientation did not behave predictably.)
 
 ``room_shapes`` puts a floor and two walls around the cloth for
 ``background = "room"`` (the room is rendered, not composited).
@@ -33,8 +35,6 @@ UP = np.array([0.0, 0.0, 1.0])
 KEY_IRRADIANCE = 4.5
 FILL_IRRADIANCE = 1.0
 AMBIENT_RADIANCE = 0.25
-# Sunsky radiance is photometric (the sun alone is ~10^4); this brings it to the studio's exposure.
-SUNSKY_SCALE = 0.02
 
 
 @dataclass(frozen=True)
@@ -87,7 +87,7 @@ def _rectangle_light(mi: ModuleType, framing: Framing, direction: np.ndarray, di
 
 def _y_up_to_z_up(mi: ModuleType):
     """Mitsuba's environment emitters have +Y up; the simulator's world has +Z up."""
-    return mi.ScalarTransform4f().rotate([1, 0, 0], 90)
+    return mi.ScalarTransform4f().rotate([1, 0, 0], -90)  # measured: this sends the emitters' zenith to +Z
 
 
 def emitters(mi: ModuleType, variant: RenderVariant, framing: Framing,
@@ -97,8 +97,8 @@ def emitters(mi: ModuleType, variant: RenderVariant, framing: Framing,
         return _fixed(mi, framing), {"kind": "fixed"}
     if variant.lighting == "random":
         return _random(mi, framing, rng)
-    if variant.lighting == "sunsky":
-        return _sunsky(mi, rng)
+    if variant.lighting == "daylight":
+        return _daylight(mi, rng)
     raise ValueError(f"unknown lighting {variant.lighting!r}")
 
 
@@ -153,15 +153,31 @@ def _environment_map(rng: np.random.Generator, kelvin: float, height: int = 32) 
     return (image * cct_to_rgb(kelvin)).astype(np.float32)
 
 
-def _sunsky(mi: ModuleType, rng: np.random.Generator) -> tuple[dict, dict]:
+def _daylight(mi: ModuleType, rng: np.random.Generator) -> tuple[dict, dict]:
+    """A sun (directional, warmer when low) and a sky (blue zenith, pale horizon, dim ground) per clip."""
     elevation = float(rng.uniform(10, 70))
     azimuth = float(rng.uniform(0, 360))
-    turbidity = float(rng.uniform(2, 8))
     e, a = np.radians(elevation), np.radians(azimuth)
-    sun = [np.cos(e) * np.cos(a), np.sin(e), np.cos(e) * np.sin(a)]  # Y up, in the emitter's own frame
-    return ({"sunsky": {"type": "sunsky", "sun_direction": sun, "turbidity": turbidity,
-                        "sun_scale": SUNSKY_SCALE, "sky_scale": SUNSKY_SCALE, "to_world": _y_up_to_z_up(mi)}},
-            {"kind": "sunsky", "sun_elevation_deg": elevation, "sun_azimuth_deg": azimuth, "turbidity": turbidity})
+    toward_sun = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+    sun_kelvin = 3500.0 + 2500.0 * np.sin(e)  # low sun is reddened by the longer path through air
+    sun_irradiance = float(rng.uniform(3.0, 8.0))
+    sky_level = float(rng.uniform(0.3, 0.8))
+    return ({"sun": {"type": "directional", "direction": (-toward_sun).tolist(),
+                     "irradiance": {"type": "rgb", "value": (sun_irradiance * cct_to_rgb(sun_kelvin)).tolist()}},
+             "sky": {"type": "envmap", "bitmap": mi.Bitmap(_sky_map()), "scale": sky_level,
+                     "to_world": _y_up_to_z_up(mi)}},
+            {"kind": "daylight", "sun_elevation_deg": elevation, "sun_azimuth_deg": azimuth,
+             "sun_kelvin": sun_kelvin, "sun_irradiance": sun_irradiance, "sky_level": sky_level})
+
+
+def _sky_map(height: int = 32) -> np.ndarray:
+    """An equirectangular clear sky: deep blue at the zenith, pale at the horizon, grey-brown ground below."""
+    theta = (np.arange(height) + 0.5) / height * np.pi
+    height_above = np.clip(np.cos(theta), 0.0, 1.0)[:, None]
+    sky = (1 - height_above) * cct_to_rgb(7000) * 1.2 + height_above * cct_to_rgb(15000)
+    ground = np.array([0.35, 0.32, 0.28])
+    rows = np.where((np.cos(theta) > 0)[:, None], sky, ground)
+    return np.repeat(rows[:, None, :], 2 * height, axis=1).astype(np.float32)
 
 
 def room_shapes(mi: ModuleType, variant: RenderVariant, framing: Framing, rng: np.random.Generator) -> dict:

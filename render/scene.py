@@ -35,7 +35,7 @@ from sim.clip import SimClip
 
 FOV_DEG = 40.0
 ELEVATION_DEG = 12.0   # the camera looks slightly down on the cloth, as a person filming it would
-FRAME_MARGIN = 1.15    # the clip's bounding box fills 1/1.15 of the frame
+FRAME_MARGIN = 1.3     # the clip's bounding box fills 1/1.3 of the frame: background shows around it
 
 # Named seed streams (clothgap.seeding): one per randomizer, never renamed.
 STREAMS = ("texture", "background", "lighting", "room", "camera", "noise", "sampler")

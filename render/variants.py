@@ -34,7 +34,7 @@ PAPER = "paper"
 CHOICES: dict[str, tuple[str, ...]] = {
     "texture": ("random", "grid", "color"),
     "bsdf": ("principled", "diffuse", "principledthin", "tabulated", "measured"),
-    "lighting": ("fixed", "random", "sunsky"),
+    "lighting": ("fixed", "random", "daylight"),
     "background": ("procedural", "none", "folder", "room"),
     "background_split": ("all", "train", "heldout"),
     "tonemap": ("srgb_clip", "reinhard", "filmic"),
@@ -60,7 +60,7 @@ class RenderVariant:
     diffuse_transmission: float = 0.3       # principledthin only: light passing through thin fabric
     measured_file: str = ""                 # bsdf="measured": an RGL .bsdf file
     # Lighting and surroundings
-    lighting: str = "fixed"                 # "fixed" (key + fill + ambient), "random" (per clip), "sunsky"
+    lighting: str = "fixed"                 # "fixed" (key + fill + ambient), "random" (per clip), "daylight"
     background: str = "procedural"          # "procedural" indoor image, "none" (black), "folder" images, "room" geometry
     background_dir: str = ""                # background="folder": images (png/jpg/exr) to draw from
     background_split: str = "all"           # "train" / "heldout": a fixed 80/20 split of background_dir by file name
