@@ -62,6 +62,8 @@ def read_frames(clip_dir: Path, size: int) -> np.ndarray:
         raise FrameError(f"clip {clip_dir.name}: no frames in {clip_dir / 'ldr'}")
     out = np.empty((len(paths), size, size, 3), np.uint8)
     for t, path in enumerate(paths):
+        if not path.is_file():
+            raise FrameError(f"clip {clip_dir.name}: frame {path} is missing")
         try:
             with Image.open(path) as img:
                 img = img.convert("RGB")
@@ -69,7 +71,7 @@ def read_frames(clip_dir: Path, size: int) -> np.ndarray:
                     img = img.resize((size, size), Image.Resampling.BILINEAR)
                 out[t] = np.asarray(img)
         except (OSError, ValueError, SyntaxError) as err:
-            raise FrameError(f"clip {clip_dir.name}: frame {path} is missing or unreadable ({err})") from err
+            raise FrameError(f"clip {clip_dir.name}: frame {path} is unreadable ({err})") from err
     return out
 
 
@@ -122,7 +124,7 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
         index = json.loads(index_path.read_text())
         if index.get("version") == CACHE_VERSION and index.get("signature") == signature:
             for cid, reason in index["skipped"].items():
-                warnings.warn(f"clip {cid} of {variant}/{setting} left out: {reason}", stacklevel=2)
+                warnings.warn(f"{reason}; clip left out of {variant}/{setting} (cached)", stacklevel=2)
             return FrameCache(array_path, [CachedClip(**c) for c in index["clips"]])
         index_path.unlink()
 
@@ -136,7 +138,7 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
         try:
             frames = read_frames(render_dir / cid, size)
         except FrameError as err:
-            warnings.warn(f"{err}; clip {cid} of {variant}/{setting} left out", stacklevel=2)
+            warnings.warn(f"{err}; clip left out of {variant}/{setting}", stacklevel=2)
             skipped[cid] = str(err)
             continue
         array[offset:offset + len(frames)] = frames

@@ -1,0 +1,92 @@
+"""The model registry: shapes, losses that fall, the frozen CNN, CNN weights from files."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from learn.models import MODEL_NAMES, NUM_BEND, build_model, load_cnn_weights
+
+TINY = dict(width=8, fc6=32, hidden=16, dropout=0.0)
+
+
+def test_unknown_model_lists_the_known_ones():
+    with pytest.raises(ValueError, match="known models: lrcn, base1, base2, base3"):
+        build_model("alexnet", image_size=32, **TINY)
+
+
+@pytest.mark.parametrize("size", [32, 48, 224])
+def test_any_multiple_of_16_from_32_to_224(size):
+    model = build_model("lrcn", image_size=size, factored=True, **TINY)
+    out = model(torch.rand(2, 3, 3, size, size))
+    assert out["logits"].shape == (2, 3, 54) and out["stretch"].shape == (2, 3, 6) and out["bend"].shape == (2, 3, 9)
+    assert torch.allclose(model.probs(out).sum(-1), torch.ones(2))
+    with pytest.raises(ValueError, match="multiple of 16"):
+        build_model("lrcn", image_size=40, **TINY)
+
+
+def _fit(model, steps: int = 60) -> tuple[float, float, torch.Tensor]:
+    """Adam on one fixed batch of 4 clips: (first loss, last loss, eval-mode predictions)."""
+    torch.manual_seed(0)
+    x, y = torch.rand(4, 3, 3, 32, 32), torch.tensor([0, 8, 45, 53])
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=1e-2)
+    first = model.loss(model(x), y).item()
+    for _ in range(steps):
+        loss = model.loss(model(x), y)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    model.eval()
+    with torch.no_grad():
+        return first, loss.item(), model.probs(model(x)).argmax(-1)
+
+
+@pytest.mark.parametrize("name", MODEL_NAMES)
+def test_each_model_overfits_a_tiny_batch(name):
+    torch.manual_seed(0)
+    first, last, pred = _fit(build_model(name, image_size=32, **TINY))
+    assert last < 0.2 * first
+    assert pred.tolist() == [0, 8, 45, 53]
+
+
+def test_factored_heads_train_with_the_main_head():
+    torch.manual_seed(0)
+    first, last, _ = _fit(build_model("lrcn", image_size=32, factored=True, **TINY))
+    assert last < 0.3 * first
+
+
+def test_base2_keeps_its_cnn_frozen_and_in_eval_mode():
+    model = build_model("base2", image_size=32, width=8, fc6=32, hidden=16)
+    before = {k: v.clone() for k, v in model.cnn.state_dict().items()}
+    model.train()
+    assert not model.cnn.training and model.temporal.training
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=1e-2)
+    model.loss(model(torch.rand(2, 3, 3, 32, 32)), torch.tensor([1, 2])).backward()
+    opt.step()
+    assert all(torch.equal(before[k], v) for k, v in model.cnn.state_dict().items())
+
+
+def test_readouts_and_factored_labels():
+    last = build_model("lrcn", image_size=32, readout="last", **TINY)
+    out = {"logits": torch.zeros(1, 3, 54)}
+    out["logits"][0, -1, 7] = 10.0
+    assert last.probs(out).argmax().item() == 7
+    assert build_model("base1", image_size=32, readout="last", **TINY).readout == "mean"
+    assert divmod(53, NUM_BEND) == (5, 8)   # class index = 9 * stretching + bending
+    with pytest.raises(ValueError, match="readout"):
+        build_model("lrcn", image_size=32, readout="max", **TINY)
+
+
+def test_cnn_weights_load_from_files_and_mismatches_are_named(tmp_path):
+    source = build_model("base1", image_size=32, **TINY)
+    path = tmp_path / "cnn.pt"
+    torch.save({"model": source.state_dict()}, path)
+    target = build_model("base2", image_size=32, **TINY)
+    load_cnn_weights(target, path)
+    assert all(torch.equal(v, source.cnn.state_dict()[k]) for k, v in target.cnn.state_dict().items())
+    torch.save(source.cnn.state_dict(), path)   # a bare CNN state dict works as well
+    load_cnn_weights(target, path)
+    with pytest.raises(ValueError, match="fc6.1.weight"):
+        load_cnn_weights(build_model("lrcn", image_size=64, **TINY), path)
+    with pytest.raises(FileNotFoundError, match="nothing is ever downloaded"):
+        load_cnn_weights(target, tmp_path / "absent.pt")

@@ -1,0 +1,61 @@
+"""Splits are by simulated sequence, stratified by class, written once and shared."""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+
+import pytest
+
+from clothgap.config import ConfigError, StudyConfig
+from clothgap.runs import Run, clip_id, mark_done
+from learn.config import TrainConfig
+from learn.split import get_or_make_split, split_sequences
+
+
+def _labels(classes: int, per_class: int) -> dict[str, int]:
+    return {clip_id(i): i % classes for i in range(classes * per_class)}
+
+
+def test_each_sequence_on_exactly_one_side_and_stratified():
+    labels = _labels(54, 12)
+    split = split_sequences(labels, val_fraction=0.1, test_fraction=1 / 6, seed=3)
+    sides = [set(split[p]) for p in ("train", "val", "test")]
+    assert not (sides[0] & sides[1] or sides[0] & sides[2] or sides[1] & sides[2])
+    assert set().union(*sides) == set(labels)
+    for part, expected in (("test", 2), ("val", 1), ("train", 9)):
+        assert Counter(labels[c] for c in split[part]) == {c: expected for c in range(54)}
+
+
+def test_split_depends_on_seed_only_and_keeps_one_for_training():
+    labels = _labels(4, 3)
+    assert split_sequences(labels, 0.2, 0.4, seed=1) == split_sequences(dict(reversed(labels.items())), 0.2, 0.4, 1)
+    assert split_sequences(labels, 0.2, 0.4, seed=1) != split_sequences(labels, 0.2, 0.4, seed=2)
+    tiny = split_sequences(_labels(3, 1), 0.3, 0.6, seed=0)   # one sequence per class: all train
+    assert len(tiny["train"]) == 3 and not tiny["val"] and not tiny["test"]
+    with pytest.raises(ConfigError, match="val_fraction"):
+        split_sequences(labels, 0.5, 0.5, seed=0)
+
+
+def test_get_or_make_split_writes_once_in_contract_format(tmp_path):
+    cfg = StudyConfig(train=TrainConfig(val_fraction=0.0, test_fraction=0.25))
+    run = Run.create_or_resume(tmp_path / "run", cfg)
+    setting = cfg.sim.settings()[0]
+    for i, label in _labels(4, 4).items():   # rendered clips only: a run that starts at render
+        folder = run.render_dir("paper", setting) / i
+        folder.mkdir(parents=True)
+        (folder / "meta.json").write_text(json.dumps({"class_index": label}))
+        mark_done(folder)
+    split = get_or_make_split(run, setting)
+    on_disk = json.loads(run.split_path(setting).read_text())
+    assert on_disk == split and set(on_disk) == {"by", "seed", "train", "val", "test"}
+    assert on_disk["by"] == "sequence" and len(on_disk["test"]) == 4 and on_disk["val"] == []
+    before = run.split_path(setting).stat().st_mtime_ns
+    assert get_or_make_split(run, setting) == split
+    assert run.split_path(setting).stat().st_mtime_ns == before
+
+
+def test_missing_clips_name_the_command(tmp_path):
+    run = Run.create_or_resume(tmp_path / "run", StudyConfig())
+    with pytest.raises(ConfigError, match="clothgap sim"):
+        get_or_make_split(run, "wind-uniform1")
