@@ -1,0 +1,99 @@
+"""Training end to end on synthetic clips: outputs, resume after a kill, the grid, predictions."""
+
+from __future__ import annotations
+
+import json
+
+import pandas as pd
+import pytest
+import torch
+
+import learn.train
+from clothgap.config import StudyConfig
+from clothgap.runs import is_done
+from learn.config import TrainConfig
+from learn.predict import load_model, predict_clips
+from learn.split import get_or_make_split
+from learn.stage import run_train
+from learn.synthetic import synthetic_run
+from learn.train import train_one
+from render.config import RenderConfig
+from sim.config import SimConfig
+
+SETTING, VARIANT = "wind-uniform1", "paper"
+
+
+def tiny_config(**train) -> StudyConfig:
+    """Four classes at the corners of the (p, k) grid, short clips, a very small network."""
+    base = dict(image_size=32, clip_len=6, clip_stride=5, epochs=3, batch_size=8, width=8, fc6=32, hidden=16,
+                dropout=0.2, val_fraction=0.25, test_fraction=0.25, lr=3e-3, num_threads=2)
+    return StudyConfig(sim=SimConfig(classes=(0, 8, 45, 53), sequences_per_class=4, frames=16),
+                       render=RenderConfig(resolution=32), train=TrainConfig(**{**base, **train}))
+
+
+class SimulatedKill(Exception):
+    pass
+
+
+def test_train_one_writes_its_folder_and_a_killed_run_resumes_to_the_same_weights(tmp_path, monkeypatch):
+    cfg = tiny_config(augment=True)
+    whole = synthetic_run(tmp_path / "whole", cfg)
+    killed = synthetic_run(tmp_path / "killed", cfg)
+    out = train_one(whole, SETTING, VARIANT, "lrcn", 0, progress=False)
+
+    ckpt = torch.load(out / "checkpoint.pt", weights_only=True)
+    assert {"model", "model_name", "model_args", "num_classes", "setting", "variant", "seed", "config"} <= set(ckpt)
+    assert ckpt["num_classes"] == 54 and ckpt["model_name"] == "lrcn" and ckpt["variant"] == VARIANT
+    metrics = pd.read_csv(out / "metrics.csv")
+    assert list(metrics.columns) == ["epoch", "train_loss", "train_acc", "val_loss", "val_acc", "lr", "seconds"]
+    assert metrics.epoch.tolist() == [0, 1, 2] and metrics.val_acc.notna().all()
+    assert any((out / "tb").iterdir()) and (out / "last.pt").is_file() and is_done(out)
+    assert json.loads((out / "config.json").read_text())["train"]["epochs"] == 3
+
+    save_state = learn.train._save_state
+
+    def save_then_die(path, state):
+        save_state(path, state)
+        raise SimulatedKill
+
+    monkeypatch.setattr(learn.train, "_save_state", save_then_die)
+    with pytest.raises(SimulatedKill):
+        train_one(killed, SETTING, VARIANT, "lrcn", 0, progress=False)
+    monkeypatch.setattr(learn.train, "_save_state", save_state)
+    resumed_dir = killed.train_dir(SETTING, VARIANT, "lrcn", 0)
+    before_kill = pd.read_csv(resumed_dir / "metrics.csv")
+    assert not is_done(resumed_dir) and len(before_kill) == 1
+    train_one(killed, SETTING, VARIANT, "lrcn", 0, progress=False)
+
+    resumed = torch.load(resumed_dir / "checkpoint.pt", weights_only=True)["model"]
+    assert all(torch.equal(resumed[k], v) for k, v in ckpt["model"].items())
+    again = pd.read_csv(resumed_dir / "metrics.csv")
+    pd.testing.assert_frame_equal(again.drop(columns="seconds"), metrics.drop(columns="seconds"))
+    assert again.seconds[0] == before_kill.seconds[0]   # epoch 0 was resumed from, not redone
+
+    stamp = (out / "DONE").stat().st_mtime_ns
+    assert train_one(whole, SETTING, VARIANT, "lrcn", 0, progress=False) == out   # finished: skipped
+    assert (out / "DONE").stat().st_mtime_ns == stamp
+
+
+def test_trained_model_beats_chance_on_held_out_sequences(tmp_path):
+    run = synthetic_run(tmp_path / "run", tiny_config(epochs=8, val_fraction=0.0, dropout=0.0))
+    out = train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
+    test_clips = [run.render_dir(VARIANT, SETTING) / c for c in get_or_make_split(run, SETTING)["test"]]
+    pred = predict_clips(out, test_clips, device="cpu", batch_size=5)
+    assert list(pred.columns) == ["clip_id", "start", "class_index", "pred", "probs"]
+    assert len(pred) == len(test_clips) * 3 and pred.probs.iloc[0].shape == (54,)
+    assert (pred.pred == pred.class_index).mean() > 0.25 + 0.15   # chance is 1/4
+    assert not load_model(out).training
+
+
+def test_run_train_grid_base2_freezes_base1s_cnn_and_writes_the_index(tmp_path):
+    cfg = tiny_config(models=("base2", "base1"), epochs=1, val_fraction=0.0, factored=True)
+    run = synthetic_run(tmp_path / "run", cfg)
+    index = run_train(run, progress=False)
+    assert [(e["model"], e["done"]) for e in index["entries"]] == [("base1", True), ("base2", True)]
+    assert json.loads((run.root / "train" / "index.json").read_text()) == index
+    base1 = torch.load(run.root / index["entries"][0]["dir"] / "checkpoint.pt", weights_only=True)["model"]
+    base2 = torch.load(run.root / index["entries"][1]["dir"] / "checkpoint.pt", weights_only=True)["model"]
+    assert all(torch.equal(base2[k], v) for k, v in base1.items() if k.startswith("cnn."))
+    assert "temporal.weight_ih_l0" in base2 and "head_bend.weight" in base2
