@@ -131,7 +131,8 @@ def _resumable_state(out: Path, resolved: dict) -> dict | None:
     if not (last.is_file() and config.is_file()):
         return None
     stored = json.loads(config.read_text())
-    if any(stored.get(k) != resolved[k] for k in ("train", "model_args", "torch_seed", "cnn_init")):
+    wanted = json.loads(json.dumps(resolved))   # tuples read back as lists
+    if any(stored.get(k) != wanted[k] for k in ("train", "model_args", "torch_seed", "cnn_init")):
         return None
     return torch.load(last, map_location="cpu", weights_only=False)
 
