@@ -4,8 +4,7 @@ from __future__ import annotations
 
 from clothgap.runs import Run, atomic_write_json, is_done
 from learn.models import MODEL_NAMES
-from learn.split import get_or_make_split
-from learn.train import train_one
+from learn.train import is_main, train_one
 
 
 def training_grid(run: Run) -> list[tuple[str, str, str, int]]:
@@ -28,8 +27,6 @@ def run_train(run: Run, progress: bool = True) -> dict:
     The index lists every grid entry with its folder (relative to the run) and
     whether it is done, so eval finds results without walking the tree.
     """
-    for setting in run.config.sim.settings():
-        get_or_make_split(run, setting)
     grid = training_grid(run)
     index_path = run.root / "train" / "index.json"
 
@@ -40,7 +37,8 @@ def run_train(run: Run, progress: bool = True) -> dict:
             entries.append({"setting": setting, "variant": variant, "model": model, "seed": seed,
                             "dir": str(folder.relative_to(run.root)), "done": is_done(folder)})
         index = {"entries": entries}
-        atomic_write_json(index_path, index)
+        if is_main():   # under torchrun, one process writes
+            atomic_write_json(index_path, index)
         return index
 
     for setting, variant, model, seed in grid:

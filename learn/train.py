@@ -16,17 +16,18 @@ uninterrupted one: the data order and augmentations of an epoch depend only on
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import json
 import math
+import os
 import random
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
-from torch.utils.data import DataLoader
+from torch.utils.data import DataLoader, DistributedSampler
 
 from clothgap import seeding
 from clothgap.config import ConfigError
@@ -69,29 +70,74 @@ def make_scheduler(optimizer: torch.optim.Optimizer, name: str, epochs: int):
     raise ConfigError(f"train.schedule={name!r}: known schedules are {', '.join(SCHEDULES)}")
 
 
-def run_epoch(model: ClipClassifier, loader: DataLoader, device: torch.device, optimizer=None,
-              amp: bool = False, progress: bool = False, desc: str = "") -> tuple[float, float]:
-    """One pass over ``loader``: trains when given an optimizer, else evaluates. Returns (loss, accuracy)."""
+def run_epoch(net: torch.nn.Module, model: ClipClassifier, loader: DataLoader, device: torch.device,
+              optimizer=None, amp: bool = False, progress: bool = False, desc: str = "") -> torch.Tensor:
+    """One pass over ``loader``, training when given an optimizer, else evaluating.
+
+    ``net`` is what runs the forward pass (``model`` itself, or it wrapped by
+    DDP / torch.compile); ``model`` gives the loss and readout. Returns the sums
+    (loss x clips, correct clips, clips) as a float64 tensor, so that ranks can add them.
+    """
     from tqdm import tqdm
 
     training = optimizer is not None
-    model.train(training)
-    total_loss, correct, count = 0.0, 0, 0
+    net.train(training)
+    sums = torch.zeros(3, dtype=torch.float64)
     with torch.set_grad_enabled(training):
         for frames, labels in tqdm(loader, desc=desc, disable=not progress, leave=False):
             x, y = to_input(frames, device), labels.to(device)
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
-                out = model(x)
-            core = getattr(model, "_orig_mod", model)  # the module behind torch.compile
-            loss = core.loss(out, y)
+                out = net(x)
+            loss = model.loss(out, y)
             if training:
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()
-            total_loss += loss.item() * len(y)
-            correct += (core.probs(out).argmax(-1) == y).sum().item()
-            count += len(y)
-    return (total_loss / count, correct / count) if count else (math.nan, math.nan)
+            sums += torch.tensor([loss.item() * len(y), (model.probs(out).argmax(-1) == y).sum().item(), len(y)],
+                                 dtype=torch.float64)
+    return sums
+
+
+def _loss_and_accuracy(sums: torch.Tensor, all_ranks: bool = False) -> tuple[float, float]:
+    if all_ranks and _world_size() > 1:
+        sums = sums.to(_comm_device())
+        torch.distributed.all_reduce(sums)
+        sums = sums.cpu()
+    loss, correct, count = sums.tolist()
+    return (loss / count, correct / count) if count else (math.nan, math.nan)
+
+
+# ---------------------------------------------------------------- torchrun (DDP)
+
+def _world_size() -> int:
+    return torch.distributed.get_world_size() if torch.distributed.is_initialized() else 1
+
+
+def _rank() -> int:
+    return torch.distributed.get_rank() if torch.distributed.is_initialized() else 0
+
+
+def is_main() -> bool:
+    """True in the one process that writes files (rank 0, or the only process)."""
+    return _rank() == 0
+
+
+def _barrier() -> None:
+    if _world_size() > 1:
+        torch.distributed.barrier()
+
+
+def _comm_device() -> torch.device:
+    backend = torch.distributed.get_backend()
+    return torch.device("cuda", torch.cuda.current_device()) if backend == "nccl" else torch.device("cpu")
+
+
+def _process_device(cfg_device: str) -> torch.device:
+    """The configured device; under torchrun on CUDA, this process's own GPU (LOCAL_RANK)."""
+    device = resolve_device(cfg_device)
+    if device.type == "cuda" and _world_size() > 1:
+        return torch.device("cuda", int(os.environ.get("LOCAL_RANK", 0)))
+    return device
 
 
 # ---------------------------------------------------------------- files of a training folder
@@ -165,6 +211,8 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
 
     A finished folder (``DONE``) is returned as is; an unfinished one with a
     matching ``last.pt`` resumes after its last epoch; anything else starts over.
+    Under torchrun (an initialised process group) every process trains its share
+    of each epoch through DDP, ``batch_size`` is per process, and rank 0 writes.
     """
     cfg = run.config.train
     out = run.train_dir(setting, variant, model_name, seed)
@@ -172,12 +220,18 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
         return out
     if cfg.num_threads:
         torch.set_num_threads(cfg.num_threads)
-    device = resolve_device(cfg.device)
+    main, world = is_main(), _world_size()
+    progress = progress and main
+    device = _process_device(cfg.device)
     cnn_init = _cnn_init(run, setting, variant, model_name, seed, progress)
     torch_seed = training_seed(run, model_name, seed)
 
+    if not main:
+        _barrier()  # rank 0 writes the split and the frame cache first; the others then read them
     split = get_or_make_split(run, setting)
     cache = build_cache(run, variant, setting, cfg.image_size, progress)
+    if main:
+        _barrier()
     train_set = SubsequenceDataset(cache, split["train"], cfg.clip_len, cfg.clip_stride, cfg.augment, torch_seed)
     val_set = SubsequenceDataset(cache, split["val"], cfg.clip_len, cfg.clip_stride)
     if not len(train_set):
@@ -186,10 +240,11 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
     args = model_args(cfg)
     resolved = {"train": dataclasses.asdict(cfg), "model": model_name, "model_args": args, "setting": setting,
                 "variant": variant, "seed": seed, "run_seed": run.config.seed, "torch_seed": torch_seed,
-                "cnn_init": cnn_init, "device": str(device), "train_subsequences": len(train_set),
-                "val_subsequences": len(val_set)}
+                "cnn_init": cnn_init, "device": str(device), "world_size": world,
+                "train_subsequences": len(train_set), "val_subsequences": len(val_set)}
     state = _resumable_state(out, resolved)
-    if state is None:
+    _barrier()  # every rank has read last.pt before rank 0 may clear the folder
+    if state is None and main:
         fresh_dir(out)
         atomic_write_json(out / "config.json", resolved)
 
@@ -207,50 +262,129 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
-        _set_rng_states(state["rng"])
+        rng = state["rng"]
+        if len(rng) != world:
+            warnings.warn(f"{out}: last.pt was written by {len(rng)} process(es), resuming with {world}: "
+                          "the result will differ from an uninterrupted run", stacklevel=2)
+        _set_rng_states(rng[min(_rank(), len(rng) - 1)])
         metrics, start_epoch = state["metrics"], state["epoch"] + 1
 
     on_cuda = device.type == "cuda"
     amp = cfg.amp and on_cuda
-    net = torch.compile(model) if cfg.compile and on_cuda else model
+    net: torch.nn.Module = model
+    if world > 1:
+        net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if on_cuda else None)
+    if cfg.compile and on_cuda:
+        net = torch.compile(net)
     loader_args = dict(batch_size=cfg.batch_size, num_workers=cfg.num_workers, pin_memory=on_cuda)
+    # The shuffle depends only on (seed, epoch): a resumed run sees the same order.
+    sampler = DistributedSampler(train_set, num_replicas=world, rank=_rank(), shuffle=True,
+                                 seed=seeding.derive_int(torch_seed, 0, seeding.TRAIN, "order"))
+    loader = DataLoader(train_set, sampler=sampler, **loader_args)
     val_loader = DataLoader(val_set, shuffle=False, **loader_args)
 
     from torch.utils.tensorboard import SummaryWriter
     from tqdm import tqdm
 
-    writer = SummaryWriter(str(out / "tb"), purge_step=start_epoch)
+    writer = SummaryWriter(str(out / "tb"), purge_step=start_epoch) if main else None
     name = f"{model_name} {setting}/{variant} s{seed}"
     bar = tqdm(range(start_epoch, cfg.epochs), desc=name, disable=not progress, initial=start_epoch,
                total=cfg.epochs)
     for epoch in bar:
         started = time.perf_counter()
         train_set.set_epoch(epoch)
-        order = torch.Generator().manual_seed(seeding.derive_int(torch_seed, epoch, seeding.TRAIN, "order"))
-        loader = DataLoader(train_set, shuffle=True, generator=order, **loader_args)
-        train_loss, train_acc = run_epoch(net, loader, device, optimizer, amp, progress, f"epoch {epoch}")
-        val_loss, val_acc = run_epoch(net, val_loader, device, None, amp) if len(val_set) else (math.nan, math.nan)
+        sampler.set_epoch(epoch)
+        sums = run_epoch(net, model, loader, device, optimizer, amp, progress, f"epoch {epoch}")
+        train_loss, train_acc = _loss_and_accuracy(sums, all_ranks=True)
+        # Every rank scores the whole (small) val set with its own copy of the same weights.
+        val_loss, val_acc = (_loss_and_accuracy(run_epoch(model, model, val_loader, device, None, amp))
+                             if len(val_set) else (math.nan, math.nan))
         lr = optimizer.param_groups[0]["lr"]
         scheduler.step()
         row = {"epoch": epoch, "train_loss": train_loss, "train_acc": train_acc, "val_loss": val_loss,
                "val_acc": val_acc, "lr": lr, "seconds": time.perf_counter() - started}
         metrics.append(row)
-        for key in ("train_loss", "train_acc", "val_loss", "val_acc", "lr"):
-            if not math.isnan(row[key]):
-                writer.add_scalar(key, row[key], epoch)
-        writer.flush()
-        _write_metrics(out / "metrics.csv", metrics)
-        _save_state(out / "last.pt", {"model": model.state_dict(), "optimizer": optimizer.state_dict(),
-                                      "scheduler": scheduler.state_dict(), "rng": _rng_states(),
-                                      "epoch": epoch, "metrics": metrics})
+        rng = _gather(_rng_states())
+        if main:
+            for key in ("train_loss", "train_acc", "val_loss", "val_acc", "lr"):
+                if not math.isnan(row[key]):
+                    writer.add_scalar(key, row[key], epoch)
+            writer.flush()
+            _write_metrics(out / "metrics.csv", metrics)
+            _save_state(out / "last.pt", {"model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                                          "scheduler": scheduler.state_dict(), "rng": rng,
+                                          "epoch": epoch, "metrics": metrics})
         bar.set_postfix(loss=f"{train_loss:.3f}", acc=f"{train_acc:.2f}")
-    writer.close()
-
-    torch.save({"model": model.state_dict(), "model_name": model_name, "model_args": args,
-                "num_classes": NUM_CLASSES, "setting": setting, "variant": variant, "seed": seed,
-                "config": resolved}, out / "checkpoint.pt")
-    final = metrics[-1] if metrics else {}
-    summary = {k: final.get(k) for k in METRIC_COLUMNS[1:5]}
-    mark_done(out, {"epochs": cfg.epochs, "seconds": sum(r["seconds"] for r in metrics),
-                    **{k: None if v is None or math.isnan(v) else v for k, v in summary.items()}})
+    if main:
+        writer.close()
+        torch.save({"model": model.state_dict(), "model_name": model_name, "model_args": args,
+                    "num_classes": NUM_CLASSES, "setting": setting, "variant": variant, "seed": seed,
+                    "config": resolved}, out / "checkpoint.pt")
+        final = metrics[-1] if metrics else {}
+        summary = {k: final.get(k) for k in METRIC_COLUMNS[1:5]}
+        mark_done(out, {"epochs": cfg.epochs, "seconds": sum(r["seconds"] for r in metrics),
+                        **{k: None if v is None or math.isnan(v) else v for k, v in summary.items()}})
+    _barrier()  # no rank moves on (say, to base2 reading this checkpoint) before DONE exists
     return out
+
+
+def _gather(obj) -> list:
+    """``obj`` of every rank, in rank order (a list of one without torchrun)."""
+    if _world_size() == 1:
+        return [obj]
+    objs: list = [None] * _world_size()
+    torch.distributed.all_gather_object(objs, obj)
+    return objs
+
+
+# ---------------------------------------------------------------- command line
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m learn.train RUN_DIR [--setting S --variant V --model M --seed N]``.
+
+    Trains the whole grid of the run, or the selected part of it. The same
+    command under ``torchrun --nproc-per-node N -m learn.train ...`` trains with
+    DDP over N processes (NCCL on GPUs, gloo on CPU), reading RANK, WORLD_SIZE
+    and LOCAL_RANK from the environment as torchrun sets them.
+    """
+    import argparse
+
+    from learn.models import MODEL_NAMES
+
+    parser = argparse.ArgumentParser(prog="python -m learn.train", description=main.__doc__.splitlines()[0])
+    parser.add_argument("run_dir", type=Path, help="an existing run folder (with rendered clips)")
+    parser.add_argument("--setting", action="append", help="train only this setting (repeatable)")
+    parser.add_argument("--variant", action="append", help="train only this render variant (repeatable)")
+    parser.add_argument("--model", action="append", choices=MODEL_NAMES, help="train only this model (repeatable)")
+    parser.add_argument("--seed", action="append", type=int, help="train only this seed (repeatable)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    opts = parser.parse_args(argv)
+
+    world = int(os.environ.get("WORLD_SIZE", 1))
+    if world > 1:
+        use_nccl = torch.cuda.is_available()
+        if use_nccl:
+            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", 0)))
+        torch.distributed.init_process_group("nccl" if use_nccl else "gloo")
+    try:
+        run = Run.open(opts.run_dir)
+        cfg = run.config
+        if not (opts.setting or opts.variant or opts.model or opts.seed is not None):
+            from learn.stage import run_train
+
+            run_train(run, progress=not opts.no_progress)
+            return
+        for setting in opts.setting or cfg.sim.settings():
+            for variant in opts.variant or cfg.render.variants:
+                for seed in opts.seed or cfg.train.seeds:
+                    for model_name in opts.model or cfg.train.models:
+                        folder = train_one(run, setting, variant, model_name, seed, progress=not opts.no_progress)
+                        if is_main():
+                            print(folder)
+    finally:
+        if torch.distributed.is_initialized():
+            torch.distributed.destroy_process_group()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,29 @@
+"""The training entry point under torchrun: two CPU processes (gloo), one writer."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pandas as pd
+import pytest
+
+from clothgap.runs import is_done
+from learn.predict import predict_clips
+from learn.synthetic import synthetic_run
+from tests.test_learn_train import SETTING, VARIANT, tiny_config
+
+
+@pytest.mark.slow
+def test_torchrun_two_processes_train_one_model(tmp_path):
+    run = synthetic_run(tmp_path / "run", tiny_config(epochs=2, num_threads=1))
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+           "-m", "learn.train", str(run.root), "--model", "lrcn", "--no-progress"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=90, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-3000:]
+    out = run.train_dir(SETTING, VARIANT, "lrcn", 0)
+    assert is_done(out) and len(pd.read_csv(out / "metrics.csv")) == 2
+    assert (run.root / "splits" / f"{SETTING}.json").is_file()
+    pred = predict_clips(out, [run.render_dir(VARIANT, SETTING) / "c00000"], device="cpu")
+    assert len(pred) == 3
