@@ -24,7 +24,8 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from clothgap.runs import Run, atomic_write_json, is_done
+from clothgap import seeding
+from clothgap.runs import Run, atomic_write_json
 
 CACHE_VERSION = 1
 
@@ -199,7 +200,7 @@ class SubsequenceDataset(torch.utils.data.Dataset):
         clip, start = self.samples[i]
         gen = None
         if self.augment:
-            gen = torch.Generator().manual_seed(hash((self.seed, self.epoch, i)) & 0x7FFFFFFF)
+            gen = torch.Generator().manual_seed(seeding.derive_int(self.seed, i, seeding.TRAIN, "augment", self.epoch))
             shift = int(torch.randint(-(self.clip_stride // 2), self.clip_stride // 2 + 1, (1,), generator=gen))
             start = min(max(start + shift, 0), clip.num_frames - self.clip_len)
         rows = self.cache.frames[clip.offset + start: clip.offset + start + self.clip_len]

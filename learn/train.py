@@ -232,6 +232,11 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
     cache = build_cache(run, variant, setting, cfg.image_size, progress)
     if main:
         _barrier()
+    unassigned = sorted(set(cache.clips) - {c for part in ("train", "val", "test") for c in split[part]})
+    if unassigned and main:
+        warnings.warn(f"{len(unassigned)} rendered clip(s) of {setting}/{variant} are in no part of "
+                      f"{run.split_path(setting)} (rendered after the split was made?) and are not used: "
+                      f"{', '.join(unassigned[:5])}{' ...' if len(unassigned) > 5 else ''}", stacklevel=2)
     train_set = SubsequenceDataset(cache, split["train"], cfg.clip_len, cfg.clip_stride, cfg.augment, torch_seed)
     val_set = SubsequenceDataset(cache, split["val"], cfg.clip_len, cfg.clip_stride)
     if not len(train_set):
