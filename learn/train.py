@@ -82,7 +82,7 @@ def run_epoch(net: torch.nn.Module, model: ClipClassifier, loader: DataLoader, d
 
     training = optimizer is not None
     net.train(training)
-    sums = torch.zeros(3, dtype=torch.float64)
+    sums = torch.zeros(3, dtype=torch.float64, device=device)   # summed on the device: no sync per step
     with torch.set_grad_enabled(training):
         for frames, labels in tqdm(loader, desc=desc, disable=not progress, leave=False):
             x, y = to_input(frames, device), labels.to(device)
@@ -93,9 +93,9 @@ def run_epoch(net: torch.nn.Module, model: ClipClassifier, loader: DataLoader, d
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()
-            sums += torch.tensor([loss.item() * len(y), (model.probs(out).argmax(-1) == y).sum().item(), len(y)],
-                                 dtype=torch.float64)
-    return sums
+            correct = (model.probs(out).argmax(-1) == y).sum()
+            sums += torch.stack([loss.detach().double() * len(y), correct.double(), sums.new_tensor(len(y))])
+    return sums.cpu()
 
 
 def _loss_and_accuracy(sums: torch.Tensor, all_ranks: bool = False) -> tuple[float, float]:
