@@ -36,8 +36,11 @@ def _conv(c_in: int, c_out: int, k: int, stride: int = 1) -> list[nn.Module]:
 class FrameCNN(nn.Module):
     """Five conv layers in AlexNet's pattern (conv, normalisation, ReLU, max-pool) and fc6.
 
-    Channels scale from ``width`` as AlexNet's 64-192-384-256-256 do; the total
-    stride is 16, then an adaptive pool to at most 6x6 (AlexNet's grid at 224 px).
+    Channels scale from ``width`` as AlexNet's 64-192-384-256-256 do, and the
+    strides are AlexNet's (conv1 11x11 stride 4, three 3x3 stride-2 max-pools: 32
+    in all), then an adaptive pool to size/32, at most 6x6 (AlexNet's grid at 224
+    px) and at least 1x1 (32 px). A stride-16 variant learned no better on
+    synthetic clips and cost 4x the time per step (1.66 vs 0.39 s at 112 px, CPU).
     Batch norm stands in for AlexNet's local response norm: trained from scratch
     on a few thousand clips, the LRN version's LSTM inputs barely differed
     between clips and the recurrent models hardly learned (tiny-batch tests).
@@ -49,11 +52,11 @@ class FrameCNN(nn.Module):
             raise ValueError(f"image_size={image_size}: must be a multiple of 16 from 32 to 224")
         c1, c2, c3, c4, c5 = width, 3 * width, 6 * width, 4 * width, 4 * width
         self.features = nn.Sequential(
-            *_conv(3, c1, 7, stride=2), nn.MaxPool2d(3, 2, padding=1),
+            *_conv(3, c1, 11, stride=4), nn.MaxPool2d(3, 2, padding=1),
             *_conv(c1, c2, 5), nn.MaxPool2d(3, 2, padding=1),
             *_conv(c2, c3, 3), *_conv(c3, c4, 3), *_conv(c4, c5, 3), nn.MaxPool2d(3, 2, padding=1),
         )
-        grid = min(image_size // 16, 6)
+        grid = max(min(image_size // 32, 6), 1)
         self.pool = nn.AdaptiveAvgPool2d(grid)
         self.fc6 = nn.Sequential(nn.Flatten(), nn.Linear(c5 * grid * grid, fc6), nn.ReLU(inplace=True),
                                  nn.Dropout(dropout))
