@@ -97,3 +97,20 @@ def test_run_train_grid_base2_freezes_base1s_cnn_and_writes_the_index(tmp_path):
     base2 = torch.load(run.root / index["entries"][1]["dir"] / "checkpoint.pt", weights_only=True)["model"]
     assert all(torch.equal(base2[k], v) for k, v in base1.items() if k.startswith("cnn."))
     assert "temporal.weight_ih_l0" in base2 and "head_bend.weight" in base2
+
+
+def test_pretrained_cnn_weights_come_from_a_local_file(tmp_path):
+    donor = synthetic_run(tmp_path / "donor", tiny_config(models=("base1",), epochs=1, val_fraction=0.0))
+    weights = train_one(donor, SETTING, VARIANT, "base1", 0, progress=False) / "checkpoint.pt"
+    run = synthetic_run(tmp_path / "run", tiny_config(epochs=1, val_fraction=0.0, pretrained=str(weights)))
+    out = train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
+    assert json.loads((out / "config.json").read_text())["cnn_init"] == str(weights)
+    missing = synthetic_run(tmp_path / "missing", tiny_config(epochs=1, pretrained=str(tmp_path / "absent.pt")))
+    with pytest.raises(FileNotFoundError, match="absent.pt"):
+        train_one(missing, SETTING, VARIANT, "lrcn", 0, progress=False)
+
+
+def test_unknown_model_in_the_grid_is_named(tmp_path):
+    run = synthetic_run(tmp_path / "run", tiny_config(models=("lrcn", "resnet")))
+    with pytest.raises(ValueError, match="resnet.*known: lrcn"):
+        run_train(run, progress=False)
