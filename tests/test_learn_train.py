@@ -77,13 +77,13 @@ def test_train_one_writes_its_folder_and_a_killed_run_resumes_to_the_same_weight
 
 
 def test_trained_model_beats_chance_on_held_out_sequences(tmp_path):
-    run = synthetic_run(tmp_path / "run", tiny_config(epochs=8, val_fraction=0.0, dropout=0.0))
+    run = synthetic_run(tmp_path / "run", tiny_config(epochs=20, val_fraction=0.0, dropout=0.0))
     out = train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
     test_clips = [run.render_dir(VARIANT, SETTING) / c for c in get_or_make_split(run, SETTING)["test"]]
     pred = predict_clips(out, test_clips, device="cpu", batch_size=5)
     assert list(pred.columns) == ["clip_id", "start", "class_index", "pred", "probs"]
     assert len(pred) == len(test_clips) * 3 and pred.probs.iloc[0].shape == (54,)
-    assert (pred.pred == pred.class_index).mean() > 0.25 + 0.15   # chance is 1/4
+    assert (pred.pred == pred.class_index).mean() > 0.5   # chance is 1/4; run seeds 0-7 gave 0.75-1
     assert not load_model(out).training
 
 
