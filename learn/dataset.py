@@ -23,6 +23,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from PIL import Image
+from tqdm import tqdm
 
 from clothgap import seeding
 from clothgap.runs import Run, atomic_write_json
@@ -127,14 +128,13 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
             for cid, reason in index["skipped"].items():
                 warnings.warn(f"{reason}; clip left out of {variant}/{setting} (cached)", stacklevel=2)
             return FrameCache(array_path, [CachedClip(**c) for c in index["clips"]])
-        index_path.unlink()
+        index_path.unlink(missing_ok=True)   # stale: rebuilt below
 
     total = sum(len(frame_paths(render_dir / cid)) for cid in clip_ids)
     array_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = array_path.with_name(f"{array_path.stem}.tmp{os.getpid()}.npy")
     array = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=(max(total, 1), size, size, 3))
     clips, skipped, offset = [], {}, 0
-    from tqdm import tqdm
     for cid in tqdm(clip_ids, desc=f"cache {variant}/{setting} {size}px", disable=not progress, leave=False):
         try:
             frames = read_frames(render_dir / cid, size)
