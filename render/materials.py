@@ -3,12 +3,16 @@
 ``principled`` (the paper's look): Disney principled, rough, low specular, with
 sheen for the bright grazing-angle fuzz of fabric; ``diffuse``: Lambertian only;
 ``principledthin``: a thin sheet that also transmits light diffusely, as thin
-fabric does against a bright light. Cloth is seen from both sides, so opaque
-BSDFs are wrapped in ``twosided`` (``principledthin`` is two-sided by design).
+fabric does against a bright light; ``measured``: a user's RGL material file
+through Mitsuba's ``measured`` plugin (the file's colour replaces the texture).
+Cloth is seen from both sides, so opaque BSDFs are wrapped in ``twosided``
+(``principledthin`` is two-sided by design).
 """
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
 from types import ModuleType
 
 from render.textures import ClothTexture
@@ -33,6 +37,12 @@ def cloth_bsdf_dict(mi: ModuleType, variant: RenderVariant, texture: ClothTextur
     if variant.bsdf == "principledthin":
         return {"type": "principledthin", "base_color": color, "roughness": variant.roughness,
                 "sheen": variant.sheen, "diff_trans": variant.diffuse_transmission}
+    if variant.bsdf == "measured":
+        path = Path(os.path.expandvars(os.path.expanduser(variant.measured_file)))
+        if not path.is_file():
+            raise FileNotFoundError(f"variant {variant.name!r}: measured_file {path} does not exist "
+                                    "(an RGL material database .bsdf file)")
+        return {"type": "twosided", "bsdf": {"type": "measured", "filename": str(path)}}
     raise ValueError(f"variant {variant.name!r}: bsdf {variant.bsdf!r} is not implemented")
 
 
