@@ -20,7 +20,7 @@ class SimConfig:
     frames: int = 20                                # frames written per sequence
     fps: float = 25.0
     substeps: int = 8                               # solver steps per frame
-    settle_s: float = 0.2                           # simulated seconds before the first recorded frame
+    settle_s: float = 0.4                           # simulated seconds before the first recorded frame
     cg_iterations: int = 30                         # conjugate-gradient iterations per solver step
     device: str = "auto"                            # "auto", "cpu", "cuda", "cuda:N"
     batch_size: int = 512                           # cloths advanced together in one launch

@@ -363,3 +363,83 @@ def integrate(dv: wp.array(dtype=wp.vec3), free: wp.array(dtype=float), dt: floa
     vi = free[i] * (v[i] + dv[i])
     v[i] = vi
     x[i] = x[i] + dt * vi
+
+
+# ---------------------------------------------------------------- kinematic arm (two capsules) and the clock
+
+@wp.struct
+class Arm:
+    """A capsule arm: upper arm shoulder -> elbow (fixed), forearm elbow -> hand rotating about the elbow
+    around ``axis`` at ``omega`` rad/s from time ``t0`` until it has turned ``max_angle``."""
+    active: int
+    shoulder: wp.vec3
+    elbow: wp.vec3
+    forearm: wp.vec3          # elbow -> hand at t0 (length = forearm length)
+    axis: wp.vec3             # unit rotation axis
+    radius: float
+    omega: float
+    max_angle: float
+    t0: float
+
+
+@wp.func
+def closest_on_segment(x: wp.vec3, a: wp.vec3, b: wp.vec3):
+    ab = b - a
+    t = wp.clamp(wp.dot(x - a, ab) / wp.max(wp.dot(ab, ab), 1.0e-12), 0.0, 1.0)
+    return a + t * ab
+
+
+@wp.kernel
+def collide_arm(arms: wp.array(dtype=Arm), cloth: wp.array(dtype=int), free: wp.array(dtype=float),
+                clock: wp.array(dtype=float), thickness: float, friction: float,
+                x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3)):
+    """Push vertices out of the arm's capsules (plus ``thickness``) and make their velocity relative to the
+    arm surface non-penetrating, with Coulomb friction: the tangential slip loses at most
+    ``friction`` times the normal velocity change."""
+    i = wp.tid()
+    arm = arms[cloth[i]]
+    if arm.active == 0 or free[i] == 0.0:
+        return
+    t = clock[0]
+    angle = wp.clamp(arm.omega * (t - arm.t0), 0.0, arm.max_angle)
+    moving = float(0.0)
+    if t > arm.t0 and angle < arm.max_angle:
+        moving = 1.0
+    q = wp.quat_from_axis_angle(arm.axis, angle)
+    hand = arm.elbow + wp.quat_rotate(q, arm.forearm)
+    xi = x[i]
+    vi = v[i]
+    for s in range(2):
+        a = arm.shoulder
+        b = arm.elbow
+        wvel = wp.vec3(0.0)
+        if s == 1:
+            a = arm.elbow
+            b = hand
+            wvel = moving * arm.omega * arm.axis
+        c = closest_on_segment(xi, a, b)
+        d = xi - c
+        dl = wp.length(d)
+        reach = arm.radius + thickness
+        if dl < reach and dl > 1.0e-9:
+            n = d / dl
+            xi = c + n * reach
+            # the velocity of the capsule's axis point: sweeping pushes and drags, the round ends do not spin
+            surface_v = wp.cross(wvel, c - arm.elbow)
+            rel = vi - surface_v
+            vn = wp.dot(rel, n)
+            if vn < 0.0:
+                vt = rel - vn * n
+                vtl = wp.length(vt)
+                scale = float(0.0)
+                if vtl > 0.0:
+                    scale = wp.max(0.0, 1.0 - friction * (-vn) / vtl)
+                rel = vt * scale
+            vi = surface_v + rel
+    x[i] = xi
+    v[i] = vi
+
+
+@wp.kernel
+def advance_clock(clock: wp.array(dtype=float), dt: float):
+    clock[0] = clock[0] + dt

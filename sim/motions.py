@@ -1,9 +1,22 @@
 """The paper's motion sub-space (Section 4.3): what drives each simulated clip.
 
-``wind``: the cloth hangs from its pinned top edge under gravity; after a short
-settling period a constant-velocity wind, mostly horizontal and into the cloth,
-switches on and the recorded frames start. Speed and direction are drawn per
-clip from the clip's ``motion`` random stream.
+``wind``: the cloth hangs under gravity, gathered to a fraction of its width
+like a curtain, in one of two poses (the paper's Fig. 8 shows two): ``rod``, the
+whole top edge pinned along a wave, or ``corners``, only the two top corners
+pinned. The gathering puts folds into the cloth whose width and persistence
+depend on its bending stiffness, and the sag on its stretching stiffness. After
+a short settling period a constant-velocity wind, mostly horizontal and into
+the cloth, switches on and the recorded frames start. Pose, gathering, wind
+speed and direction are drawn per clip from the clip's motion random stream.
+
+``arm``: the cloth lies draped over a horizontal capsule arm (upper arm and
+forearm along x, elbow at the origin); when recording starts the forearm swings
+horizontally (about the vertical axis through the elbow) through a fixed angle
+(``ARM_ANGLE_DEG``) at a speed drawn per clip. The flap on the inside of the
+bend is compressed into folds whose shape shows bending stiffness; the outside
+flap is swung out. (A vertical sweep was tried first: it stretches the cloth
+over the outside of the elbow faster than vertex-capsule contact lets it slide,
+so edges end up cut through the elbow.) The cloth's placement along and across the arm is drawn per clip.
 
 A motion builds a ``ClipScene``: the cloth at rest (``ClothSpec`` without wind)
 plus what changes when recording starts, and the parameters written to the
@@ -19,15 +32,25 @@ import numpy as np
 
 from sim.materials import Material
 from sim.mesh import ClothMesh
-from sim.solver import ClothSpec
+from sim.solver import ArmSpec, ClothSpec
 
-MOTIONS = ("wind",)
+MOTIONS = ("wind", "arm")
 
 # Wind speed range, m/s. The basis fabric weighs 0.28 kg/m^2 (2.8 Pa under gravity);
 # 1 to 2.5 m/s gives 0.6 to 3.8 Pa of dynamic pressure: from a sway to a billow.
 WIND_SPEED_MPS = (1.0, 2.5)
 WIND_AZIMUTH_DEG = 35.0        # max deviation from the cloth's normal, in the horizontal plane
 WIND_ELEVATION_DEG = 10.0      # max deviation from horizontal
+POSES = ("rod", "corners")
+GATHER_RATIO = (0.7, 0.9)      # pinned width / cloth width
+GATHER_WAVES = (2, 5)          # half-waves across the gathered width, inclusive
+
+ARM_RADIUS_M = 0.04
+ARM_UPPER_M = 0.35             # shoulder -> elbow
+ARM_FORE_M = 0.30              # elbow -> hand
+ARM_ANGLE_DEG = 90.0           # the forearm's fixed sweep
+ARM_SPEED_DEG_S = (120.0, 300.0)
+ARM_OFFSET_M = 0.05            # max shift of the cloth's centre along and across the arm
 
 
 @dataclass
@@ -39,23 +62,72 @@ class ClipScene:
 
 def hanging_positions(mesh: ClothMesh, size_m: float) -> tuple[np.ndarray, np.ndarray]:
     """A cloth hanging flat in the x-z plane (u along x, v up), its top edge at z = size_m, centred on x = 0.
-    Returns the positions and the pinned top-edge vertex indices."""
+    Returns the positions and the pinned top-edge vertex indices (left to right)."""
     uv = mesh.uv
     pos = np.stack([uv[:, 0] - 0.5 * size_m, np.zeros(len(uv)), uv[:, 1]], axis=1)
     top = np.flatnonzero(np.isclose(uv[:, 1], uv[:, 1].max()))
+    return pos, top[np.argsort(uv[top, 0])]
+
+
+def gathered_positions(mesh: ClothMesh, size_m: float, ratio: float, waves: int) -> tuple[np.ndarray, np.ndarray]:
+    """A hanging cloth gathered to ``ratio`` of its width: every horizontal line follows the same sine
+    wave (``waves`` half-waves) whose arc length equals the cloth's width, so the cloth starts unstretched."""
+    pos, top = hanging_positions(mesh, size_m)
+    width = ratio * size_m
+    xs = np.linspace(0.0, width, 4001)
+
+    def arc(amplitude: float) -> np.ndarray:
+        y = amplitude * np.sin(np.pi * waves * xs / width)
+        return np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(xs), np.diff(y)))])
+
+    lo, hi = 0.0, size_m
+    for _ in range(60):                               # bisection on the wave's amplitude
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if arc(mid)[-1] > size_m else (mid, hi)
+    amplitude = 0.5 * (lo + hi)
+    x = np.interp(mesh.uv[:, 0], arc(amplitude), xs)  # arc length (= u) -> position along the wave
+    pos[:, 0] = x - 0.5 * width
+    pos[:, 1] = amplitude * np.sin(np.pi * waves * x / width)
     return pos, top
 
 
 def wind_scene(mesh: ClothMesh, size_m: float, material: Material, rng: np.random.Generator) -> ClipScene:
-    """A hanging cloth and a constant wind drawn from ``rng`` (the clip's motion stream)."""
+    """A gathered hanging cloth and a constant wind, all drawn from ``rng`` (the clip's motion stream)."""
+    pose = POSES[int(rng.integers(len(POSES)))]
+    ratio = rng.uniform(*GATHER_RATIO)
+    waves = int(rng.integers(GATHER_WAVES[0], GATHER_WAVES[1] + 1))
     speed = rng.uniform(*WIND_SPEED_MPS)
     azimuth = math.radians(rng.uniform(-WIND_AZIMUTH_DEG, WIND_AZIMUTH_DEG))
     elevation = math.radians(rng.uniform(-WIND_ELEVATION_DEG, WIND_ELEVATION_DEG))
     wind = speed * np.array([math.sin(azimuth) * math.cos(elevation), math.cos(azimuth) * math.cos(elevation),
                              math.sin(elevation)])
-    pos, top = hanging_positions(mesh, size_m)
-    spec = ClothSpec(mesh, pos, material.stretching, material.bending, material.density, pinned=top)
-    params = {"wind_speed_mps": speed, "wind_azimuth_deg": math.degrees(azimuth),
-              "wind_elevation_deg": math.degrees(elevation), "wind_velocity_mps": wind.tolist(),
-              "pinned": "top edge"}
+    pos, top = gathered_positions(mesh, size_m, ratio, waves)
+    pinned = top if pose == "rod" else top[[0, -1]]
+    spec = ClothSpec(mesh, pos, material.stretching, material.bending, material.density, pinned=pinned)
+    params = {"pose": pose, "gather_ratio": ratio, "gather_half_waves": waves, "wind_speed_mps": speed, "wind_azimuth_deg": math.degrees(azimuth),
+              "wind_elevation_deg": math.degrees(elevation), "wind_velocity_mps": wind.tolist()}
     return ClipScene(spec, wind, params)
+
+
+def arm_scene(mesh: ClothMesh, size_m: float, material: Material, rng: np.random.Generator,
+              start_s: float, fps: float, frames: int) -> ClipScene:
+    """A cloth laid flat over a capsule arm, draping during settling; the forearm starts turning at ``start_s``
+    (the first recorded frame). All draws come from ``rng`` (the clip's motion stream)."""
+    speed = math.radians(rng.uniform(*ARM_SPEED_DEG_S))
+    along, across = rng.uniform(-ARM_OFFSET_M, ARM_OFFSET_M, size=2)
+    uv = mesh.uv
+    height = ARM_RADIUS_M + 0.01
+    pos = np.stack([uv[:, 0] - 0.5 * size_m + along, uv[:, 1] - 0.5 * size_m + across,
+                    np.full(len(uv), height)], axis=1)
+    sweep = math.radians(ARM_ANGLE_DEG)
+    arm = ArmSpec(shoulder=(-ARM_UPPER_M, 0.0, 0.0), elbow=(0.0, 0.0, 0.0), forearm=(ARM_FORE_M, 0.0, 0.0),
+                  axis=(0.0, 0.0, 1.0), radius=ARM_RADIUS_M, omega=speed, max_angle=sweep, t0=start_s)
+    spec = ClothSpec(mesh, pos, material.stretching, material.bending, material.density, arm=arm)
+    params = {"arm_speed_deg_s": math.degrees(speed), "arm_sweep_deg": ARM_ANGLE_DEG,
+              "cloth_offset_m": [float(along), float(across)], "arm_radius_m": ARM_RADIUS_M,
+              "shoulder": list(arm.shoulder), "elbow": list(arm.elbow), "forearm_at_rest": list(arm.forearm),
+              "rotation_axis": list(arm.axis),
+              "note": "frame t is (t + 1) / fps seconds after the forearm starts turning",
+              "forearm_angle_deg_per_frame": [min(math.degrees(speed) * (t + 1) / fps, ARM_ANGLE_DEG)
+                                              for t in range(frames)]}
+    return ClipScene(spec, np.zeros(3), params)

@@ -16,7 +16,9 @@ projected onto PSD matrices, and the Gauss-Newton part kb g g^T of the
 bending Hessian. A PSD K keeps the step stable from the softest (p=0.5, k=0.5)
 to the stiffest (p=20, k=20) class. ``a`` is a mild mass-proportional damping
 (``SolverParams.damping``, 1/s); backward Euler adds its own numerical damping.
-Wind is applied explicitly.
+Wind is applied explicitly. An optional kinematic capsule arm (``ArmSpec``) is
+handled after each step by projecting vertices out of it and making their
+velocity non-penetrating relative to its surface, with Coulomb friction.
 
 The system is solved per cloth with a Jacobi-preconditioned conjugate gradient
 run for a fixed number of iterations (so a step is a fixed list of launches,
@@ -42,6 +44,22 @@ from sim.mesh import ClothMesh
 wp.config.quiet = True
 
 
+@dataclass(frozen=True)
+class ArmSpec:
+    """Two capsules: the upper arm (shoulder -> elbow) stays put; the forearm (elbow -> elbow + forearm)
+    turns about ``axis`` through the elbow at ``omega`` rad/s, starting at simulated time ``t0``
+    (seconds since the solver started), until it has turned ``max_angle`` radians."""
+
+    shoulder: tuple[float, float, float]
+    elbow: tuple[float, float, float]
+    forearm: tuple[float, float, float]
+    axis: tuple[float, float, float]
+    radius: float
+    omega: float
+    max_angle: float
+    t0: float
+
+
 @dataclass
 class ClothSpec:
     """One cloth of a batch: mesh, initial placement, material tables (already scaled), loads."""
@@ -54,6 +72,7 @@ class ClothSpec:
     pinned: np.ndarray | None = None      # indices of vertices held fixed
     wind: tuple[float, float, float] = (0.0, 0.0, 0.0)   # m/s
     velocities: np.ndarray | None = None  # (V, 3) initial velocities, default zero
+    arm: ArmSpec | None = None            # a kinematic arm the cloth collides with
 
 
 @dataclass(frozen=True)
@@ -64,6 +83,8 @@ class SolverParams:
     air_density: float = 1.225            # kg/m^3, the wind pressure coefficient
     air_drag: float = 0.1                 # kg/(m^2 s), tangential drag coefficient
     damping: float = 0.1                  # 1/s, mass-proportional
+    contact_thickness: float = 0.005      # m, kept between the cloth and an arm's surface
+    friction: float = 0.5                 # Coulomb coefficient between cloth and arm
 
 
 def resolve_device(device: str) -> str:
@@ -176,6 +197,9 @@ class BatchSolver:
         self.stretch = arr(np.stack(stretch).astype(f32), float)
         self.bend = arr(np.stack(bend).astype(f32), float)
         self.wind = arr(np.array(winds, dtype=f32).reshape(-1, 3), wp.vec3)
+        self.has_arm = any(s.arm is not None for s in specs)
+        self.arms = wp.array([self._arm_struct(s.arm) for s in specs], dtype=kernels.Arm, device=dev)
+        self.clock = wp.zeros(1, dtype=float, device=dev)
         self.faces_per_cloth = [len(s.mesh.faces) for s in specs]
 
         nv, nf, nh = self.x.shape[0], self.tri.shape[0], self.hinge.shape[0]
@@ -195,6 +219,19 @@ class BatchSolver:
         self.rz = wp.zeros((slots, self.num_cloths), dtype=float, device=dev)
         self.pap = wp.zeros((slots, self.num_cloths), dtype=float, device=dev)
         self.scratch = wp.zeros((1, self.num_cloths), dtype=float, device=dev)
+
+    @staticmethod
+    def _arm_struct(arm: ArmSpec | None) -> kernels.Arm:
+        a = kernels.Arm()
+        a.active = 0
+        if arm is not None:
+            axis = np.asarray(arm.axis, dtype=np.float64)
+            a.active = 1
+            a.shoulder, a.elbow, a.forearm = wp.vec3(*arm.shoulder), wp.vec3(*arm.elbow), wp.vec3(*arm.forearm)
+            a.axis = wp.vec3(*(axis / np.linalg.norm(axis)))
+            a.radius, a.omega = float(arm.radius), float(arm.omega)
+            a.max_angle, a.t0 = float(arm.max_angle), float(arm.t0)
+        return a
 
     def _record_step(self) -> list:
         """One time step as a fixed list of recorded launches (and memsets)."""
@@ -233,6 +270,10 @@ class BatchSolver:
                 launch(kernels.cg_direction, nv, [self.mass, self.vertex_cloth, dt, float(P.damping), self.z, it,
                                                   self.p, self.ap, self.rz, self.pap])
         launch(kernels.integrate, nv, [self.dv, self.free, dt, self.x, self.v])
+        if self.has_arm:
+            launch(kernels.advance_clock, 1, [self.clock, dt])
+            launch(kernels.collide_arm, nv, [self.arms, self.vertex_cloth, self.free, self.clock,
+                                             float(P.contact_thickness), float(P.friction), self.x, self.v])
         return cmds
 
     # ---------------------------------------------------------------- stepping and state

@@ -1,5 +1,8 @@
 """The sim stage: every (setting, clip index) of a run -> ``sim/<setting>/<clip_id>/`` (see docs/contracts.md).
 
+Settings are ``<motion>-uniform<L>``: motion ``wind`` or ``arm`` (``sim.motions``),
+uniform refinement level L = 1, 2, 3 of the base grid (``sim.mesh``).
+
 Clip ``index`` has class ``class_indices[index % n_classes]`` and sequence number
 ``index // n_classes``. Its material jitter comes from the ``material`` random
 stream and its motion from ``motion-<motion>``, both keyed by the clip index
@@ -27,7 +30,7 @@ from sim.clip import SimClip
 from sim.config import SimConfig
 from sim.materials import load_material
 from sim.mesh import ClothMesh, square_cloth, vertices_per_side
-from sim.motions import MOTIONS, ClipScene, wind_scene
+from sim.motions import MOTIONS, ClipScene, arm_scene, wind_scene
 from sim.solver import BatchSolver, SolverParams, resolve_device
 
 # Health check of every recorded frame: beyond these a cloth has exploded.
@@ -120,7 +123,11 @@ def build_scene(cfg: SimConfig, seed: int, index: int, setting: Setting, mesh: C
     class_index, p, k = clip_material(cfg, seed, index)
     basis = load_material(cfg.basis)
     motion_rng = seeding.rng(seed, index, seeding.SIM, f"motion-{setting.motion}")
-    scene = wind_scene(mesh, cfg.cloth_size_m, basis.scaled(p, k), motion_rng)
+    material = basis.scaled(p, k)
+    if setting.motion == "wind":
+        scene = wind_scene(mesh, cfg.cloth_size_m, material, motion_rng)
+    else:
+        scene = arm_scene(mesh, cfg.cloth_size_m, material, motion_rng, cfg.settle_s, cfg.fps, cfg.frames)
     p_class, k_class = classes.class_values(class_index)
     meta = {"class_index": class_index, "p_class": p_class, "k_class": k_class, "p": p, "k": k,
             "basis": cfg.basis, "density": basis.density}

@@ -327,3 +327,17 @@ def test_unsupported_setting_is_a_clear_error():
         parse_setting("wind-adaptive")
     with pytest.raises(ValueError, match="known motions"):
         parse_setting("swim-uniform1")
+
+
+def test_arm_setting_and_refined_levels_write_finite_clips(tmp_path):
+    from sim.stage import run_sim
+
+    run = _tiny_run(tmp_path, motions=("wind", "arm"), remeshing=("uniform1", "uniform2"), frames=4)
+    summary = run_sim(run, progress=False)
+    assert summary["simulated"] == 8 and summary["failed"] == 0
+    for setting, n in (("arm-uniform1", 6), ("arm-uniform2", 11), ("wind-uniform2", 11)):
+        clip = SimClip.load(run.sim_dir(setting) / "c00001")
+        assert clip.frame(0)[0].shape == (n * n, 3) and np.isfinite(clip.positions).all()
+    arm = SimClip.load(run.sim_dir("arm-uniform1") / "c00000")
+    wind = SimClip.load(run.sim_dir("wind-uniform1") / "c00000")
+    assert arm.meta["p"] == wind.meta["p"] and "arm_speed_deg_s" in arm.meta["motion_params"]
