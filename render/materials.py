@@ -3,7 +3,8 @@
 ``principled`` (the paper's look): Disney principled, rough, low specular, with
 sheen for the bright grazing-angle fuzz of fabric; ``diffuse``: Lambertian only;
 ``principledthin``: a thin sheet that also transmits light diffusely, as thin
-fabric does against a bright light; ``measured``: a user's RGL material file
+fabric does against a bright light; ``tabulated``: a half/difference-angle
+fabric BRDF table in a Python BSDF plugin (``render.fabric_bsdf``); ``measured``: a user's RGL material file
 through Mitsuba's ``measured`` plugin (the file's colour replaces the texture).
 Cloth is seen from both sides, so opaque BSDFs are wrapped in ``twosided``
 (``principledthin`` is two-sided by design).
@@ -37,6 +38,16 @@ def cloth_bsdf_dict(mi: ModuleType, variant: RenderVariant, texture: ClothTextur
     if variant.bsdf == "principledthin":
         return {"type": "principledthin", "base_color": color, "roughness": variant.roughness,
                 "sheen": variant.sheen, "diff_trans": variant.diffuse_transmission}
+    if variant.bsdf == "tabulated":
+        from render import fabric_bsdf
+
+        fabric_bsdf.register(mi)
+        path = (Path(os.path.expandvars(os.path.expanduser(variant.tabulated_file))) if variant.tabulated_file
+                else fabric_bsdf.DEFAULT_TABLE)
+        if not path.is_file():
+            raise FileNotFoundError(f"variant {variant.name!r}: tabulated_file {path} does not exist")
+        return {"type": "twosided", "bsdf": {"type": fabric_bsdf.PLUGIN, "base_color": color,
+                                             "sheen": variant.sheen, "filename": str(path)}}
     if variant.bsdf == "measured":
         path = Path(os.path.expandvars(os.path.expanduser(variant.measured_file)))
         if not path.is_file():

@@ -33,7 +33,7 @@ PAPER = "paper"
 # Allowed values of the enumerated settings (the renderer dispatches on these).
 CHOICES: dict[str, tuple[str, ...]] = {
     "texture": ("random", "grid", "color"),
-    "bsdf": ("principled", "diffuse", "principledthin", "measured"),
+    "bsdf": ("principled", "diffuse", "principledthin", "tabulated", "measured"),
     "lighting": ("fixed", "random", "daylight"),
     "background": ("procedural", "none", "folder", "room"),
     "background_split": ("all", "train", "heldout"),
@@ -54,10 +54,12 @@ class RenderVariant:
     # Cloth appearance
     texture: str = "random"                 # "random" (procedural patterns), "grid", "color" (one solid colour)
     texture_tile_m: tuple[float, ...] = (0.08, 0.3)  # metres one texture tile spans: (min, max), drawn per clip
-    bsdf: str = "principled"                # "principled" (diffuse-like with sheen), "diffuse", "principledthin", "measured"
+    bsdf: str = "principled"                # "principled" (diffuse-like with sheen), "diffuse", "principledthin",
+                                            # "tabulated" (render.fabric_bsdf), "measured"
     roughness: float = 0.85
     sheen: float = 0.6                      # principled sheen weight (cloth's grazing-angle fuzz)
     diffuse_transmission: float = 0.3       # principledthin only: light passing through thin fabric
+    tabulated_file: str = ""                # bsdf="tabulated": a table .npz (empty: the shipped Charlie-sheen table)
     measured_file: str = ""                 # bsdf="measured": an RGL .bsdf file (its own colour; the texture is unused)
     # Lighting and surroundings
     lighting: str = "fixed"                 # "fixed" (key + fill + ambient), "random" (per clip), "daylight"
