@@ -341,3 +341,14 @@ def test_arm_setting_and_refined_levels_write_finite_clips(tmp_path):
     arm = SimClip.load(run.sim_dir("arm-uniform1") / "c00000")
     wind = SimClip.load(run.sim_dir("wind-uniform1") / "c00000")
     assert arm.meta["p"] == wind.meta["p"] and "arm_speed_deg_s" in arm.meta["motion_params"]
+
+
+def test_table2_lists_every_fabric_with_its_nearest_class(tmp_path):
+    import csv
+
+    from sim.analysis import table2
+
+    rows = list(csv.DictReader(table2(tmp_path).open()))
+    assert len(rows) == 10
+    basis = next(r for r in rows if r["material"] == "camel-ponte-roma")
+    assert float(basis["p_est"]) == 1.0 and int(basis["class_index"]) == classes.nearest_class(1.0, 1.0)
