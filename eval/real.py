@@ -45,7 +45,8 @@ Pearson's and Spearman's r come with percentile bootstrap intervals over videos
 
 Outputs in OUT: ``videos.csv`` (per video: frames, sub-sequences, class, p, k,
 scores, mean probabilities), ``table4.csv`` / ``table4.md``, ``skipped.csv``,
-``scatter.png``, and ``clips/<video>/`` (the frames the network saw).
+``scatter.png``, ``activations.png`` (conv5 overlays on the first videos, as the paper's
+Fig. 6) and ``clips/<video>/`` (the frames the network saw).
 """
 
 from __future__ import annotations
@@ -282,11 +283,12 @@ def _scatter(joined: pd.DataFrame):
 def evaluate_real(video_dir: Path | str, truth_csv: Path | str, train_dir: Path | str, out_dir: Path | str, *,
                   max_frames: int = 60, fps: float | None = None, frames_fps: float | None = None,
                   resamples: int = 1000, confidence: float = 0.95, seed: int = 0,
-                  predictor: Predictor | None = None, progress: bool = True) -> Path:
+                  activations: int = 3, predictor: Predictor | None = None, progress: bool = True) -> Path:
     """Predict every video in ``video_dir``, correlate with ``truth_csv``; returns ``table4.csv``'s path.
 
     ``fps``: the rate videos are resampled to (default: the simulation's, from the
     run config); ``frames_fps``: the rate of frame folders (default: ``fps``);
+    ``activations``: how many videos get conv5 overlays in ``activations.png`` (0: none);
     ``predictor`` replaces ``learn.predict.predict_clips`` (tests).
     """
     video_dir, truth_csv, train_dir, out_dir = map(Path, (video_dir, truth_csv, train_dir, out_dir))
@@ -339,4 +341,16 @@ def evaluate_real(video_dir: Path | str, truth_csv: Path | str, train_dir: Path 
                       + (f"\nSkipped inputs: {', '.join(s['video'] for s in skipped)}\n" if skipped else ""))
     if len(joined) >= 2:
         figures.save(_scatter(joined), out_dir / "scatter.png")
+    if activations:
+        _activation_figure(train_dir, clip_dirs[:activations], out_dir / "activations.png")
     return path
+
+
+def _activation_figure(train_dir: Path, clip_dirs: list[Path], path: Path) -> None:
+    """conv5 overlays on the first videos (the paper's Fig. 6 shows them on real frames)."""
+    from eval.activations import clip_frames, overlay_figure
+    from learn.predict import load_checkpoint, load_model
+
+    size = int(load_checkpoint(train_dir)["model_args"]["image_size"])
+    rows = {d.name: clip_frames(d, size) for d in clip_dirs}
+    figures.save(overlay_figure(rows, load_model(train_dir, "cpu")), path)

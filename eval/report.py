@@ -197,12 +197,11 @@ def _load_rgb(path: Path) -> np.ndarray:
 
 def _section_frames(run: Run) -> str:
     """The same clip in every rendered variant, a few frames each (a paired view of the variants)."""
-    render_root = run.root / "render"
-    if not render_root.is_dir():
-        return ""
+    from eval.stage import rendered_variants
+
     out = []
     for setting in run.config.sim.settings():
-        variants = [v.name for v in sorted(render_root.iterdir()) if run.done_clips(run.render_dir(v.name, setting))]
+        variants = rendered_variants(run, setting)
         if not variants:
             continue
         common = set.intersection(*(set(run.done_clips(run.render_dir(v, setting))) for v in variants))
@@ -224,6 +223,44 @@ def _section_frames(run: Run) -> str:
         return ""
     return ('<h2 id="frames">Sample frames per render variant</h2><p>One clip (same simulation) under every '
             f'variant that was rendered.</p><div class="figs">{"".join(out)}</div>')
+
+
+def _section_activations(run: Run) -> str:
+    """conv5 overlays (the paper's Fig. 6): per setting, the in-domain model on one test clip of each variant."""
+    from eval.stage import finished_models, rendered_variants, test_clips
+
+    models = sorted(finished_models(run), key=lambda m: (tables.model_sort_key(m.model) != tables.model_sort_key("lrcn"),
+                                                         m.variant != run.config.render.variants[0], m.seed))
+    out = []
+    for setting in run.config.sim.settings():
+        chosen = next((m for m in models if m.setting == setting), None)
+        if chosen is None:
+            continue
+        try:
+            from eval.activations import clip_frames, overlay_figure
+            from learn.predict import load_checkpoint, load_model
+
+            size = int(load_checkpoint(chosen.folder)["model_args"]["image_size"])
+            model = load_model(chosen.folder, "cpu")
+            test_ids = test_clips(run, setting)
+            rows = {}
+            for variant in rendered_variants(run, setting):
+                folder = run.render_dir(variant, setting)
+                clip = next((c for c in test_ids if is_done(folder / c)), None)
+                if clip is not None:
+                    rows[f"{variant} {clip}"] = clip_frames(folder / clip, size)
+            if rows:
+                fig = overlay_figure(rows, model)
+                rel = chosen.checkpoint.relative_to(run.root)
+                out.append(_img(figures.png_bytes(fig), f"{setting}: conv5 of {rel}"))
+        except Exception as err:  # a report must not fail on one figure; say why it is missing
+            out.append(f'<p class="note">conv5 overlays for {_esc(setting)} skipped: {_esc(type(err).__name__)}: '
+                       f"{_esc(err)}</p>")
+    if not out:
+        return ""
+    return ('<h2 id="conv5">Where the CNN looks (conv5, Fig. 6)</h2><p>Channel mean of the last conv layer, '
+            "normalised over the clip, jet colour map over the frame, for one test clip per render variant.</p>"
+            + "".join(out))
 
 
 def _section_gap(run: Run) -> str:
@@ -298,7 +335,8 @@ def write_report(run: Run) -> Path:
     """Write ``report/report.html`` for the run (sections for whatever stages have finished)."""
     sections = [("config", "Config", _section_config(run)), ("table3", "Table 3", _section_table3(run)),
                 ("confusion", "Confusion", _section_confusion(run)), ("learning", "Learning", _section_learning(run)),
-                ("frames", "Frames", _section_frames(run)), ("gap", "Domain gap", _section_gap(run)),
+                ("frames", "Frames", _section_frames(run)), ("conv5", "conv5", _section_activations(run)),
+                ("gap", "Domain gap", _section_gap(run)),
                 ("sim", "Sub-space", _section_sim_analysis(run)), ("real", "Real", _section_extra_tables(run))]
     sections = [s for s in sections if s[2]]
     nav = "".join(f'<a href="#{sid}">{_esc(title)}</a>' for sid, title, _ in sections)

@@ -76,6 +76,7 @@ def test_real_videos_end_to_end_with_a_corrupt_file(tmp_path):
     assert list(table["group"].unique()) == ["all", "wind W1"] and (table["videos"] == 4).all()
     assert "broken.mp4" in (out / "table4.md").read_text()
     assert len(list((out / "clips" / "fabric0_w1" / "ldr").glob("*.png"))) == 12
+    assert (out / "activations.png").stat().st_size > 1000              # conv5 overlays (Fig. 6)
 
 
 def test_correlations_match_scipy_and_group_by_wind(tmp_path):
