@@ -165,7 +165,8 @@ def edge_curvature(mesh: QuadMesh, positions: np.ndarray) -> np.ndarray:
     n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-20
     uv = mesh.uv.astype(np.float64)
     t = uv[f]
-    area = 0.5 * np.abs(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]))
+    a, b = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+    area = 0.5 * np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])
     e = np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1).reshape(-1, 2)
     key = np.sort(e, axis=1)
     face_of = np.repeat(np.arange(len(f)), 3)

@@ -1,7 +1,11 @@
 """The sim stage: every (setting, clip index) of a run -> ``sim/<setting>/<clip_id>/`` (see docs/contracts.md).
 
-Settings are ``<motion>-uniform<L>``: motion ``wind`` or ``arm`` (``sim.motions``),
-uniform refinement level L = 1, 2, 3 of the base grid (``sim.mesh``).
+Settings are ``<motion>-<remeshing>``: motion ``wind`` or ``arm`` (``sim.motions``);
+remeshing ``uniform<L>``, the base grid refined uniformly to level L = 1, 2, 3
+(``sim.mesh``), or ``adaptive``, a quadtree mesh that starts at level 1 and is
+refined where the cloth curves and coarsened where it is flat after every
+frame, up to level 3 (``sim.adaptive``); adaptive clips change topology between
+frames and are stored per frame (``sim.clip``).
 
 Clip ``index`` has class ``class_indices[index % n_classes]`` and sequence number
 ``index // n_classes``. Its material jitter comes from the ``material`` random
@@ -17,6 +21,7 @@ is retried once with twice the substeps; if it fails again its folder gets a
 
 from __future__ import annotations
 
+import functools
 import re
 import time
 from dataclasses import dataclass
@@ -26,6 +31,8 @@ import numpy as np
 from clothgap import seeding
 from clothgap.runs import Run, atomic_write_json, clip_id, fresh_dir, is_done, mark_done
 from sim import classes
+from sim import remesh
+from sim.adaptive import cloth_mesh, simulate_adaptive
 from sim.clip import SimClip
 from sim.config import SimConfig
 from sim.materials import load_material
@@ -47,21 +54,24 @@ class Setting:
 
 
 def parse_setting(name: str) -> Setting:
-    """'<motion>-uniform<L>' -> Setting; anything else is a clear error."""
+    """'<motion>-uniform<L>' or '<motion>-adaptive' -> Setting; anything else is a clear error."""
     motion, _, remeshing = name.partition("-")
     if motion not in MOTIONS:
         raise ValueError(f"setting {name!r}: unknown motion {motion!r}; known motions: {', '.join(MOTIONS)}")
+    if remeshing == "adaptive":
+        return Setting(name, motion, remeshing, 1)     # starts at level 1, refines up to 3
     m = re.fullmatch(r"uniform([123])", remeshing)
     if not m:
         raise ValueError(f"setting {name!r}: remeshing {remeshing!r} is not supported by the sim stage; "
-                         "supported: uniform1, uniform2, uniform3")
+                         "supported: uniform1, uniform2, uniform3, adaptive")
     return Setting(name, motion, remeshing, int(m.group(1)))
 
 
 @dataclass
 class ClipResult:
-    positions: np.ndarray | None      # (T, V, 3) float32 when ok
+    positions: np.ndarray | None      # (T, V, 3) float32 when ok (fixed topology)
     reason: str | None                # why it failed, else None
+    frames: list | None = None        # adaptive: (positions, faces, uv) per frame when ok
 
 
 def _edges(mesh: ClothMesh) -> np.ndarray:
@@ -110,6 +120,18 @@ def simulate_scenes(scenes: list[ClipScene], *, fps: float, frames: int, substep
             for c, r in enumerate(reasons)]
 
 
+def simulate_adaptive_scenes(scenes: list[ClipScene], base, *, fps: float, frames: int, substeps: int,
+                             settle_s: float, cg_iterations: int = 30, device: str = "cpu") -> list[ClipResult]:
+    """``simulate_scenes`` with adaptive remeshing after every frame; same health check per frame."""
+    def check(cloth, x, x_prev, frame_dt):
+        e = _edges(cloth_mesh(cloth.quad))
+        return health(x, x_prev, frame_dt, e, np.linalg.norm(cloth.quad.uv[e[:, 1]] - cloth.quad.uv[e[:, 0]], axis=1))
+
+    out = simulate_adaptive(scenes, base, fps=fps, frames=frames, substeps=substeps, settle_s=settle_s,
+                            cg_iterations=cg_iterations, device=device, health=check)
+    return [ClipResult(None, r.reason, r.frames) for r in out]
+
+
 def clip_material(cfg: SimConfig, seed: int, index: int) -> tuple[int, float, float]:
     """(class_index, p, k) of a clip: its class and the jittered coefficients from its material stream."""
     cls = cfg.class_indices()
@@ -151,19 +173,25 @@ def run_sim(run: Run, progress: bool = True) -> dict:
         todo = [i for i in range(cfg.num_clips()) if not is_done(out / clip_id(i))]
         summary["skipped"] += cfg.num_clips() - len(todo)
         n = vertices_per_side(cfg.grid_vertices, setting.level)
-        mesh = square_cloth(cfg.cloth_size_m, cfg.grid_vertices, setting.level)
+        if setting.remeshing == "adaptive":
+            base = remesh.uniform(cfg.grid_vertices, cfg.cloth_size_m, 1)
+            mesh = cloth_mesh(base)
+            simulate = functools.partial(simulate_adaptive_scenes, base=base)
+        else:
+            mesh = square_cloth(cfg.cloth_size_m, cfg.grid_vertices, setting.level)
+            simulate = simulate_scenes
         bar = tqdm(total=len(todo), desc=f"sim {setting.name}", unit="clip", disable=not progress)
         for b in range(0, len(todo), cfg.batch_size):
             batch = todo[b:b + cfg.batch_size]
             built = [build_scene(cfg, run.config.seed, i, setting, mesh) for i in batch]
             scenes = [s for s, _ in built]
-            results = simulate_scenes(scenes, fps=cfg.fps, frames=cfg.frames, substeps=cfg.substeps,
+            results = simulate(scenes, fps=cfg.fps, frames=cfg.frames, substeps=cfg.substeps,
                                       settle_s=cfg.settle_s, cg_iterations=cfg.cg_iterations, device=device)
             substeps = [cfg.substeps] * len(batch)
             failed = [j for j, r in enumerate(results) if r.reason]
             if failed:
                 summary["retried"] += len(failed)
-                retry = simulate_scenes([scenes[j] for j in failed], fps=cfg.fps, frames=cfg.frames,
+                retry = simulate([scenes[j] for j in failed], fps=cfg.fps, frames=cfg.frames,
                                         substeps=2 * cfg.substeps, settle_s=cfg.settle_s,
                                         cg_iterations=cfg.cg_iterations, device=device)
                 for j, r in zip(failed, retry):
@@ -183,7 +211,12 @@ def run_sim(run: Run, progress: bool = True) -> dict:
                     summary["failed"] += 1
                     continue
                 meta["status"] = "ok"
-                SimClip.from_fixed(meta, result.positions, mesh.faces, mesh.uv).save(folder)
+                if result.frames is not None:
+                    counts = [len(f[0]) for f in result.frames]
+                    meta["vertex_counts"] = {"min": min(counts), "max": max(counts), "mean": float(np.mean(counts))}
+                    SimClip.from_frames(meta, result.frames).save(folder)
+                else:
+                    SimClip.from_fixed(meta, result.positions, mesh.faces, mesh.uv).save(folder)
                 mark_done(folder, {"status": "ok"})
                 summary["simulated"] += 1
             bar.update(len(batch))

@@ -323,8 +323,9 @@ def test_exploding_clip_is_retried_then_marked_failed(tmp_path, monkeypatch):
 def test_unsupported_setting_is_a_clear_error():
     from sim.stage import parse_setting
 
-    with pytest.raises(ValueError, match="uniform1, uniform2, uniform3"):
-        parse_setting("wind-adaptive")
+    assert parse_setting("wind-adaptive").remeshing == "adaptive"
+    with pytest.raises(ValueError, match="uniform1, uniform2, uniform3, adaptive"):
+        parse_setting("wind-uniform4")
     with pytest.raises(ValueError, match="known motions"):
         parse_setting("swim-uniform1")
 
@@ -341,6 +342,29 @@ def test_arm_setting_and_refined_levels_write_finite_clips(tmp_path):
     arm = SimClip.load(run.sim_dir("arm-uniform1") / "c00000")
     wind = SimClip.load(run.sim_dir("wind-uniform1") / "c00000")
     assert arm.meta["p"] == wind.meta["p"] and "arm_speed_deg_s" in arm.meta["motion_params"]
+
+
+def test_adaptive_setting_changes_topology_and_is_reproducible(tmp_path):
+    from sim.stage import run_sim
+
+    runs = [_tiny_run(tmp_path / name, motions=("wind", "arm"), remeshing=("adaptive",), grid_vertices=8, frames=5)
+            for name in ("a", "b")]
+    for run in runs:
+        summary = run_sim(run, progress=False)
+        assert summary["simulated"] == 4 and summary["failed"] == 0
+    for setting in ("wind-adaptive", "arm-adaptive"):
+        clips = [SimClip.load(run.sim_dir(setting) / "c00000") for run in runs]
+        clip = clips[0]
+        counts = np.diff(clip.vertex_offsets)
+        # Starts on the level-1 grid, refines where the cloth folds, stays within level 3.
+        assert counts[0] == 8 * 8 and counts.max() <= 29 * 29 and np.isfinite(clip.positions).all()
+        for t in range(clip.num_frames):
+            pos, faces, uv = clip.frame(t)
+            assert faces.max() < len(pos) and uv.shape == (len(pos), 2)
+        np.testing.assert_array_equal(clips[0].positions, clips[1].positions)
+        assert clip.meta["remeshing"] == "adaptive" and "vertex_counts" in clip.meta
+    soft_wind = SimClip.load(runs[0].sim_dir("wind-adaptive") / "c00000")
+    assert not soft_wind.fixed_topology, "a soft cloth in wind should be refined somewhere"
 
 
 def test_table2_lists_every_fabric_with_its_nearest_class(tmp_path):
