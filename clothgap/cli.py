@@ -216,6 +216,39 @@ def eval_real(video_dir: Path, truth: Path, train_dir: Path, out: Path) -> None:
     click.echo(f"wrote {evaluate_real(video_dir, truth, train_dir, out)}")
 
 
+# ---- clone
+@cli.command()
+@click.argument("video", type=click.Path(path_type=Path))
+@click.option("--run", "run_dir", type=click.Path(path_type=Path), required=True,
+              help="Run folder holding a trained model (train/<setting>/<variant>/<model>/s<seed>).")
+@click.option("--model", "model_name", default="lrcn", show_default=True, help="Which trained model predicts.")
+@click.option("--setting", help="The model's training setting (default: the first trained one).")
+@click.option("--variant", help="The model's render variant (default: the first trained one).")
+@click.option("--seed", "train_seed", type=int, help="The model's training seed (default: the first trained one).")
+@click.option("--garment", type=click.Choice(["skirt"]), default="skirt", show_default=True)
+@click.option("--motion", type=click.Choice(["twirl", "walk"]), default="twirl", show_default=True,
+              help="How the skirt's waist moves.")
+@click.option("--frames", type=int, default=50, show_default=True, help="Frames of the clone (at the sim's fps).")
+@click.option("--render-variant", help="Render variant of the skirt (default: the model's variant).")
+@click.option("--resolution", type=int, default=128, show_default=True, help="Pixels per panel side.")
+@click.option("--spp", type=int, default=16, show_default=True, help="Samples per pixel.")
+@click.option("--backend", help="Mitsuba backend: auto, cuda_ad_rgb, llvm_ad_rgb, scalar_rgb (default: auto).")
+@click.option("--no-compare", is_flag=True, help="Simulate only the clone, not a softer and a stiffer class.")
+@click.option("--out", type=click.Path(path_type=Path), help="Output folder (default: RUN_DIR/clone/<video>).")
+def clone(video, run_dir, model_name, setting, variant, train_seed, garment, motion, frames, render_variant,
+          resolution, spp, backend, no_compare, out) -> None:
+    """Material cloning (the paper's Fig. 9): predict VIDEO's cloth class with a model trained in the run,
+    simulate a skirt of that material (beside a softer and a stiffer one) and render it next to the input."""
+    if not video.exists():
+        raise ConfigError(f"input video {video} does not exist")
+    from eval.clone import clone_video
+
+    path = clone_video(video, run_dir, model=model_name, setting=setting, variant=variant, seed=train_seed,
+                       garment=garment, motion=motion, out=out, frames=frames, render_variant=render_variant,
+                       resolution=resolution, spp=spp, backend=backend, compare=not no_compare)
+    click.echo(f"wrote {path}")
+
+
 # ---- report
 @cli.command()
 @click.argument("run_dir", type=click.Path(path_type=Path))

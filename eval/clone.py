@@ -244,8 +244,8 @@ def clone_video(video: Path | str, run_dir: Path | str, *, model: str = "lrcn", 
     (and a softer and a stiffer one), write the side-by-side video; returns ``clone.json``'s path.
 
     ``frames``: frames of the clone (the input loops beside it when shorter); ``render_variant``:
-    default the variant the model was trained on; ``backend``/``device``: default the run's render
-    backend and sim device; ``shape``: a ``sim.garment.SkirtShape``; ``predictor`` replaces
+    default the variant the model was trained on; ``backend``: Mitsuba variant (default "auto": CUDA,
+    else LLVM, else scalar); ``device``: Warp device of the skirt simulation (default "cpu"); ``shape``: a ``sim.garment.SkirtShape``; ``predictor`` replaces
     ``learn.predict.predict_clips`` (tests).
     """
     start = time.perf_counter()
@@ -278,7 +278,7 @@ def clone_video(video: Path | str, run_dir: Path | str, *, model: str = "lrcn", 
     from sim.solver import resolve_device
 
     cfg = run.config
-    sim_device = resolve_device(device or cfg.sim.device)
+    sim_device = resolve_device(device or "cpu")           # three small skirts: a CPU is plenty
     shape = shape or SkirtShape()
     skirt_mesh = skirt(shape)
     waist = WaistMotion(kind=motion)
@@ -301,8 +301,14 @@ def clone_video(video: Path | str, run_dir: Path | str, *, model: str = "lrcn", 
         rvariant = get_variant(render_variant or train_dir.parts[-3])
     except VariantError as err:
         raise CloneError(str(err)) from None
-    rconfig = RenderConfig(variants=(rvariant.name,), resolution=resolution, spp=spp,
-                           backend=backend or cfg.render.backend, write_hdr=False)
+    from render.backend import BackendError, load_mitsuba
+
+    try:
+        load_mitsuba(backend or "auto")
+    except (BackendError, ValueError) as err:
+        raise CloneError(f"render backend: {err}") from None
+    rconfig = RenderConfig(variants=(rvariant.name,), resolution=resolution, spp=spp, backend=backend or "auto",
+                           write_hdr=False)
     render_positions = {n: skirt_mesh.to_render(simulated[n]) for n, _ in panels}
     allpos = np.concatenate([p.reshape(-1, 3) for p in render_positions.values()])
     bounds = (allpos.min(axis=0), allpos.max(axis=0))

@@ -4,7 +4,8 @@ Pattern. An A-line skirt is one cone frustum, and a cone unrolls flat into an
 annular sector: a waist of radius ``waist_radius_m``, a slant ``length_m`` and a
 flare half-angle ``alpha`` (from vertical) unroll into a sector of inner radius
 ``rho_w = waist_radius / sin(alpha)``, outer radius ``rho_w + length`` and angle
-``2 pi sin(alpha)``. That sector is the cloth's material (u, v) space (metres,
+``2 pi sin(alpha)`` (for the meshed, polygonal cone, sin(alpha) is corrected so
+that every triangle of the sewn skirt is congruent to its pattern triangle). That sector is the cloth's material (u, v) space (metres,
 the fabric's grain along u), so the skirt starts exactly unstretched; its two
 straight edges meet in a side seam.
 
@@ -124,9 +125,13 @@ class Skirt:
 def skirt(shape: SkirtShape = SkirtShape()) -> Skirt:
     """The skirt's meshes: ``shape.down + 1`` rings of ``shape.around`` vertices, ring 0 the waist."""
     n, m = shape.around, shape.down
-    alpha = math.radians(shape.flare_deg)
-    sin_a, cos_a = math.sin(alpha), math.cos(alpha)
-    rho_w = shape.waist_radius_m / sin_a               # apex -> waist along the unrolled cone
+    sin_a = math.sin(math.radians(shape.flare_deg))
+    # The sewn skirt is a polyhedral frustum of regular n-gons: its isosceles-trapezoid cells are congruent
+    # to the pattern's when a ring of pattern radius rho has radius c * rho (equal chords), so the skirt
+    # starts exactly unstretched. c ~ sin(alpha) for large n.
+    c = math.sin(math.pi * sin_a / n) / math.sin(math.pi / n)
+    cos_c = math.sqrt(1.0 - c * c)
+    rho_w = shape.waist_radius_m / c                   # apex -> waist along the unrolled cone
     s = np.linspace(0.0, shape.length_m, m + 1)       # distance down the cloth from the waist
 
     def material(ring: np.ndarray, col: np.ndarray) -> np.ndarray:
@@ -137,9 +142,9 @@ def skirt(shape: SkirtShape = SkirtShape()) -> Skirt:
 
     ring, col = np.divmod(np.arange((m + 1) * n), n)
     theta = 2.0 * math.pi * col / n
-    radius = shape.waist_radius_m + s[ring] * sin_a
+    radius = shape.waist_radius_m + s[ring] * c
     positions = np.stack([radius * np.cos(theta), radius * np.sin(theta),
-                          shape.waist_height_m - s[ring] * cos_a], axis=1)
+                          shape.waist_height_m - s[ring] * cos_c], axis=1)
     stand_in = np.stack([(shape.waist_radius_m + s[ring]) * np.cos(theta),
                          (shape.waist_radius_m + s[ring]) * np.sin(theta)], axis=1)
 
