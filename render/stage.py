@@ -2,7 +2,10 @@
 
 ``run_render(run)`` walks ``variants x settings x done sim clips``, skips clip
 folders that are already finished (``DONE``), and renders the rest, one Mitsuba
-scene per clip (``render.scene.ClipRenderer``). Each clip folder gets::
+scene per clip (``render.scene.ClipRenderer``), ``render.frames_per_launch`` frames
+per Mitsuba launch (``render.batch``; one per launch for lightings it cannot
+batch). A pool of ``render.writer_threads`` threads composites, tone-maps and
+writes each frame while the next ones render. Each clip folder gets::
 
     hdr/0000.exr ...   linear RGBA cloth radiance (float32), when render.write_hdr
     ldr/0000.png ...   8-bit sRGB RGB, composited and tone-mapped: what the network reads
@@ -19,6 +22,7 @@ from __future__ import annotations
 import time
 import traceback
 import warnings
+from concurrent.futures import Executor, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +32,8 @@ from tqdm import tqdm
 from clothgap.runs import Run, atomic_write_json, fresh_dir, is_done, mark_done
 from render.backend import load_mitsuba
 from render.backgrounds import Backgrounds
-from render.config import RenderConfig
+from render.batch import BatchRenderer, batchable
+from render.config import RenderConfig, frames_per_launch
 from render.exr import write_exr
 from render.scene import ClipRenderer
 from render.variants import RenderVariant, get_variant
@@ -49,30 +54,53 @@ def clip_index_of(clip: SimClip, clip_dir: Path) -> int:
 
 
 def render_clip(clip: SimClip, variant: RenderVariant, out_dir: Path, *, config: RenderConfig, run_seed: int,
-                clip_index: int, backgrounds: Backgrounds | None = None) -> dict:
+                clip_index: int, backgrounds: Backgrounds | None = None, writer: Executor | None = None) -> dict:
     """Render all frames of ``clip`` into ``out_dir`` (hdr/, ldr/, meta.json); returns the meta written.
 
+    ``writer`` runs the per-frame host work (composite, tone map, EXR and PNG
+    writes) beside the renderer; without one, a pool of ``config.writer_threads``
+    lives for this clip. All of the clip's writes have finished when this returns.
     Does not write ``DONE``: the caller marks the folder finished once it is satisfied.
     """
     start = time.perf_counter()
     renderer = ClipRenderer(clip, variant, resolution=config.resolution, spp=config.spp, run_seed=run_seed,
                             clip_index=clip_index, backend=config.backend, backgrounds=backgrounds)
-    ldr_frames = []
-    for t in range(clip.num_frames):
-        frame = renderer.render_frame(t)
-        if config.write_hdr:
-            write_exr(out_dir / "hdr" / f"{t:04d}.exr", frame.hdr)
-        ldr_frames.append(frame.ldr)
-    if variant.video_crf > 0:
-        ldr_frames = compress_frames(ldr_frames, crf=variant.video_crf, fps=float(clip.meta.get("fps", 25.0)))
+    per_launch = frames_per_launch(config, renderer.mi.variant())
+    unbatched = batchable(renderer) if per_launch > 1 else None
+    if per_launch > 1 and unbatched is None:
+        batch = BatchRenderer(renderer, per_launch)
+        hdr_frames, per_launch = batch.hdr_frames(), batch.k
+    else:
+        hdr_frames, per_launch = ((t, renderer.render_hdr(t)) for t in range(clip.num_frames)), 1
+    compress = variant.video_crf > 0
     (out_dir / "ldr").mkdir(parents=True, exist_ok=True)
-    for t, ldr in enumerate(ldr_frames):
-        Image.fromarray(np.ascontiguousarray(ldr)).save(out_dir / "ldr" / f"{t:04d}.png")
+
+    def finish(t: int, hdr: np.ndarray) -> np.ndarray:
+        ldr = renderer.finish(hdr, t)
+        if config.write_hdr:
+            write_exr(out_dir / "hdr" / f"{t:04d}.exr", hdr)
+        if not compress:
+            Image.fromarray(np.ascontiguousarray(ldr)).save(out_dir / "ldr" / f"{t:04d}.png")
+        return ldr
+
+    own = writer is None
+    pool = ThreadPoolExecutor(max(1, config.writer_threads), thread_name_prefix="render-writer") if own else writer
+    try:
+        pending = [pool.submit(finish, t, hdr) for t, hdr in hdr_frames]
+        ldr_frames = [f.result() for f in pending]  # re-raises a failed write; the clip is then FAILED
+    finally:
+        if own:
+            pool.shutdown(wait=True)
+    if compress:
+        ldr_frames = compress_frames(ldr_frames, crf=variant.video_crf, fps=float(clip.meta.get("fps", 25.0)))
+        for t, ldr in enumerate(ldr_frames):
+            Image.fromarray(np.ascontiguousarray(ldr)).save(out_dir / "ldr" / f"{t:04d}.png")
     meta = dict(clip.meta)
     meta.update({
         "variant": variant.name,
         "render": {**variant.settings(), "resolution": config.resolution, "spp": config.spp,
                    "write_hdr": config.write_hdr, **renderer.info, "scene_builds": renderer.rebuilds,
+                   "frames_per_launch": per_launch, **({"unbatched_because": unbatched} if unbatched else {}),
                    "seconds": round(time.perf_counter() - start, 3)},
         "num_frames": clip.num_frames,
     })
@@ -98,6 +126,7 @@ def run_render(run: Run, progress: bool = True) -> dict:
     summary: dict = {"backend": mi.variant(), "rendered": 0, "skipped": 0, "failed": [], "frames": 0}
     start = time.perf_counter()
     render_seconds = 0.0
+    writer = ThreadPoolExecutor(max(1, config.writer_threads), thread_name_prefix="render-writer")
     for variant, setting, clip_id in tqdm(jobs, desc="render", unit="clip", disable=not progress):
         out_dir = run.render_dir(variant.name, setting) / clip_id
         if is_done(out_dir):
@@ -109,7 +138,8 @@ def run_render(run: Run, progress: bool = True) -> dict:
         try:
             clip = SimClip.load(clip_dir)
             meta = render_clip(clip, variant, out_dir, config=config, run_seed=run.config.seed,
-                               clip_index=clip_index_of(clip, clip_dir), backgrounds=backgrounds[variant.name])
+                               clip_index=clip_index_of(clip, clip_dir), backgrounds=backgrounds[variant.name],
+                               writer=writer)
         except Exception as e:  # one bad clip must not stop the run; it is recorded and reported
             reason = f"{type(e).__name__}: {e}"
             atomic_write_json(out_dir / FAILED, {"error": reason, "traceback": traceback.format_exc()})
@@ -121,6 +151,7 @@ def run_render(run: Run, progress: bool = True) -> dict:
         mark_done(out_dir, {"frames": meta["num_frames"]})
         summary["rendered"] += 1
         summary["frames"] += meta["num_frames"]
+    writer.shutdown(wait=True)
     summary["skipped_backgrounds"] = {f: r for b in backgrounds.values() for f, r in b.skipped.items()}
     summary["seconds"] = round(time.perf_counter() - start, 3)
     if summary["rendered"]:
