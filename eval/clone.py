@@ -55,8 +55,8 @@ from eval.real import VideoError, model_geometry, per_video, read_video, write_c
 from sim import classes
 
 GARMENTS = ("skirt",)
-SOFTER_STEPS = (-2, -3)          # (p index, k index) steps from the predicted class to the softer one
-STIFFER_STEPS = (2, 3)
+SOFTER_STEPS = (-2, -4)          # (p index, k index) steps from the predicted class to the softer one
+STIFFER_STEPS = (2, 4)
 SETTLE_S = 1.0                   # the skirt hangs on a still waist this long before recording
 LABEL_PX = 14                    # height of the caption strip above each panel
 

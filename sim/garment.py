@@ -49,8 +49,8 @@ class SkirtShape:
     waist_radius_m: float = 0.14        # a 88 cm waist
     length_m: float = 0.45              # waist to hem along the cloth
     flare_deg: float = 25.0             # half-angle of the cone (0 would be a tube, 90 a flat circle skirt)
-    around: int = 40                    # vertices around each ring
-    down: int = 12                      # rings of faces from waist to hem
+    around: int = 56                    # vertices around each ring
+    down: int = 16                      # rings of faces from waist to hem
     waist_height_m: float = 1.0         # z of the waist at rest
 
     def __post_init__(self) -> None:

@@ -75,23 +75,24 @@ def test_skirt_simulates_stably_with_the_waist_on_its_path_and_the_hem_swinging(
     assert hem[..., 2].max() < SHAPE.waist_height_m                                  # and hangs below the waist
 
 
-def test_softer_class_droops_and_hugs_more_than_a_stiffer_one():
+def test_softer_class_droops_and_swings_more_than_a_stiffer_one():
     from eval.clone import hem_statistics
 
     g = skirt(SHAPE)
-    soft, stiff = simulate_skirts(g, [material(0), material(53)], WaistMotion(), fps=FPS, frames=10, substeps=8,
-                                  settle_s=0.5)
+    soft, stiff = simulate_skirts(g, [material(0), material(53)], WaistMotion(kind="walk"), fps=FPS, frames=10,
+                                  substeps=8, settle_s=0.5)
     assert soft.reason is None and stiff.reason is None
     s, t = hem_statistics(g, soft.positions), hem_statistics(g, stiff.positions)
-    assert s["hem_drop_m"] > t["hem_drop_m"]            # hangs lower
-    assert s["hem_radius_m"] < t["hem_radius_m"] - 0.03  # flares out less: the stiff skirt keeps its cone
+    assert s["hem_drop_m"] > t["hem_drop_m"] + 0.005            # hangs lower
+    assert s["hem_radius_m"] < t["hem_radius_m"] - 0.05         # flares out less: the stiff skirt keeps its cone
+    assert s["hem_swing_m_per_frame"] > 1.2 * t["hem_swing_m_per_frame"]   # swings more about the moving waist
 
 
 def test_comparison_classes_stay_on_the_grid():
     from eval.clone import comparison_classes
 
-    assert comparison_classes(22) == [("clone", 22), ("softer", classes.class_index(0, 1)),
-                                      ("stiffer", classes.class_index(4, 7))]
+    assert comparison_classes(22) == [("clone", 22), ("softer", classes.class_index(0, 0)),
+                                      ("stiffer", classes.class_index(4, 8))]
     assert [n for n, _ in comparison_classes(0)] == ["clone", "stiffer"]
     assert [n for n, _ in comparison_classes(53)] == ["clone", "softer"]
     assert comparison_classes(22, compare=False) == [("clone", 22)]
