@@ -1,0 +1,10 @@
+# Source on the GPU machine after the bundle is staged (../shared/gpu/README.md):
+# puts Mitsuba/Warp/OpenEXR (the bundle), PyAV (.whl/, carried) and the project on the path.
+source /tmp/gpu-env.sh
+if ls .whl/*.whl >/dev/null 2>&1 && [ ! -d /tmp/site/av ]; then
+  python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl
+fi
+export PYTHONPATH=$PYTHONPATH:/tmp/site
+export OUT=${OUT:-/tmp/out}
+mkdir -p "$OUT"
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader

@@ -1,0 +1,25 @@
+#!/usr/bin/env bash
+# GPU: one setting of the paper's study at full size through the real CLI, stage by stage.
+#   STAGES="sim render" bash scripts/gpu/paper_study.sh     (then "train", then "eval report")
+# Every stage resumes, so a call cut off at the device's 10-minute limit loses nothing:
+# call again with the same STAGES. Timings accumulate in $RUN/gpu_timings.jsonl; each
+# call copies them, the config and the eval tables to $OUT (one tarball).
+set -uo pipefail
+source scripts/gpu/env.sh
+RUN=${RUN:-/tmp/paper_study}
+STAGES=${STAGES:-"sim render train eval report"}
+SETS=(--set sim.motions=${MOTIONS:-wind} --set sim.remeshing=${REMESHING:-uniform1} --set sim.batch_size=2592
+      --set render.resolution=${RES:-112} --set render.spp=${SPP:-8} ${EXTRA:-})
+for stage in $STAGES; do
+  t0=$(date +%s.%N)
+  if [ -f "$RUN/config.json" ]; then args=("$RUN"); else args=(--preset paper --out "$RUN" "${SETS[@]}"); fi
+  python3 -m clothgap $stage "${args[@]}" 2>&1 | grep -v "it/s\]" | tail -8
+  rc=${PIPESTATUS[0]}
+  t1=$(date +%s.%N)
+  python3 -c "import json,sys; print(json.dumps({'stage': '$stage', 'rc': $rc, 'seconds': round($t1-$t0, 1)}))" >> "$RUN/gpu_timings.jsonl"
+  nvidia-smi --query-gpu=memory.used --format=csv,noheader >> "$RUN/gpu_memory.txt"
+done
+cat "$RUN/gpu_timings.jsonl"
+cd "$RUN" && tar czf "$OUT/paper_study.tgz" config.json gpu_timings.jsonl gpu_memory.txt train/index.json \
+  $(ls train/*/*/*/s*/metrics.csv eval/*.csv eval/*.md eval/summary.json report/report.html 2>/dev/null) 2>/dev/null
+ls -la "$OUT"
