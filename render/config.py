@@ -4,9 +4,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-# frames_per_launch = 0 ("auto") resolves per backend: batching pays on a GPU, where one launch per frame
-# leaves it idle; on CPU backends the path tracer already keeps every core busy, so one frame per launch.
-AUTO_FRAMES_PER_LAUNCH = {"cuda_ad_rgb": 8, "llvm_ad_rgb": 1, "scalar_rgb": 1}
+# frames_per_launch = 0 ("auto") resolves per backend. On CPU backends batching does not pay (the path tracer
+# already keeps every core busy: 0.8-1.07x measured). On a GPU it amortises launch overhead, but a batched frame
+# is noisier at equal spp (next-event estimation spreads over every slot's lights: RMS error x1.6 at K=4, x2.0
+# at K=8, measured), so it stays 1 until benchmarks/render_throughput.py shows equal_noise_frames_per_s above
+# the baseline on the GPU; then set the cuda entry to the best K (or pass render.frames_per_launch=K).
+AUTO_FRAMES_PER_LAUNCH = {"cuda_ad_rgb": 1, "llvm_ad_rgb": 1, "scalar_rgb": 1}
 
 
 @dataclass(frozen=True)
