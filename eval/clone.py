@@ -245,8 +245,8 @@ def clone_video(video: Path | str, run_dir: Path | str, *, model: str = "lrcn", 
 
     ``frames``: frames of the clone (the input loops beside it when shorter); ``render_variant``:
     default the variant the model was trained on; ``backend``: Mitsuba variant (default "auto": CUDA,
-    else LLVM, else scalar); ``device``: Warp device of the skirt simulation (default "cpu"); ``shape``: a ``sim.garment.SkirtShape``; ``predictor`` replaces
-    ``learn.predict.predict_clips`` (tests).
+    else LLVM, else scalar); ``device``: Warp device of the skirt simulation (default "cpu");
+    ``shape``: a ``sim.garment.SkirtShape``; ``predictor`` replaces ``learn.predict.predict_clips`` (tests).
     """
     start = time.perf_counter()
     video, run_dir = Path(video), Path(run_dir)
@@ -256,6 +256,8 @@ def clone_video(video: Path | str, run_dir: Path | str, *, model: str = "lrcn", 
         raise CloneError(f"unknown garment {garment!r}; known garments: {', '.join(GARMENTS)}")
     if frames < 2:
         raise CloneError(f"the clone needs at least 2 frames, got {frames}")
+    if resolution < 8 or spp < 1:
+        raise CloneError(f"resolution must be >= 8 pixels and spp >= 1, got {resolution} and {spp}")
     from sim.garment import MOTIONS, SkirtShape, WaistMotion, skirt
 
     if motion not in MOTIONS:

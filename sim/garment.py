@@ -5,9 +5,10 @@ annular sector: a waist of radius ``waist_radius_m``, a slant ``length_m`` and a
 flare half-angle ``alpha`` (from vertical) unroll into a sector of inner radius
 ``rho_w = waist_radius / sin(alpha)``, outer radius ``rho_w + length`` and angle
 ``2 pi sin(alpha)`` (for the meshed, polygonal cone, sin(alpha) is corrected so
-that every triangle of the sewn skirt is congruent to its pattern triangle). That sector is the cloth's material (u, v) space (metres,
-the fabric's grain along u), so the skirt starts exactly unstretched; its two
-straight edges meet in a side seam.
+that every triangle of the sewn skirt is congruent to its pattern triangle).
+That sector is the cloth's material (u, v) space (metres, the fabric's grain
+along u), so the skirt starts exactly unstretched; its two straight edges meet
+in a side seam.
 
 Seam. The solver keeps one (u, v) per vertex, and a closed tube has none that
 suits both sides of the seam. The skirt's simulation mesh therefore shares the
