@@ -55,6 +55,34 @@ def _run_options(fn):
     return fn
 
 
+def _executor_options(fn):
+    """Where sim/render work runs: --executor, --workers, --address, --gpus-per-worker, --shard-size."""
+    fn = click.option("--shard-size", type=click.IntRange(min=1), metavar="N",
+                      help="Clip indices per shard (default: an even split over the workers).")(fn)
+    fn = click.option("--gpus-per-worker", type=click.FloatRange(min=0), default=0.0, metavar="G",
+                      help="GPUs per worker. process: one worker per G GPUs of this host, pinned with "
+                           "CUDA_VISIBLE_DEVICES (0.5 = two workers per GPU); ray: num_gpus of each task.")(fn)
+    fn = click.option("--address", metavar="ADDR",
+                      help="Ray cluster: 'auto' (the cluster this machine belongs to, `ray start --head`) "
+                           "or ray://HEAD:10001; default: start a local Ray instance.")(fn)
+    fn = click.option("--workers", type=click.IntRange(min=1), metavar="N",
+                      help="Parallel workers (process: pool size, default one per CPU or GPU slot; "
+                           "ray: most shards in flight, default the cluster's CPUs or GPUs).")(fn)
+    fn = click.option("--executor", type=click.Choice(["local", "process", "ray"]), default="local",
+                      show_default=True,
+                      help="Run generation in this process, a local process pool, or on a Ray cluster "
+                           "(clips are sharded by clip index; finished clips are skipped on a re-run).")(fn)
+    return fn
+
+
+def executor_options(executor: str, workers: int | None, address: str | None, gpus_per_worker: float,
+                     shard_size: int | None):
+    from clothgap.executor import ExecutorOptions
+
+    return ExecutorOptions(executor=executor, workers=workers, address=address, gpus_per_worker=gpus_per_worker,
+                           shard_size=shard_size).validate()
+
+
 def resolve_run(run_dir: Path | None, preset_name: str | None, out: Path | None,
                 overrides: tuple[str, ...]) -> Run:
     """Open an existing run, or create/resume one from a preset."""
@@ -97,13 +125,15 @@ def sim() -> None:
 
 @sim.command("run")
 @_run_options
-def sim_run(run_dir, preset_name, out, overrides) -> None:
+@_executor_options
+def sim_run(run_dir, preset_name, out, overrides, **execution) -> None:
     """Simulate every clip of the run that is not done yet."""
+    opts = executor_options(**execution)
     run = resolve_run(run_dir, preset_name, out, overrides)
-    from sim.stage import run_sim
+    from clothgap.executor import run_stage
 
     t0 = time.perf_counter()
-    _echo_summary("sim", run_sim(run), time.perf_counter() - t0)
+    _echo_summary("sim", run_stage(run, "sim", opts), time.perf_counter() - t0)
 
 
 @sim.command("sensitivity")
@@ -129,20 +159,22 @@ def sim_table2(out: Path) -> None:
 @cli.command()
 @_run_options
 @click.option("--list-variants", is_flag=True, help="List the named render variants and exit.")
-def render(run_dir, preset_name, out, overrides, list_variants) -> None:
+@_executor_options
+def render(run_dir, preset_name, out, overrides, list_variants, **execution) -> None:
     """Render the run's simulated clips under each render variant (Mitsuba 3)."""
     if list_variants:
         from render.variants import describe_variants
 
         click.echo(describe_variants())
         return
+    opts = executor_options(**execution)
     run = resolve_run(run_dir, preset_name, out, overrides)
     for setting in run.config.sim.settings():
         run.require(run.sim_dir(setting), "sim")
-    from render.stage import run_render
+    from clothgap.executor import run_stage
 
     t0 = time.perf_counter()
-    _echo_summary("render", run_render(run), time.perf_counter() - t0)
+    _echo_summary("render", run_stage(run, "render", opts), time.perf_counter() - t0)
 
 
 # ---- train
@@ -264,8 +296,13 @@ def report(run_dir: Path) -> None:
 # ---- pipeline
 @cli.command()
 @_run_options
-def pipeline(run_dir, preset_name, out, overrides) -> None:
-    """Run sim, render, train, eval and report in turn (each skips what is done)."""
+@_executor_options
+def pipeline(run_dir, preset_name, out, overrides, **execution) -> None:
+    """Run sim, render, train, eval and report in turn (each skips what is done).
+
+    --executor/--workers/--address/--gpus-per-worker spread sim and render; training
+    spreads over GPUs with torchrun (`torchrun --nproc-per-node N -m learn.train RUN_DIR`)."""
+    opts = executor_options(**execution)
     run = resolve_run(run_dir, preset_name, out, overrides)
     click.echo(f"run folder: {run.root}  (config: {run.root / 'config.json'})")
     timings: dict[str, float] = {}
@@ -278,12 +315,10 @@ def pipeline(run_dir, preset_name, out, overrides) -> None:
         timings[name] = round(time.perf_counter() - t0, 2)
         _echo_summary(name, summaries[name], timings[name])
 
-    from sim.stage import run_sim
+    from clothgap.executor import run_stage
 
-    stage("sim", run_sim)
-    from render.stage import run_render
-
-    stage("render", run_render)
+    stage("sim", lambda r: run_stage(r, "sim", opts))
+    stage("render", lambda r: run_stage(r, "render", opts))
     from learn.stage import run_train
 
     stage("train", run_train)
@@ -309,6 +344,13 @@ def main() -> None:
     except ConfigError as e:
         click.echo(f"error: {e}", err=True)
         sys.exit(2)
+    except Exception as e:
+        from clothgap.executor import ShardError
+
+        if not isinstance(e, ShardError):
+            raise
+        click.echo(f"error: {e}", err=True)
+        sys.exit(1)
 
 
 if __name__ == "__main__":

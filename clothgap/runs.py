@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -71,6 +72,20 @@ def fresh_dir(folder: Path) -> Path:
 
 def clip_id(index: int) -> str:
     return f"c{index:05d}"
+
+
+def select_clips(num_clips: int, indices: Sequence[int] | None = None) -> list[int]:
+    """The clip indices a stage works on: all ``num_clips``, or the given ones (sorted, once each).
+
+    Generation executors (``clothgap.executor``) give each worker its shard of indices this way.
+    """
+    if indices is None:
+        return list(range(num_clips))
+    chosen = sorted(set(int(i) for i in indices))
+    bad = [i for i in chosen if not 0 <= i < num_clips]
+    if bad:
+        raise ConfigError(f"clip indices {bad[:5]} are outside this run's 0..{num_clips - 1}")
+    return chosen
 
 
 @dataclass(frozen=True)

@@ -22,6 +22,7 @@ from __future__ import annotations
 import time
 import traceback
 import warnings
+from collections.abc import Sequence
 from concurrent.futures import Executor, ThreadPoolExecutor
 from pathlib import Path
 
@@ -29,7 +30,7 @@ import numpy as np
 from PIL import Image
 from tqdm import tqdm
 
-from clothgap.runs import Run, atomic_write_json, fresh_dir, is_done, mark_done
+from clothgap.runs import Run, atomic_write_json, clip_id as clip_name, fresh_dir, is_done, mark_done, select_clips
 from render.backend import load_mitsuba
 from render.backgrounds import Backgrounds
 from render.batch import BatchRenderer, batchable
@@ -108,20 +109,22 @@ def render_clip(clip: SimClip, variant: RenderVariant, out_dir: Path, *, config:
     return meta
 
 
-def run_render(run: Run, progress: bool = True) -> dict:
+def run_render(run: Run, progress: bool = True, indices: Sequence[int] | None = None) -> dict:
     """Render every finished sim clip of ``run`` under each of its variants; returns a summary.
 
     Summary: ``backend``, ``rendered``, ``skipped`` (already done), ``failed``
     (``[{variant, setting, clip_id, error}]``), ``skipped_backgrounds`` (unreadable
     background files), ``seconds``, ``seconds_per_clip``, ``seconds_per_frame``.
+    ``indices`` limits the work to those clip indices (one shard of ``clothgap.executor``).
     """
     config = run.config.render
     variants = [get_variant(name) for name in config.variants]  # unknown names fail before any work
     mi = load_mitsuba(config.backend)
+    wanted = None if indices is None else {clip_name(i) for i in select_clips(run.config.sim.num_clips(), indices)}
     jobs = [(variant, setting, clip_id)
             for variant in variants
             for setting in run.config.sim.settings()
-            for clip_id in run.done_clips(run.sim_dir(setting))]
+            for clip_id in run.done_clips(run.sim_dir(setting)) if wanted is None or clip_id in wanted]
     backgrounds = {v.name: Backgrounds(v, config.resolution) for v in variants}
     summary: dict = {"backend": mi.variant(), "rendered": 0, "skipped": 0, "failed": [], "frames": 0}
     start = time.perf_counter()

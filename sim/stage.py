@@ -24,12 +24,13 @@ from __future__ import annotations
 import functools
 import re
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from clothgap import seeding
-from clothgap.runs import Run, atomic_write_json, clip_id, fresh_dir, is_done, mark_done
+from clothgap.runs import Run, atomic_write_json, clip_id, fresh_dir, is_done, mark_done, select_clips
 from sim import classes
 from sim import remesh
 from sim.adaptive import cloth_mesh, simulate_adaptive
@@ -156,8 +157,11 @@ def build_scene(cfg: SimConfig, seed: int, index: int, setting: Setting, mesh: C
     return scene, meta
 
 
-def run_sim(run: Run, progress: bool = True) -> dict:
-    """Simulate every unfinished clip of every setting of the run; returns counts per outcome."""
+def run_sim(run: Run, progress: bool = True, indices: Sequence[int] | None = None) -> dict:
+    """Simulate every unfinished clip of every setting of the run; returns counts per outcome.
+
+    ``indices`` limits the work to those clip indices (one shard of ``clothgap.executor``).
+    """
     from tqdm import tqdm
 
     cfg = run.config.sim
@@ -166,12 +170,13 @@ def run_sim(run: Run, progress: bool = True) -> dict:
     for c in cfg.class_indices():
         classes.class_indices(c)          # validate early
     n_classes = len(cfg.class_indices())
+    wanted = select_clips(cfg.num_clips(), indices)
     summary = {"simulated": 0, "skipped": 0, "failed": 0, "retried": 0, "seconds": 0.0}
     start = time.perf_counter()
     for setting in settings:
         out = run.sim_dir(setting.name)
-        todo = [i for i in range(cfg.num_clips()) if not is_done(out / clip_id(i))]
-        summary["skipped"] += cfg.num_clips() - len(todo)
+        todo = [i for i in wanted if not is_done(out / clip_id(i))]
+        summary["skipped"] += len(wanted) - len(todo)
         n = vertices_per_side(cfg.grid_vertices, setting.level)
         if setting.remeshing == "adaptive":
             base = remesh.uniform(cfg.grid_vertices, cfg.cloth_size_m, 1)

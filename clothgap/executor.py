@@ -1,0 +1,402 @@
+"""Where generation work runs: in this process, a local process pool, or a Ray cluster.
+
+The sim and render stages are cut into shards of clip indices (``shard``). A
+shard is handled by a plain, picklable function ``fn(run_root: str, indices:
+list[int]) -> dict`` (``sim_shard``, ``render_shard``) that calls the stage
+restricted to those indices; the stage skips finished clips and writes every
+clip folder with its ``DONE`` marker last. That makes every executor idempotent
+and resumable: a worker killed mid-shard loses only the clip it was writing, a
+retried or re-run shard skips what is finished and redoes what is not, and
+disjoint shards never write the same clip, so no clip is done twice. A shard
+covers its indices under every setting (and render variant), so shards never
+touch the same folder.
+
+The stages write nothing at stage level: each shard returns its summary, and
+the driver (``run_stage``) merges them once all shards are finished.
+
+    local     in this process (default; what CPU runs and tests use)
+    process   a local pool of spawned processes (Warp, Mitsuba and torch are not
+              fork-safe); with ``gpus_per_worker`` one worker per GPU (or per
+              share of one), pinned with CUDA_VISIBLE_DEVICES; a pool broken by a
+              killed worker is rebuilt and the unfinished shards are run again
+    ray       tasks on a Ray cluster (``address``: "auto", "ray://host:10001",
+              or None for a fresh local instance); ``gpus_per_worker`` is each
+              task's ``num_gpus``; a task whose worker dies is retried
+
+On a cluster, every node needs the project installed (``pip install
+clothgap[ray]``, same version) and the run folder on a filesystem all nodes
+share, at the same path.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import socket
+import subprocess
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from clothgap.config import ConfigError
+from clothgap.runs import Run
+
+EXECUTORS = ("local", "process", "ray")
+STAGES = ("sim", "render")
+ShardFn = Callable[[str, list[int]], dict]
+RAY_MISSING = "the ray executor needs Ray: pip install 'clothgap[ray]' (or pip install 'ray[default]')"
+
+
+class ShardError(RuntimeError):
+    """A shard failed for good; finished clips are kept and a re-run redoes the rest."""
+
+
+@dataclass(frozen=True)
+class ExecutorOptions:
+    """How generation is spread: the CLI's --executor, --workers, --address, --gpus-per-worker, --shard-size."""
+
+    executor: str = "local"
+    workers: int | None = None          # process: pool size; ray: most tasks in flight (and CPUs of a local instance)
+    address: str | None = None          # ray only: "auto", "ray://host:10001", "host:6379"; None = start a local instance
+    gpus_per_worker: float = 0.0        # process: GPUs pinned per worker; ray: num_gpus per task
+    shard_size: int | None = None       # clip indices per shard; None = an even split over the workers
+    retries: int = 2                    # times a shard whose worker died is run again (process, ray)
+    progress: bool = True
+
+    def validate(self) -> "ExecutorOptions":
+        if self.executor not in EXECUTORS:
+            raise ConfigError(f"unknown executor {self.executor!r}; known: {', '.join(EXECUTORS)}")
+        if self.workers is not None and self.workers < 1:
+            raise ConfigError(f"--workers must be at least 1, got {self.workers}")
+        if self.shard_size is not None and self.shard_size < 1:
+            raise ConfigError(f"--shard-size must be at least 1, got {self.shard_size}")
+        if self.gpus_per_worker < 0:
+            raise ConfigError(f"--gpus-per-worker must not be negative, got {self.gpus_per_worker}")
+        if self.address is not None and self.executor != "ray":
+            raise ConfigError("--address names a Ray cluster: use it with --executor ray")
+        if self.executor == "local" and (self.workers not in (None, 1) or self.gpus_per_worker):
+            raise ConfigError("--workers and --gpus-per-worker need --executor process or ray")
+        return self
+
+
+# ---------------------------------------------------------------- shards
+
+def shard(indices: Sequence[int], shard_size: int) -> list[list[int]]:
+    """Consecutive shards of at most ``shard_size`` clip indices."""
+    if shard_size < 1:
+        raise ConfigError(f"shard size must be at least 1, got {shard_size}")
+    items = list(indices)
+    return [items[i:i + shard_size] for i in range(0, len(items), shard_size)]
+
+
+def default_shard_size(num_indices: int, workers: int) -> int:
+    """An even split: one shard per worker (big shards keep the GPU solver's batches full)."""
+    return max(1, math.ceil(num_indices / max(1, workers)))
+
+
+def sim_shard(run_root: str, indices: list[int]) -> dict:
+    """Simulate the unfinished clips among ``indices`` under every setting of the run."""
+    from sim.stage import run_sim
+
+    return run_sim(Run.open(run_root), progress=False, indices=indices)
+
+
+def render_shard(run_root: str, indices: list[int]) -> dict:
+    """Render the unfinished clips among ``indices`` under every variant and setting of the run."""
+    from render.stage import run_render
+
+    return run_render(Run.open(run_root), progress=False, indices=indices)
+
+
+SHARD_FNS: dict[str, ShardFn] = {"sim": sim_shard, "render": render_shard}
+
+
+def run_stage(run: Run, stage: str, options: ExecutorOptions = ExecutorOptions()) -> dict:
+    """Run the sim or render stage of ``run`` through an executor; returns the merged summary.
+
+    With the default options this is the plain ``run_sim(run)`` / ``run_render(run)``.
+    """
+    if stage not in STAGES:
+        raise ConfigError(f"stage {stage!r} cannot be sharded; shardable: {', '.join(STAGES)}")
+    options = options.validate()
+    if options.executor == "local" and options.shard_size is None:
+        if stage == "sim":
+            from sim.stage import run_sim
+
+            return run_sim(run, progress=options.progress)
+        from render.stage import run_render
+
+        return run_render(run, progress=options.progress)
+    start = time.perf_counter()
+    indices = list(range(run.config.sim.num_clips()))
+    with ray_session(options) as ray:
+        if ray is not None:
+            workers = options.workers or ray_parallelism(ray, options)
+            slots = None
+        elif options.executor == "process" and options.gpus_per_worker:
+            slots = gpu_slots(visible_gpus(), options.gpus_per_worker, options.workers)
+            workers = len(slots)
+        else:
+            slots = None
+            workers = options.workers or (os.cpu_count() or 1 if options.executor == "process" else 1)
+        shards = shard(indices, options.shard_size or default_shard_size(len(indices), workers))
+        parts = run_shards(SHARD_FNS[stage], str(run.root.resolve()), shards, options=options, label=stage,
+                           gpu_slots=slots)
+    summary = merge_summaries(stage, parts)
+    summary["seconds"] = round(time.perf_counter() - start, 3)
+    summary["executor"] = {"name": options.executor, "workers": workers, "shards": len(shards),
+                           **({"address": options.address} if options.address else {}),
+                           **({"gpus_per_worker": options.gpus_per_worker} if options.gpus_per_worker else {})}
+    return summary
+
+
+def merge_summaries(stage: str, parts: list[dict]) -> dict:
+    """One stage summary from the shards' summaries (counts add up, failures are listed together)."""
+    if stage == "sim":
+        merged: dict[str, Any] = {k: sum(p.get(k, 0) for p in parts)
+                                  for k in ("simulated", "skipped", "failed", "retried")}
+        merged["seconds"] = 0.0
+        return merged
+    merged = {"backend": next((p["backend"] for p in parts if "backend" in p), None),
+              "rendered": sum(p.get("rendered", 0) for p in parts),
+              "skipped": sum(p.get("skipped", 0) for p in parts),
+              "failed": [f for p in parts for f in p.get("failed", [])],
+              "frames": sum(p.get("frames", 0) for p in parts),
+              "skipped_backgrounds": {k: v for p in parts for k, v in p.get("skipped_backgrounds", {}).items()},
+              "seconds": 0.0}
+    render_seconds = sum(p.get("seconds_per_clip", 0.0) * p.get("rendered", 0) for p in parts)
+    if merged["rendered"]:
+        merged["seconds_per_clip"] = round(render_seconds / merged["rendered"], 4)
+        merged["seconds_per_frame"] = round(render_seconds / merged["frames"], 5)
+    return merged
+
+
+# ---------------------------------------------------------------- GPUs of this host
+
+def visible_gpus() -> list[str]:
+    """This host's GPUs as CUDA_VISIBLE_DEVICES entries: that variable when set, else nvidia-smi's list."""
+    env = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if env is not None:
+        return [g.strip() for g in env.split(",") if g.strip() and g.strip() != "-1"]
+    try:
+        out = subprocess.run(["nvidia-smi", "--query-gpu=index", "--format=csv,noheader"],
+                             capture_output=True, text=True, timeout=30, check=True).stdout
+    except (OSError, subprocess.SubprocessError):
+        return []
+    return [line.strip() for line in out.splitlines() if line.strip()]
+
+
+def gpu_slots(gpus: Sequence[str], gpus_per_worker: float, workers: int | None = None) -> list[str]:
+    """CUDA_VISIBLE_DEVICES of each process worker: ``gpus_per_worker`` GPUs each (or a 1/n share of one).
+
+    ``gpu_slots(["0", "1"], 1)`` -> ``["0", "1"]``; ``(["0", "1", "2", "3"], 2)`` -> ``["0,1", "2,3"]``;
+    ``(["0"], 0.5)`` -> ``["0", "0"]`` (two workers share GPU 0).
+    """
+    if not gpus:
+        raise ConfigError(f"--gpus-per-worker {gpus_per_worker:g} but no GPU is visible "
+                          "(nvidia-smi finds none, or CUDA_VISIBLE_DEVICES is empty)")
+    if gpus_per_worker >= 1:
+        if gpus_per_worker != int(gpus_per_worker):
+            raise ConfigError(f"--gpus-per-worker {gpus_per_worker:g}: give a whole number of GPUs, "
+                              "or a fraction below 1 (0.5 = two workers per GPU)")
+        k = int(gpus_per_worker)
+        slots = [",".join(gpus[i:i + k]) for i in range(0, len(gpus) - k + 1, k)]
+    else:
+        per_gpu = max(1, round(1 / gpus_per_worker))
+        slots = [g for g in gpus for _ in range(per_gpu)]
+    if not slots:
+        raise ConfigError(f"--gpus-per-worker {gpus_per_worker:g} but only {len(gpus)} GPU(s) are visible")
+    if workers is not None:
+        if workers > len(slots):
+            raise ConfigError(f"--workers {workers} with --gpus-per-worker {gpus_per_worker:g} needs "
+                              f"{workers * gpus_per_worker:g} GPUs; {len(gpus)} are visible")
+        slots = slots[:workers]
+    return slots
+
+
+# ---------------------------------------------------------------- running shards
+
+def run_shards(fn: ShardFn, run_root: str, shards: list[list[int]], *,
+               options: ExecutorOptions = ExecutorOptions(), label: str = "shards",
+               gpu_slots: list[str] | None = None) -> list[dict]:
+    """Run ``fn(run_root, shard)`` for every shard; returns the shards' summaries in shard order."""
+    options = options.validate()
+    if not shards:
+        return []
+    if options.executor == "local":
+        with _progress(len(shards), options.progress and len(shards) > 1, label) as bar:
+            results = []
+            for s in shards:
+                results.append(fn(run_root, s))
+                bar.update()
+            return results
+    if options.executor == "process":
+        return _run_process_pool(fn, run_root, shards, options, label, gpu_slots)
+    return _run_ray(fn, run_root, shards, options, label)
+
+
+def _progress(total: int, enabled: bool, desc: str):
+    from tqdm import tqdm
+
+    return tqdm(total=total, disable=not enabled, desc=desc, unit="shard")
+
+
+def _describe(s: list[int]) -> str:
+    return f"clips {s[0]}..{s[-1]}" if s else "no clips"
+
+
+def _pin_gpu(slots) -> None:
+    """Pool initializer: this worker takes one slot's GPUs before anything initialises CUDA."""
+    os.environ["CUDA_VISIBLE_DEVICES"] = slots.get()
+
+
+def _run_process_pool(fn, run_root, shards, options, label, slots) -> list[dict]:
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures.process import BrokenProcessPool
+
+    ctx = mp.get_context("spawn")
+    workers = len(slots) if slots else min(len(shards), options.workers or os.cpu_count() or 1)
+    results: list[Any] = [None] * len(shards)
+    pending = list(range(len(shards)))
+    with _progress(len(shards), options.progress, f"{label} (process x{workers})") as bar:
+        for attempt in range(options.retries + 1):
+            init: dict[str, Any] = {}
+            if slots:
+                queue = ctx.Queue()
+                for s in slots:
+                    queue.put(s)
+                init = {"initializer": _pin_gpu, "initargs": (queue,)}
+            broken: list[int] = []
+            with ProcessPoolExecutor(max_workers=min(workers, len(pending)), mp_context=ctx, **init) as pool:
+                futures = {pool.submit(fn, run_root, shards[i]): i for i in pending}
+                for fut in as_completed(futures):
+                    i = futures[fut]
+                    try:
+                        results[i] = fut.result()
+                    except BrokenProcessPool:
+                        broken.append(i)        # a worker died (killed, out of memory): run it again
+                        continue
+                    except Exception as e:
+                        pool.shutdown(wait=True, cancel_futures=True)     # shards not started are dropped
+                        raise ShardError(f"{label} shard {i} ({_describe(shards[i])}) failed: "
+                                         f"{type(e).__name__}: {e}; finished clips are kept") from e
+                    bar.update()
+            if not broken:
+                return results
+            pending = sorted(broken)
+            if attempt < options.retries:
+                bar.write(f"{label}: a worker died; running {len(pending)} unfinished shard(s) again")
+    raise ShardError(f"{label}: a worker died {options.retries + 1} times running "
+                     f"{', '.join(_describe(shards[i]) for i in pending)}; finished clips are kept, "
+                     "re-run the same command to redo the rest")
+
+
+def check_reachable(address: str, timeout: float = 5.0) -> None:
+    """Fail fast (ConfigError) when a ``ray://host:port`` or ``host:port`` address does not answer.
+
+    Ray itself waits for minutes on an unreachable GCS address, then exits the process.
+    """
+    if address in ("auto", "local"):
+        return
+    rest = address[len("ray://"):] if address.startswith("ray://") else address
+    host, sep, port = rest.rpartition(":")
+    if not sep:
+        host, port = rest, "10001" if address.startswith("ray://") else "6379"
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout):
+            pass
+    except (OSError, ValueError) as e:
+        raise ConfigError(f"cannot reach the Ray cluster at {address!r} ({e}); start it with "
+                          "`ray start --head` on the head node, then use --address auto there or "
+                          "--address ray://HEAD:10001 from another machine") from None
+
+
+@contextlib.contextmanager
+def ray_session(options: ExecutorOptions, **init_kwargs):
+    """Ray, connected (None for the other executors); a session started here is shut down on exit.
+
+    ``address`` None starts a local instance (``workers`` CPUs when given; RAY_ADDRESS, when set,
+    is honoured by Ray); an address that does not answer is a ConfigError, not a long hang.
+    """
+    if options.executor != "ray":
+        yield None
+        return
+    try:
+        import ray
+    except ImportError:
+        raise ConfigError(RAY_MISSING) from None
+    if ray.is_initialized():
+        yield ray
+        return
+    address = options.address
+    if address is not None:
+        check_reachable(address)
+    kwargs = dict(address=address, log_to_driver=False, include_dashboard=False,
+                  runtime_env={"env_vars": {"PYTHONPATH": _project_path()}}, **init_kwargs)
+    if address is None and options.workers and "num_cpus" not in kwargs:
+        kwargs["num_cpus"] = options.workers
+    try:
+        ray.init(**kwargs)
+    except (ConnectionError, SystemExit, RuntimeError) as e:
+        where = f"at {address!r}" if address else "(a fresh local instance)"
+        raise ConfigError(f"cannot connect to the Ray cluster {where}: {e}; start one with "
+                          "`ray start --head`, then use --address auto") from None
+    try:
+        yield ray
+    finally:
+        ray.shutdown()
+
+
+def ray_parallelism(ray, options: ExecutorOptions) -> int:
+    """How many shard tasks the connected cluster runs at once: its GPUs / gpus_per_worker, else its CPUs."""
+    res = ray.cluster_resources()
+    if options.gpus_per_worker:
+        n = int(res.get("GPU", 0) // options.gpus_per_worker)
+        if n < 1:
+            raise ConfigError(f"--gpus-per-worker {options.gpus_per_worker:g} but the Ray cluster has "
+                              f"{res.get('GPU', 0):g} GPU(s)")
+        return n
+    return max(1, int(res.get("CPU", 1)))
+
+
+def _run_ray(fn, run_root, shards, options, label) -> list[dict]:
+    with ray_session(options) as ray:
+        from ray.exceptions import RayTaskError
+
+        # max_retries: a task whose worker or node dies runs again (its finished clips are skipped);
+        # exceptions raised by the stage itself are not retried (they would fail the same way).
+        task = ray.remote(num_gpus=options.gpus_per_worker, max_retries=options.retries,
+                          retry_exceptions=False)(fn)
+        in_flight = options.workers or len(shards)
+        results: list[Any] = [None] * len(shards)
+        queue = list(range(len(shards)))
+        running: dict[Any, int] = {}
+        with _progress(len(shards), options.progress, f"{label} (ray)") as bar:
+            while queue or running:
+                while queue and len(running) < in_flight:
+                    i = queue.pop(0)
+                    running[task.remote(run_root, shards[i])] = i
+                done, _ = ray.wait(list(running), num_returns=1)
+                i = running.pop(done[0])
+                try:
+                    results[i] = ray.get(done[0])
+                except RayTaskError as e:
+                    cause = getattr(e, "cause", None)
+                    why = f"{type(cause).__name__}: {cause}" if cause is not None else str(e)
+                    raise ShardError(f"{label} shard {i} ({_describe(shards[i])}) failed on Ray: {why}") from e
+                except Exception as e:      # WorkerCrashedError, NodeDiedError, ... after the retries
+                    raise ShardError(f"{label} shard {i} ({_describe(shards[i])}) could not finish on Ray: "
+                                     f"{type(e).__name__}: {e}; finished clips are kept, re-run the same "
+                                     "command to redo the rest") from e
+                bar.update()
+        return results
+
+
+def _project_path() -> str:
+    """The project's root, so Ray workers on this machine import the same sim/render packages."""
+    here = str(Path(__file__).resolve().parent.parent)
+    return os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH", "")) if p)
