@@ -443,3 +443,247 @@ def collide_arm(arms: wp.array(dtype=Arm), cloth: wp.array(dtype=int), free: wp.
 @wp.kernel
 def advance_clock(clock: wp.array(dtype=float), dt: float):
     clock[0] = clock[0] + dt
+
+
+@wp.func
+def segment_params(p0: wp.vec3, p1: wp.vec3, a: wp.vec3, b: wp.vec3):
+    """Parameters (s on p0-p1, t on a-b) of the closest points of two segments (Ericson, 5.1.9)."""
+    d1 = p1 - p0
+    d2 = b - a
+    r = p0 - a
+    aa = wp.dot(d1, d1)
+    ee = wp.dot(d2, d2)
+    ff = wp.dot(d2, r)
+    cc = wp.dot(d1, r)
+    bb = wp.dot(d1, d2)
+    den = aa * ee - bb * bb
+    s = float(0.0)
+    if den > 1.0e-12 * aa * ee:
+        s = wp.clamp((bb * ff - cc * ee) / den, 0.0, 1.0)
+    t = (bb * s + ff) / wp.max(ee, 1.0e-12)
+    if t < 0.0:
+        t = 0.0
+        s = wp.clamp(-cc / wp.max(aa, 1.0e-12), 0.0, 1.0)
+    elif t > 1.0:
+        t = 1.0
+        s = wp.clamp((bb - cc) / wp.max(aa, 1.0e-12), 0.0, 1.0)
+    return wp.vec2(s, t)
+
+
+@wp.kernel
+def collide_arm_edges(arms: wp.array(dtype=Arm), edge: wp.array2d(dtype=int), cloth: wp.array(dtype=int),
+                      free: wp.array(dtype=float), clock: wp.array(dtype=float), thickness: float, friction: float,
+                      x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
+                      dx: wp.array(dtype=wp.vec3), dvel: wp.array(dtype=wp.vec3), count: wp.array(dtype=float)):
+    """Edge-capsule contact: where the inside of a cloth edge is closer than radius + thickness to a capsule's
+    axis (the capsule fits between the edge's two vertices), push the edge out along the normal and make the
+    velocity of its closest point non-penetrating with Coulomb friction; the corrections are split between the
+    two vertices by their barycentric weights and accumulated (Jacobi) for ``apply_corrections``."""
+    e = wp.tid()
+    i = edge[e, 0]
+    j = edge[e, 1]
+    arm = arms[cloth[i]]
+    if arm.active == 0:
+        return
+    t = clock[0]
+    angle = wp.clamp(arm.omega * (t - arm.t0), 0.0, arm.max_angle)
+    moving = float(0.0)
+    if t > arm.t0 and angle < arm.max_angle:
+        moving = 1.0
+    q = wp.quat_from_axis_angle(arm.axis, angle)
+    hand = arm.elbow + wp.quat_rotate(q, arm.forearm)
+    xi = x[i]
+    xj = x[j]
+    wi = free[i]
+    wj = free[j]
+    reach = arm.radius + thickness
+    for seg in range(2):
+        a = arm.shoulder
+        b = arm.elbow
+        wvel = wp.vec3(0.0)
+        if seg == 1:
+            a = arm.elbow
+            b = hand
+            wvel = moving * arm.omega * arm.axis
+        st = segment_params(xi, xj, a, b)
+        s = st[0]
+        if s > 0.0 and s < 1.0:          # an end point is the vertex pass's business
+            p = xi + s * (xj - xi)
+            c = a + st[1] * (b - a)
+            d = p - c
+            dl = wp.length(d)
+            if dl < reach and dl > 1.0e-9:
+                n = d / dl
+                bi = (1.0 - s) * wi
+                bj = s * wj
+                norm = bi * bi + bj * bj
+                if norm > 0.0:
+                    lam = (reach - dl) / norm
+                    wp.atomic_add(dx, i, bi * lam * n)
+                    wp.atomic_add(dx, j, bj * lam * n)
+                    surface_v = wp.cross(wvel, c - arm.elbow)
+                    rel = (1.0 - s) * v[i] + s * v[j] - surface_v
+                    vn = wp.dot(rel, n)
+                    dvp = wp.vec3(0.0)
+                    if vn < 0.0:
+                        vt = rel - vn * n
+                        vtl = wp.length(vt)
+                        scale = float(0.0)
+                        if vtl > 0.0:
+                            scale = wp.max(0.0, 1.0 - friction * (-vn) / vtl)
+                        dvp = vt * scale - rel          # wanted change of the closest point's velocity
+                    wp.atomic_add(dvel, i, (bi / norm) * dvp)
+                    wp.atomic_add(dvel, j, (bj / norm) * dvp)
+                    wp.atomic_add(count, i, 1.0)
+                    wp.atomic_add(count, j, 1.0)
+
+
+@wp.kernel
+def apply_corrections(dx: wp.array(dtype=wp.vec3), dvel: wp.array(dtype=wp.vec3), count: wp.array(dtype=float),
+                      x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3)):
+    """Average the accumulated contact corrections of each vertex and apply them; reset the accumulators."""
+    i = wp.tid()
+    n = count[i]
+    if n > 0.0:
+        x[i] = x[i] + dx[i] / n
+        v[i] = v[i] + dvel[i] / n
+    dx[i] = wp.vec3(0.0)
+    dvel[i] = wp.vec3(0.0)
+    count[i] = 0.0
+
+
+# ---------------------------------------------------------------- arm contact inside the solve (Baraff & Witkin 1998)
+
+@wp.func
+def forearm_hand(arm: Arm, t: float):
+    angle = wp.clamp(arm.omega * (t - arm.t0), 0.0, arm.max_angle)
+    return arm.elbow + wp.quat_rotate(wp.quat_from_axis_angle(arm.axis, angle), arm.forearm)
+
+
+@wp.func
+def forearm_moving(arm: Arm, t: float):
+    angle = wp.clamp(arm.omega * (t - arm.t0), 0.0, arm.max_angle)
+    moving = float(0.0)
+    if t > arm.t0 and angle < arm.max_angle:
+        moving = 1.0
+    return moving
+
+
+@wp.kernel
+def contact_prepare(arms: wp.array(dtype=Arm), cloth: wp.array(dtype=int), free: wp.array(dtype=float),
+                    clock: wp.array(dtype=float), thickness: float, tolerance: float, dt: float,
+                    x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), released: wp.array(dtype=int),
+                    cn: wp.array(dtype=wp.vec3), y: wp.array(dtype=wp.vec3), vy: wp.array(dtype=wp.vec3)):
+    """Contacts of this step, as velocity constraints of the implicit solve: a free vertex within
+    ``tolerance`` of an arm capsule's contact surface (radius + thickness) that is not moving away from it gets
+    its normal velocity prescribed: the surface's normal velocity plus what closes any penetration in one step.
+    ``cn`` is the constraint normal (zero: unconstrained), ``y`` the prescribed velocity change along it
+    (the solve starts from dv = y and never changes dv along ``cn``), ``vy`` = v + y. A vertex whose
+    contact force came out adhesive in the previous step (``released``) is left free for this one."""
+    i = wp.tid()
+    vi = v[i]
+    n_out = wp.vec3(0.0)
+    y_out = wp.vec3(0.0)
+    arm = arms[cloth[i]]
+    if arm.active == 1 and free[i] > 0.0 and released[i] == 0:
+        t = clock[0]
+        hand = forearm_hand(arm, t)
+        moving = forearm_moving(arm, t)
+        xi = x[i]
+        reach = arm.radius + thickness
+        best = tolerance
+        for seg in range(2):
+            a = arm.shoulder
+            b = arm.elbow
+            wvel = wp.vec3(0.0)
+            if seg == 1:
+                a = arm.elbow
+                b = hand
+                wvel = moving * arm.omega * arm.axis
+            c = closest_on_segment(xi, a, b)
+            d = xi - c
+            dl = wp.length(d)
+            gap = dl - reach
+            if gap < best and dl > 1.0e-9:
+                n = d / dl
+                u = wp.cross(wvel, c - arm.elbow)
+                target = wp.dot(u, n) + wp.max(-gap, 0.0) / dt
+                vn = wp.dot(vi, n)
+                if vn <= target:
+                    best = gap
+                    n_out = n
+                    y_out = (target - vn) * n
+    released[i] = 0
+    cn[i] = n_out
+    y[i] = y_out
+    vy[i] = vi + y_out
+
+
+@wp.func
+def filter_contact(r: wp.vec3, free: float, n: wp.vec3):
+    """Project out the constrained directions: pinned vertices entirely, contact vertices along the normal."""
+    return free * (r - wp.dot(r, n) * n)
+
+
+@wp.kernel
+def cg_start_contact(force: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), kv: wp.array(dtype=wp.vec3),
+                     mass: wp.array(dtype=float), free: wp.array(dtype=float), cloth: wp.array(dtype=int),
+                     dt: float, damping: float, diag: wp.array(dtype=wp.vec3),
+                     cn: wp.array(dtype=wp.vec3), y: wp.array(dtype=wp.vec3), rn: wp.array(dtype=float),
+                     dv: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.vec3),
+                     p: wp.array(dtype=wp.vec3), ap: wp.array(dtype=wp.vec3),
+                     rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float)):
+    """``cg_start`` for the modified PCG of Baraff & Witkin: dv starts at the prescribed y, the residual is
+    b - A y (``kv`` holds K (v + y)), filtered; ``rn`` keeps the unfiltered residual along the contact normal
+    (minus the contact impulse), to release adhesive contacts after the solve."""
+    i = wp.tid()
+    c = cloth[i]
+    m_eff = mass[i] * (1.0 + dt * damping)
+    n = cn[i]
+    yi = y[i]
+    res = dt * (force[i] - damping * mass[i] * v[i]) - dt * dt * kv[i] - m_eff * yi
+    rn[i] = wp.dot(res, n)
+    ri = filter_contact(res, free[i], n)
+    dinv = wp.cw_div(wp.vec3(1.0), wp.vec3(m_eff) + dt * dt * diag[i])
+    zi = filter_contact(wp.cw_mul(ri, dinv), free[i], n)
+    diag[i] = dinv
+    dv[i] = free[i] * yi
+    r[i] = ri
+    z[i] = zi
+    p[i] = zi
+    ap[i] = m_eff * zi
+    wp.atomic_add(rz, 0, c, wp.dot(ri, zi))
+    wp.atomic_add(pap, 0, c, m_eff * wp.dot(zi, zi))
+
+
+@wp.kernel
+def cg_update_contact(mass: wp.array(dtype=float), free: wp.array(dtype=float), cloth: wp.array(dtype=int),
+                      dinv: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3), ap: wp.array(dtype=wp.vec3),
+                      cn: wp.array(dtype=wp.vec3), rn: wp.array(dtype=float),
+                      slot: int, dv: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.vec3),
+                      rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float)):
+    """``cg_update`` with the contact filter."""
+    i = wp.tid()
+    c = cloth[i]
+    den = pap[slot, c]
+    alpha = float(0.0)
+    if den > 0.0:
+        alpha = rz[slot, c] / den
+    n = cn[i]
+    api = ap[i]
+    dv[i] = dv[i] + alpha * p[i]
+    rn[i] = rn[i] - alpha * wp.dot(api, n)
+    ri = r[i] - alpha * filter_contact(api, free[i], n)
+    zi = filter_contact(wp.cw_mul(ri, dinv[i]), free[i], n)
+    r[i] = ri
+    z[i] = zi
+    wp.atomic_add(rz, slot + 1, c, wp.dot(ri, zi))
+
+
+@wp.kernel
+def contact_release(cn: wp.array(dtype=wp.vec3), rn: wp.array(dtype=float), released: wp.array(dtype=int)):
+    """A contact whose constraint impulse (-rn along the outward normal) came out pulling the cloth onto the
+    arm is released for the next step."""
+    i = wp.tid()
+    if wp.length_sq(cn[i]) > 0.0 and rn[i] > 0.0:
+        released[i] = 1

@@ -85,6 +85,8 @@ class SolverParams:
     damping: float = 0.1                  # 1/s, mass-proportional
     contact_thickness: float = 0.005      # m, kept between the cloth and an arm's surface
     friction: float = 0.5                 # Coulomb coefficient between cloth and arm
+    contact_tolerance: float = 0.005      # m, beyond the contact surface a vertex still counts as touching
+    contact_iterations: int = 2           # Jacobi passes of the edge-capsule contact after each step
 
 
 def resolve_device(device: str) -> str:
@@ -201,6 +203,21 @@ class BatchSolver:
         self.arms = wp.array([self._arm_struct(s.arm) for s in specs], dtype=kernels.Arm, device=dev)
         self.clock = wp.zeros(1, dtype=float, device=dev)
         self.faces_per_cloth = [len(s.mesh.faces) for s in specs]
+        if self.has_arm:          # unique edges, for edge-capsule contact
+            edges = []
+            for c, s in enumerate(specs):
+                f = s.mesh.faces
+                e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+                edges.append(np.unique(e, axis=0) + int(self.vertex_offsets[c]))
+            self.edge = arr(cat(edges).astype(np.int32).reshape(-1, 2), int)
+            self.contact_dx = wp.zeros(self.x.shape[0], dtype=wp.vec3, device=dev)
+            self.contact_dv = wp.zeros(self.x.shape[0], dtype=wp.vec3, device=dev)
+            self.contact_count = wp.zeros(self.x.shape[0], dtype=float, device=dev)
+            self.contact_n = wp.zeros(self.x.shape[0], dtype=wp.vec3, device=dev)
+            self.contact_y = wp.zeros(self.x.shape[0], dtype=wp.vec3, device=dev)
+            self.vy = wp.zeros(self.x.shape[0], dtype=wp.vec3, device=dev)
+            self.contact_rn = wp.zeros(self.x.shape[0], dtype=float, device=dev)
+            self.released = wp.zeros(self.x.shape[0], dtype=int, device=dev)
 
         nv, nf, nh = self.x.shape[0], self.tri.shape[0], self.hinge.shape[0]
         self.num_vertices, self.num_faces, self.num_hinges = nv, nf, nh
@@ -258,22 +275,45 @@ class BatchSolver:
         launch(kernels.hinge_prepare, nh, [self.x, self.hinge, self.hinge_length, self.hinge_area, self.hinge_dir,
                                            self.hinge_cloth, self.bend, self.force, self.diag, self.hinge_k,
                                            self.hinge_grad])
-        hessian_product(self.v, self.kv, 1.0, self.scratch, 0)
-        launch(kernels.cg_start, nv, [self.force, self.v, self.kv, self.mass, self.free, self.vertex_cloth, dt,
-                                      float(P.damping), self.diag, self.dv, self.r, self.z, self.p, self.ap,
-                                      self.rz, self.pap])
+        if self.has_arm:
+            launch(kernels.contact_prepare, nv, [self.arms, self.vertex_cloth, self.free, self.clock,
+                                                 float(P.contact_thickness), float(P.contact_tolerance), dt, self.x,
+                                                 self.v, self.released, self.contact_n, self.contact_y, self.vy])
+            hessian_product(self.vy, self.kv, 1.0, self.scratch, 0)
+            launch(kernels.cg_start_contact, nv, [self.force, self.v, self.kv, self.mass, self.free, self.vertex_cloth,
+                                                  dt, float(P.damping), self.diag, self.contact_n, self.contact_y,
+                                                  self.contact_rn, self.dv, self.r, self.z, self.p, self.ap, self.rz,
+                                                  self.pap])
+        else:
+            hessian_product(self.v, self.kv, 1.0, self.scratch, 0)
+            launch(kernels.cg_start, nv, [self.force, self.v, self.kv, self.mass, self.free, self.vertex_cloth, dt,
+                                          float(P.damping), self.diag, self.dv, self.r, self.z, self.p, self.ap,
+                                          self.rz, self.pap])
         for it in range(P.cg_iterations):
             hessian_product(self.p, self.ap, h2, self.pap, it)
-            launch(kernels.cg_update, nv, [self.mass, self.free, self.vertex_cloth, self.diag, self.p, self.ap, it,
-                                           self.dv, self.r, self.z, self.rz, self.pap])
+            if self.has_arm:
+                launch(kernels.cg_update_contact, nv, [self.mass, self.free, self.vertex_cloth, self.diag, self.p,
+                                                       self.ap, self.contact_n, self.contact_rn, it, self.dv, self.r,
+                                                       self.z, self.rz, self.pap])
+            else:
+                launch(kernels.cg_update, nv, [self.mass, self.free, self.vertex_cloth, self.diag, self.p, self.ap,
+                                               it, self.dv, self.r, self.z, self.rz, self.pap])
             if it + 1 < P.cg_iterations:
                 launch(kernels.cg_direction, nv, [self.mass, self.vertex_cloth, dt, float(P.damping), self.z, it,
                                                   self.p, self.ap, self.rz, self.pap])
+        if self.has_arm:
+            launch(kernels.contact_release, nv, [self.contact_n, self.contact_rn, self.released])
         launch(kernels.integrate, nv, [self.dv, self.free, dt, self.x, self.v])
         if self.has_arm:
             launch(kernels.advance_clock, 1, [self.clock, dt])
             launch(kernels.collide_arm, nv, [self.arms, self.vertex_cloth, self.free, self.clock,
                                              float(P.contact_thickness), float(P.friction), self.x, self.v])
+            for _ in range(P.contact_iterations):
+                launch(kernels.collide_arm_edges, self.edge.shape[0],
+                       [self.arms, self.edge, self.vertex_cloth, self.free, self.clock, float(P.contact_thickness),
+                        float(P.friction), self.x, self.v, self.contact_dx, self.contact_dv, self.contact_count])
+                launch(kernels.apply_corrections, nv, [self.contact_dx, self.contact_dv, self.contact_count,
+                                                       self.x, self.v])
         return cmds
 
     # ---------------------------------------------------------------- stepping and state
