@@ -319,8 +319,8 @@ def check_reachable(address: str, timeout: float = 5.0) -> None:
 def ray_session(options: ExecutorOptions, **init_kwargs):
     """Ray, connected (None for the other executors); a session started here is shut down on exit.
 
-    ``address`` None starts a local instance (``workers`` CPUs when given; RAY_ADDRESS, when set,
-    is honoured by Ray); an address that does not answer is a ConfigError, not a long hang.
+    ``address`` None starts a local instance (``workers`` CPUs when given), or joins RAY_ADDRESS when
+    that is set; an address that does not answer is a ConfigError, not a long hang.
     """
     if options.executor != "ray":
         yield None
@@ -332,19 +332,24 @@ def ray_session(options: ExecutorOptions, **init_kwargs):
     if ray.is_initialized():
         yield ray
         return
-    address = options.address
-    if address is not None:
-        check_reachable(address)
-    kwargs = dict(address=address, log_to_driver=False, include_dashboard=False,
+    # None: RAY_ADDRESS when set (as Ray itself does), else a new local instance ("local": never an
+    # existing cluster that `ray start` left running on this machine)
+    address = options.address or os.environ.get("RAY_ADDRESS") or "local"
+    check_reachable(address)
+    kwargs = dict(address=address, log_to_driver=False,
                   runtime_env={"env_vars": {"PYTHONPATH": _project_path()}}, **init_kwargs)
-    if address is None and options.workers and "num_cpus" not in kwargs:
-        kwargs["num_cpus"] = options.workers
+    if address == "local":
+        kwargs["include_dashboard"] = False
+        if options.workers and "num_cpus" not in kwargs:
+            kwargs["num_cpus"] = options.workers
     try:
         ray.init(**kwargs)
-    except (ConnectionError, SystemExit, RuntimeError) as e:
-        where = f"at {address!r}" if address else "(a fresh local instance)"
-        raise ConfigError(f"cannot connect to the Ray cluster {where}: {e}; start one with "
-                          "`ray start --head`, then use --address auto") from None
+    except (ConnectionError, SystemExit, RuntimeError, ValueError) as e:
+        if address == "local":
+            raise ConfigError(f"cannot start a local Ray instance: {e}") from None
+        raise ConfigError(f"cannot connect to the Ray cluster at {address!r}: {e}; is it running (`ray start "
+                          "--head`)? A cluster with token authentication also needs RAY_AUTH_MODE=token and "
+                          "its token here (~/.ray/auth_token, RAY_AUTH_TOKEN or RAY_AUTH_TOKEN_PATH)") from None
     try:
         yield ray
     finally:

@@ -88,6 +88,28 @@ def test_gpu_slots_pin_one_worker_per_gpu_or_share():
         gpu_slots(["0", "1"], 1.5)
 
 
+def _report_gpu(run_root: str, indices: list[int]) -> dict:
+    import time
+
+    time.sleep(0.3)                  # long enough that both workers take shards
+    return {"gpu": os.environ.get("CUDA_VISIBLE_DEVICES"), "pid": os.getpid()}
+
+
+def test_process_workers_are_pinned_to_their_own_gpus(monkeypatch):
+    from clothgap.executor import visible_gpus
+
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "3,5")
+    slots = gpu_slots(visible_gpus(), 1)
+    assert slots == ["3", "5"]
+    got = run_shards(_report_gpu, "/nowhere", shard(range(6), 1),
+                     options=ExecutorOptions("process", gpus_per_worker=1, progress=False), gpu_slots=slots)
+    by_pid: dict[int, set] = {}
+    for r in got:
+        by_pid.setdefault(r["pid"], set()).add(r["gpu"])
+    assert all(len(g) == 1 for g in by_pid.values())        # a worker keeps its GPU
+    assert sorted(g for gs in by_pid.values() for g in gs) == ["3", "5"]   # one worker per GPU
+
+
 def test_options_are_checked():
     ExecutorOptions().validate()
     ExecutorOptions("ray", workers=2, address="auto", gpus_per_worker=0.5).validate()
@@ -133,6 +155,10 @@ def test_cli_names_bad_executor_options(tmp_path):
 
     r = clothgap("sim", "--preset", "smoke", "--out", str(tmp_path / "r"), "--executor", "process", "--address", "auto")
     assert r.returncode == 2 and "--executor ray" in r.stderr and "Traceback" not in r.stderr
+    r = subprocess.run([sys.executable, "-m", "clothgap", "sim", "--preset", "smoke", "--out", str(tmp_path / "g"),
+                        "--executor", "process", "--gpus-per-worker", "1"], capture_output=True, text=True,
+                       env={**os.environ, "CUDA_VISIBLE_DEVICES": ""})
+    assert r.returncode == 2 and "no GPU is visible" in r.stderr and "Traceback" not in r.stderr
     r = clothgap("render", str(tmp_path / "r"), "--executor", "nope")
     assert r.returncode == 2 and "nope" in r.stderr
     assert not (tmp_path / "r").exists()                 # options are checked before a run is started
@@ -252,6 +278,14 @@ def test_ray_on_a_local_instance_gives_the_plain_clips(tmp_path):
         r = run_stage(run, "render", replace(opts, shard_size=3))
         assert r["rendered"] == 4 and r["failed"] == [] and r["executor"]["shards"] == 2
         assert ray.is_initialized()
+        # a Ray worker killed mid-shard: Ray runs the task again, the finished clip is kept
+        killed_run = tiny_run(tmp_path / "killed")
+        parts = run_shards(_dying_sim_shard, str(killed_run.root), shard(range(4), 2), options=opts, label="sim")
+        assert sum(p["simulated"] + p["skipped"] for p in parts) == 4
+        killed = json.loads((killed_run.root / "killed-once.json").read_text())
+        done = killed_run.sim_dir(SETTING) / killed["finished"] / DONE
+        assert done.stat().st_mtime_ns == killed["done_mtime_ns"]
+        assert sim_arrays(killed_run) == sim_arrays(plain)
     assert sim_arrays(run) == sim_arrays(plain)
     assert render_pixels(run) == render_pixels(plain)
     assert not ray.is_initialized()
