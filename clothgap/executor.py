@@ -130,6 +130,14 @@ def run_stage(run: Run, stage: str, options: ExecutorOptions = ExecutorOptions()
         from render.stage import run_render
 
         return run_render(run, progress=options.progress)
+    if stage == "render":       # a bad variant name is a config error here, not a failed shard later
+        from render.variants import get_variant
+
+        for name in run.config.render.variants:
+            try:
+                get_variant(name)
+            except ValueError as e:        # render.variants.VariantError
+                raise ConfigError(str(e)) from None
     start = time.perf_counter()
     indices = list(range(run.config.sim.num_clips()))
     with ray_session(options) as ray:

@@ -289,3 +289,10 @@ def test_ray_on_a_local_instance_gives_the_plain_clips(tmp_path):
     assert sim_arrays(run) == sim_arrays(plain)
     assert render_pixels(run) == render_pixels(plain)
     assert not ray.is_initialized()
+
+
+def test_unknown_variant_is_a_config_error_before_any_shard(tmp_path):
+    run = tiny_run(tmp_path / "r")
+    run = Run(run.root, replace(run.config, render=replace(run.config.render, variants=("paper", "nosuch"))))
+    with pytest.raises(ConfigError, match="unknown render variant 'nosuch'"):
+        run_stage(run, "render", ExecutorOptions("process", workers=2, progress=False))
