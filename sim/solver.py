@@ -102,7 +102,7 @@ class SolverParams:
     contact_thickness: float = 0.005      # m, kept between the cloth and an arm's surface
     friction: float = 0.5                 # Coulomb coefficient between cloth and arm
     contact_tolerance: float = 0.005      # m, beyond the contact surface a vertex still counts as touching
-    contact_iterations: int = 2           # Jacobi passes of the edge-capsule contact after each step
+    contact_iterations: int = 1           # Jacobi passes of the edge-capsule contact after each step
 
 
 def resolve_device(device: str) -> str:
