@@ -75,7 +75,7 @@ def _solver(cloths: list[_Cloth], params: SolverParams, device: str, elapsed: fl
 
 def simulate_adaptive(scenes: list[ClipScene], base: remesh.QuadMesh, *, fps: float, frames: int,
                       substeps: int, settle_s: float, cg_iterations: int = 30, device: str = "cpu",
-                      refine_angle: float = 0.3, health=None) -> list[AdaptiveResult]:
+                      refine_angle: float = 0.3, health=None, on_frame=None) -> list[AdaptiveResult]:
     """Settle without wind on the base mesh, then record ``frames`` frames with the wind on,
     remeshing every cloth after each frame. ``scenes`` must be built on ``cloth_mesh(base)``."""
     dt = 1.0 / (fps * substeps)
@@ -116,4 +116,6 @@ def simulate_adaptive(scenes: list[ClipScene], base: remesh.QuadMesh, *, fps: fl
         if changed and t + 1 < frames:
             solver = _solver(cloths, params, device, elapsed, winds)
         prev = pos
+        if on_frame is not None:
+            on_frame()
     return [AdaptiveResult(None if r else rec, r, [len(f[0]) for f in rec]) for r, rec in zip(reasons, recorded)]
