@@ -158,6 +158,11 @@ def register(mi: ModuleType) -> None:
             return bs, dr.select(ok, value / dr.maximum(pdf, 1e-8), 0.0)
 
         def traverse(self, callback):
+            # The colour texture is the per-clip part: exposing it lets a pooled scene take a new
+            # clip's texture in place (render.scene.ScenePool); the table and sheen are per variant.
+            callback.put("base_color", self.base_color, +mi.ParamFlags.Differentiable)
+
+        def parameters_changed(self, keys=[]):
             pass
 
         def to_string(self):
