@@ -24,6 +24,7 @@ from pathlib import Path
 import click
 
 from clothgap.config import ConfigError, PRESETS, StudyConfig, apply_overrides, preset, with_name
+from clothgap.errors import UserError
 from clothgap.runs import Run, atomic_write_json
 
 
@@ -191,6 +192,8 @@ def train(run_dir, preset_name, out, overrides, model_name, variant, setting, tr
     cfg = run.config
     settings = [setting] if setting else cfg.sim.settings()
     variants = [variant] if variant else list(cfg.render.variants)
+    if variant and variant not in cfg.render.variants:
+        raise ConfigError(f"unknown variant {variant!r}; this run renders {', '.join(cfg.render.variants)}")
     for s in settings:
         if s not in cfg.sim.settings():
             raise ConfigError(f"unknown setting {s!r}; this run has {', '.join(cfg.sim.settings())}")
@@ -260,10 +263,12 @@ def eval_real(video_dir: Path, truth: Path, train_dir: Path, out: Path) -> None:
 @click.option("--garment", type=click.Choice(["skirt"]), default="skirt", show_default=True)
 @click.option("--motion", type=click.Choice(["twirl", "walk"]), default="twirl", show_default=True,
               help="How the skirt's waist moves.")
-@click.option("--frames", type=int, default=50, show_default=True, help="Frames of the clone (at the sim's fps).")
+@click.option("--frames", type=click.IntRange(min=1), default=50, show_default=True,
+              help="Frames of the clone (at the sim's fps).")
 @click.option("--render-variant", help="Render variant of the skirt (default: the model's variant).")
-@click.option("--resolution", type=int, default=128, show_default=True, help="Pixels per panel side.")
-@click.option("--spp", type=int, default=16, show_default=True, help="Samples per pixel.")
+@click.option("--resolution", type=click.IntRange(min=1), default=128, show_default=True,
+              help="Pixels per panel side.")
+@click.option("--spp", type=click.IntRange(min=1), default=16, show_default=True, help="Samples per pixel.")
 @click.option("--backend", help="Mitsuba backend: auto, cuda_ad_rgb, llvm_ad_rgb, scalar_rgb (default: auto).")
 @click.option("--no-compare", is_flag=True, help="Simulate only the clone, not a softer and a stiffer class.")
 @click.option("--out", type=click.Path(path_type=Path), help="Output folder (default: RUN_DIR/clone/<video>).")
@@ -332,7 +337,21 @@ def pipeline(run_dir, preset_name, out, overrides, **execution) -> None:
     click.echo(f"report: {summaries['report']}")
 
 
+def _shard_error() -> type[BaseException] | tuple[()]:
+    """``clothgap.executor.ShardError`` when the executor was imported (only then can it be raised)."""
+    executor = sys.modules.get("clothgap.executor")
+    return executor.ShardError if executor is not None else ()
+
+
 def main() -> None:
+    """The ``clothgap`` entry point: bad input is one ``error: ...`` line on stderr and exit status 2.
+
+    User errors are the project's ``clothgap.errors.UserError`` types: ConfigError (settings, presets,
+    overrides, run folders), render.variants.VariantError, render.backend.BackendError,
+    eval.real.VideoError, and InputError / MissingInputError (files and folders the user named). A failed
+    shard (clothgap.executor.ShardError, whose message carries the worker's error) exits 1. Anything else
+    is a bug and keeps its traceback.
+    """
     try:
         cli(standalone_mode=False)
     except click.exceptions.Abort:
@@ -341,14 +360,10 @@ def main() -> None:
     except click.ClickException as e:
         e.show()
         sys.exit(e.exit_code)
-    except ConfigError as e:
+    except UserError as e:
         click.echo(f"error: {e}", err=True)
         sys.exit(2)
-    except Exception as e:
-        from clothgap.executor import ShardError
-
-        if not isinstance(e, ShardError):
-            raise
+    except _shard_error() as e:
         click.echo(f"error: {e}", err=True)
         sys.exit(1)
 

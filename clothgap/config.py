@@ -14,14 +14,11 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from clothgap.errors import ConfigError
 from eval.config import EvalConfig
 from learn.config import TrainConfig
 from render.config import RenderConfig
 from sim.config import SimConfig
-
-
-class ConfigError(ValueError):
-    """A config, preset or override the user gave is wrong; the message says how."""
 
 
 @dataclass(frozen=True)
@@ -147,6 +144,32 @@ def apply_overrides(cfg: StudyConfig, overrides: list[str]) -> StudyConfig:
     return from_dict(StudyConfig, data)
 
 
+def problems(cfg: StudyConfig) -> list[str]:
+    """Everything wrong with a resolved config: its own settings', then each stage's."""
+    out = []
+    if not cfg.name or "/" in cfg.name or "\\" in cfg.name:
+        out.append(f"name={cfg.name!r}: must be a non-empty folder name")
+    if cfg.seed < 0:
+        out.append(f"seed={cfg.seed}: must be >= 0")
+    for stage in (cfg.sim, cfg.render, cfg.train, cfg.eval):
+        out += stage.problems()
+    return out
+
+
+def validate(cfg: StudyConfig, where: str = "") -> StudyConfig:
+    """``cfg`` when it is valid, else a ConfigError naming every bad setting, its value and what is allowed.
+
+    Called when a run starts and whenever a run's config.json is loaded, so bad
+    settings fail before any work (and never deep inside Warp, Mitsuba or torch).
+    """
+    found = problems(cfg)
+    if len(found) == 1:
+        raise ConfigError(f"{where}{found[0]}")
+    if found:
+        raise ConfigError(f"{where}{len(found)} invalid settings:\n  " + "\n  ".join(found))
+    return cfg
+
+
 def save_config(cfg: StudyConfig, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")
@@ -154,11 +177,19 @@ def save_config(cfg: StudyConfig, path: Path) -> None:
     tmp.replace(path)
 
 
-def load_config(path: Path) -> StudyConfig:
+def load_config(path: Path, check: bool = True) -> StudyConfig:
+    """A run's config.json, validated (``check=False``: only parsed, for workers whose driver validated it)."""
     if not path.is_file():
         raise ConfigError(f"no config at {path}: is this a clothgap run folder? "
                           "(start one with `clothgap sim --preset NAME --out DIR`)")
-    return from_dict(StudyConfig, json.loads(path.read_text()))
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ConfigError(f"{path} is not valid JSON ({e})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a table of settings, got {type(data).__name__}")
+    cfg = from_dict(StudyConfig, data)
+    return validate(cfg, f"{path}: ") if check else cfg
 
 
 def with_name(cfg: StudyConfig, name: str) -> StudyConfig:

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from clothgap.config import ConfigError, StudyConfig, load_config, save_config, to_dict
+from clothgap.config import ConfigError, StudyConfig, load_config, save_config, to_dict, validate
 
 DONE = "DONE"
 
@@ -95,16 +95,19 @@ class Run:
 
     # ---- opening and creating
     @classmethod
-    def open(cls, root: Path | str) -> "Run":
-        """An existing run folder (one that a stage has already written)."""
+    def open(cls, root: Path | str, check: bool = True) -> "Run":
+        """An existing run folder (one that a stage has already written); its config is validated unless
+        ``check=False`` (a generation worker, whose driver validated it: a remote node may lack the
+        driver's $CLOTHGAP_VARIANTS_DIR, which only render work needs)."""
         root = Path(root)
         if not root.is_dir():
             raise ConfigError(f"run folder {root} does not exist")
-        return cls(root, load_config(root / "config.json"))
+        return cls(root, load_config(root / "config.json", check))
 
     @classmethod
     def create_or_resume(cls, root: Path | str, config: StudyConfig) -> "Run":
-        """Start a run in ``root``, or resume it when it holds the same config."""
+        """Start a run in ``root``, or resume it when it holds the same config (a bad config is a ConfigError)."""
+        validate(config)
         root = Path(root)
         path = root / "config.json"
         if path.is_file():

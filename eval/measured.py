@@ -25,6 +25,7 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
+from clothgap.errors import MissingInputError
 from clothgap.runs import atomic_write_text, is_done
 from clothgap.seeding import stream_id
 from eval import classes, metrics, real
@@ -65,7 +66,7 @@ def measured_values(fabric: str) -> dict[str, float]:
 def fabric_clips(clips_dir: Path) -> dict[Path, str]:
     """Finished clip folders and the fabric each one names."""
     if not clips_dir.is_dir():
-        raise FileNotFoundError(f"clip folder {clips_dir} does not exist")
+        raise MissingInputError(f"clip folder {clips_dir} does not exist")
     found = {}
     for folder in sorted(p for p in clips_dir.iterdir() if p.is_dir() and is_done(p)):
         meta = json.loads((folder / "meta.json").read_text())

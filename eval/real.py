@@ -61,6 +61,7 @@ import numpy as np
 import pandas as pd
 from PIL import Image
 
+from clothgap.errors import InputError, MissingInputError, UserError
 from clothgap.runs import atomic_write_text, mark_done
 from clothgap.seeding import stream_id
 from eval import classes, figures, metrics
@@ -77,22 +78,30 @@ DEFAULT_SIM_FPS = 25.0
 Predictor = Callable[[Path, list[Path]], pd.DataFrame]
 
 
-class VideoError(RuntimeError):
-    """One input could not be used; the message names it and says why."""
+class VideoError(UserError, RuntimeError):
+    """One input could not be used (or none could); the message names it and says why."""
 
 
 # ------------------------------------------------------------------ truth
 
 def read_truth(path: Path) -> pd.DataFrame:
-    """The truth CSV with canonical columns ``video, stiffness, density[, wind, label]``."""
-    frame = pd.read_csv(path)
+    """The truth CSV with canonical columns ``video, stiffness, density[, wind, label]``.
+
+    A missing file, an unreadable one or a missing column is an ``InputError`` naming the file (and the column)."""
+    path = Path(path)
+    if not path.is_file():
+        raise MissingInputError(f"truth CSV {path} does not exist")
+    try:
+        frame = pd.read_csv(path)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as err:
+        raise InputError(f"truth CSV {path} cannot be read as CSV ({err})") from None
 
     def pick(options: tuple[str, ...], what: str) -> str:
         for name in options:
             if name in frame.columns:
                 return name
-        raise ValueError(f"{path}: no {what} column (expected one of {', '.join(options)}); "
-                         f"columns are {', '.join(frame.columns)}")
+        raise InputError(f"truth CSV {path}: no {what} column (expected one of {', '.join(options)}); "
+                         f"its columns are {', '.join(map(str, frame.columns))}")
 
     out = pd.DataFrame({"video": frame[pick(VIDEO_COLUMNS, 'video')].astype(str),
                         "stiffness": pd.to_numeric(frame[pick(STIFFNESS_COLUMNS, 'stiffness')], errors="coerce"),
@@ -102,7 +111,7 @@ def read_truth(path: Path) -> pd.DataFrame:
             out[optional] = frame[optional].astype(str)
     bad = out[out[["stiffness", "density"]].isna().any(axis=1)]
     if not bad.empty:
-        raise ValueError(f"{path}: non-numeric or missing stiffness/density for video(s) "
+        raise InputError(f"truth CSV {path}: non-numeric or missing stiffness/density for video(s) "
                          f"{', '.join(bad['video'].head(5))}")
     return out
 
@@ -110,11 +119,14 @@ def read_truth(path: Path) -> pd.DataFrame:
 # ------------------------------------------------------------------ reading videos
 
 def list_inputs(video_dir: Path) -> list[Path]:
-    """Video files and frame folders in ``video_dir`` (hidden entries and tables left out)."""
+    """Video files and frame folders in ``video_dir`` (hidden entries and tables left out); none is a VideoError."""
     if not video_dir.is_dir():
-        raise FileNotFoundError(f"video folder {video_dir} does not exist")
-    return sorted(p for p in video_dir.iterdir()
-                  if not p.name.startswith(".") and (p.is_dir() or p.suffix.lower() not in NOT_VIDEO_SUFFIXES))
+        raise MissingInputError(f"video folder {video_dir} does not exist")
+    found = sorted(p for p in video_dir.iterdir()
+                   if not p.name.startswith(".") and (p.is_dir() or p.suffix.lower() not in NOT_VIDEO_SUFFIXES))
+    if not found:
+        raise VideoError(f"video folder {video_dir} holds no videos or frame folders")
+    return found
 
 
 def _square(img: Image.Image, size: int) -> np.ndarray:
@@ -193,12 +205,12 @@ def model_geometry(train_dir: Path) -> dict:
     Read from the checkpoint and the run's config.json (train_dir is
     ``<run>/train/<setting>/<variant>/<model>/s<seed>``).
     """
-    import torch
-
     path = train_dir / "checkpoint.pt"
     if not path.is_file():
-        raise FileNotFoundError(f"no checkpoint.pt in {train_dir}: pass a finished train folder "
+        raise MissingInputError(f"no checkpoint.pt in model folder {train_dir}: pass a finished train folder "
                                 "(<run>/train/<setting>/<variant>/<model>/s<seed>)")
+    import torch
+
     ckpt = torch.load(path, map_location="cpu", weights_only=True)
     geometry = {"image_size": int(ckpt["model_args"]["image_size"]),
                 "clip_len": int(ckpt["config"]["train"]["clip_len"]), "fps": DEFAULT_SIM_FPS}
@@ -292,13 +304,14 @@ def evaluate_real(video_dir: Path | str, truth_csv: Path | str, train_dir: Path 
     ``predictor`` replaces ``learn.predict.predict_clips`` (tests).
     """
     video_dir, truth_csv, train_dir, out_dir = map(Path, (video_dir, truth_csv, train_dir, out_dir))
-    truth = read_truth(truth_csv)
+    truth = read_truth(truth_csv)              # every input is checked before the model is loaded
+    inputs = list_inputs(video_dir)
     geometry = model_geometry(train_dir)
     fps = fps or geometry["fps"]
     out_dir.mkdir(parents=True, exist_ok=True)
 
     skipped, clip_dirs, names = [], [], {}
-    for path in list_inputs(video_dir):
+    for path in inputs:
         name = path.name
         try:
             frames = read_video(path, geometry["image_size"], fps, max_frames, frames_fps)

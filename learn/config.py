@@ -1,8 +1,20 @@
-"""The learn stage's settings (no heavy imports here)."""
+"""The learn stage's settings (no heavy imports here).
+
+The names the learn stage supports live here, so that a config is checked
+without importing torch: ``learn.models`` builds the models in ``MODEL_NAMES``
+with a readout from ``READOUTS``, ``learn.train`` runs the ``SCHEDULES``.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+from clothgap import checks
+
+MODEL_NAMES = ("lrcn", "base1", "base2", "base3")   # the registry of learn.models (it checks it builds each)
+READOUTS = ("mean", "last")
+SCHEDULES = ("cosine", "step")
+IMAGE_SIZES = range(32, 225, 16)                    # FrameCNN: a multiple of 16 from 32 to 224
 
 
 @dataclass(frozen=True)
@@ -33,3 +45,35 @@ class TrainConfig:
     amp: bool = True                        # bf16 autocast (CUDA only; ignored on CPU)
     compile: bool = False                   # torch.compile the model (CUDA only; ignored on CPU)
     num_workers: int = 0                    # DataLoader worker processes
+
+    def problems(self) -> list[str]:
+        """What is wrong with these settings, one message each (empty when they are valid)."""
+        out = checks.names("train.models", self.models, MODEL_NAMES, "model")
+        if not self.seeds:
+            out.append("train.seeds is empty; give at least one seed, e.g. train.seeds=0")
+        out += checks.names("train.seeds", self.seeds, self.seeds, "seed", required=False)
+        out += [f"train.seeds: seed {s} is negative" for s in self.seeds if s < 0]
+        if self.image_size not in IMAGE_SIZES:
+            out.append(f"train.image_size={self.image_size!r}: must be a multiple of 16 from "
+                       f"{IMAGE_SIZES.start} to {IMAGE_SIZES.stop - 1}")
+        out += checks.number("train.clip_len", self.clip_len, 1)
+        out += checks.number("train.clip_stride", self.clip_stride, 1)
+        out += checks.number("train.val_fraction", self.val_fraction, 0, 1, hi_open=True)
+        out += checks.number("train.test_fraction", self.test_fraction, 0, 1, hi_open=True)
+        if self.val_fraction + self.test_fraction >= 1:
+            out.append(f"train.val_fraction={self.val_fraction:g} + train.test_fraction={self.test_fraction:g} "
+                       "leaves nothing to train on: their sum must be < 1")
+        out += checks.number("train.epochs", self.epochs, 1)
+        out += checks.number("train.batch_size", self.batch_size, 1)
+        out += checks.number("train.lr", self.lr, 0, lo_open=True)
+        out += checks.number("train.weight_decay", self.weight_decay, 0)
+        out += checks.number("train.width", self.width, 1)
+        out += checks.number("train.fc6", self.fc6, 1)
+        out += checks.number("train.hidden", self.hidden, 1)
+        out += checks.number("train.dropout", self.dropout, 0, 1, hi_open=True)
+        out += checks.choice("train.schedule", self.schedule, SCHEDULES)
+        out += checks.choice("train.readout", self.readout, READOUTS)
+        out += checks.device("train.device", self.device, extra=("mps",))
+        out += checks.number("train.num_threads", self.num_threads, 0)
+        out += checks.number("train.num_workers", self.num_workers, 0)
+        return out

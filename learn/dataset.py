@@ -26,6 +26,7 @@ from PIL import Image
 from tqdm import tqdm
 
 from clothgap import seeding
+from clothgap.errors import MissingInputError
 from clothgap.runs import Run, atomic_write_json
 
 CACHE_VERSION = 1
@@ -118,7 +119,7 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
     render_dir = run.require(run.render_dir(variant, setting), "render")
     clip_ids = run.done_clips(render_dir)
     if not clip_ids:
-        raise FileNotFoundError(f"no finished clips in {render_dir}: run `clothgap render {run.root}` first")
+        raise MissingInputError(f"no finished clips in {render_dir}: run `clothgap render {run.root}` first")
     array_path = cache_path(run, variant, setting, size)
     index_path = array_path.with_suffix(".json")
     signature = _signature(render_dir, clip_ids)

@@ -19,10 +19,12 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from clothgap.errors import MissingInputError
+from learn.config import IMAGE_SIZES, MODEL_NAMES, READOUTS
+
 NUM_CLASSES = 54
 NUM_STRETCH = 6      # class index = NUM_BEND * stretching index + bending index
 NUM_BEND = 9
-READOUTS = ("mean", "last")
 # The frames' mean and spread (roughly ImageNet's), taken out inside the model so
 # that every caller feeds plain [0, 1] pixels.
 _PIXEL_MEAN, _PIXEL_STD = 0.45, 0.225
@@ -48,7 +50,7 @@ class FrameCNN(nn.Module):
 
     def __init__(self, image_size: int, width: int, fc6: int, dropout: float = 0.5):
         super().__init__()
-        if image_size % 16 or not 32 <= image_size <= 224:
+        if image_size not in IMAGE_SIZES:
             raise ValueError(f"image_size={image_size}: must be a multiple of 16 from 32 to 224")
         c1, c2, c3, c4, c5 = width, 3 * width, 6 * width, 4 * width, 4 * width
         self.features = nn.Sequential(
@@ -146,7 +148,8 @@ _SPECS: dict[str, tuple[str | None, bool, str | None]] = {
     "base2": ("lstm", True, None),
     "base3": ("rnn", False, None),
 }
-MODEL_NAMES = tuple(_SPECS)
+if tuple(_SPECS) != MODEL_NAMES:      # the names a config may use are listed in learn.config (no torch there)
+    raise RuntimeError(f"learn.config.MODEL_NAMES {MODEL_NAMES} != the models built here {tuple(_SPECS)}")
 
 
 def build_model(name: str, *, image_size: int, width: int, fc6: int, hidden: int, dropout: float = 0.5,
@@ -176,7 +179,7 @@ def load_cnn_weights(model: ClipClassifier, source: Path | str | dict) -> None:
     if not isinstance(source, dict):
         path = Path(source)
         if not path.is_file():
-            raise FileNotFoundError(f"CNN weights file {path} does not exist (nothing is ever downloaded)")
+            raise MissingInputError(f"CNN weights file {path} does not exist (nothing is ever downloaded)")
         source = torch.load(path, map_location="cpu", weights_only=True)
     state = source.get("model", source)
     if any(k.startswith("cnn.") for k in state):

@@ -16,6 +16,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from clothgap.errors import MissingInputError
 from learn.dataset import FrameError, read_frames, subsequence_starts, to_input
 from learn.models import ClipClassifier, build_model
 from learn.train import resolve_device
@@ -25,7 +26,7 @@ def load_checkpoint(train_dir: Path | str) -> dict:
     """The ``checkpoint.pt`` of a finished training folder (contract format)."""
     path = Path(train_dir) / "checkpoint.pt"
     if not path.is_file():
-        raise FileNotFoundError(f"no checkpoint.pt in {train_dir}: is that training run finished (DONE)?")
+        raise MissingInputError(f"no checkpoint.pt in {train_dir}: is that training run finished (DONE)?")
     return torch.load(path, map_location="cpu", weights_only=True)
 
 

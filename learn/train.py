@@ -32,12 +32,12 @@ from torch.utils.data import DataLoader, DistributedSampler
 from clothgap import seeding
 from clothgap.config import ConfigError
 from clothgap.runs import Run, atomic_write_json, atomic_write_text, fresh_dir, is_done, mark_done
+from learn.config import SCHEDULES
 from learn.dataset import SubsequenceDataset, build_cache, to_input
 from learn.models import NUM_CLASSES, ClipClassifier, build_model, load_cnn_weights, model_args
 from learn.split import get_or_make_split
 
 METRIC_COLUMNS = ("epoch", "train_loss", "train_acc", "val_loss", "val_acc", "lr", "seconds")
-SCHEDULES = ("cosine", "step")
 
 
 def resolve_device(name: str) -> torch.device:

@@ -24,6 +24,8 @@ import sys
 from pathlib import Path
 from types import ModuleType
 
+from clothgap.errors import UserError
+
 BACKENDS = ("auto", "cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb")
 MIN_LLVM_VERSION = 16
 LLVM_ENV = "DRJIT_LIBLLVM_PATH"
@@ -36,7 +38,7 @@ _LLVM_DIRS = (
 _LLVM_NAME = re.compile(r"^libLLVM(?:-|\.so\.)(\d+)(?:[.\d]*)(?:\.so(?:[.\d]*)?|\.dylib)?$")
 
 
-class BackendError(RuntimeError):
+class BackendError(UserError, RuntimeError):
     """The requested Mitsuba backend cannot run on this machine; the message says why."""
 
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from clothgap import checks
+
 # frames_per_launch = 0 ("auto") resolves per backend. On CPU backends batching does not pay (the path tracer
 # already keeps every core busy: 0.8-1.07x measured). On a GPU it amortises launch overhead, but a batched frame
 # is noisier at equal spp (next-event estimation spreads over every slot's lights: RMS error x1.6 at K=4, x2.0
@@ -22,6 +24,32 @@ class RenderConfig:
     frames_per_launch: int = 0              # frames of a clip per Mitsuba launch (render.batch); 1 = one scene,
                                             # one frame per render call; 0 = auto (AUTO_FRAMES_PER_LAUNCH)
     writer_threads: int = 4                 # threads that tone-map and write EXR/PNG while the next frames render
+
+    def problems(self) -> list[str]:
+        """What is wrong with these settings, one message each (empty when they are valid).
+
+        Every variant is looked up in the registry (``render.variants``: TOML files, no Mitsuba), so an
+        unknown name or a broken variant file (e.g. an unknown tonemap) is found before any work."""
+        from render.backend import BACKENDS
+        from render.variants import VariantError, get_variant, list_variants
+
+        out = []
+        try:
+            known = list_variants()
+        except VariantError as e:                   # e.g. $CLOTHGAP_VARIANTS_DIR is not a folder
+            return [f"render.variants: {e}"]
+        out += checks.names("render.variants", self.variants, known, "render variant")
+        for name in dict.fromkeys(v for v in self.variants if v in known):
+            try:
+                get_variant(name)
+            except VariantError as e:
+                out.append(f"render.variants: {e}")
+        out += checks.number("render.resolution", self.resolution, 1)
+        out += checks.number("render.spp", self.spp, 1)
+        out += checks.choice("render.backend", self.backend, BACKENDS)
+        out += checks.number("render.frames_per_launch", self.frames_per_launch, 0)
+        out += checks.number("render.writer_threads", self.writer_threads, 1)
+        return out
 
 
 def frames_per_launch(config: RenderConfig, mitsuba_variant: str) -> int:

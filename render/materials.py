@@ -16,6 +16,7 @@ import os
 from pathlib import Path
 from types import ModuleType
 
+from clothgap.errors import MissingInputError
 from render.textures import ClothTexture
 from render.variants import RenderVariant
 
@@ -45,13 +46,13 @@ def cloth_bsdf_dict(mi: ModuleType, variant: RenderVariant, texture: ClothTextur
         path = (Path(os.path.expandvars(os.path.expanduser(variant.tabulated_file))) if variant.tabulated_file
                 else fabric_bsdf.DEFAULT_TABLE)
         if not path.is_file():
-            raise FileNotFoundError(f"variant {variant.name!r}: tabulated_file {path} does not exist")
+            raise MissingInputError(f"variant {variant.name!r}: tabulated_file {path} does not exist")
         return {"type": "twosided", "bsdf": {"type": fabric_bsdf.PLUGIN, "base_color": color,
                                              "sheen": variant.sheen, "filename": str(path)}}
     if variant.bsdf == "measured":
         path = Path(os.path.expandvars(os.path.expanduser(variant.measured_file)))
         if not path.is_file():
-            raise FileNotFoundError(f"variant {variant.name!r}: measured_file {path} does not exist "
+            raise MissingInputError(f"variant {variant.name!r}: measured_file {path} does not exist "
                                     "(an RGL material database .bsdf file)")
         return {"type": "twosided", "bsdf": {"type": "measured", "filename": str(path)}}
     raise ValueError(f"variant {variant.name!r}: bsdf {variant.bsdf!r} is not implemented")

@@ -26,6 +26,8 @@ import typing
 from dataclasses import dataclass
 from pathlib import Path
 
+from clothgap.errors import UserError
+
 VARIANTS_DIR = Path(__file__).resolve().parent.parent / "assets" / "render_variants"
 USER_VARIANTS_ENV = "CLOTHGAP_VARIANTS_DIR"
 PAPER = "paper"
@@ -41,7 +43,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
 }
 
 
-class VariantError(ValueError):
+class VariantError(UserError, ValueError):
     """A variant name or file is wrong; the message names the file or the known variants."""
 
 

@@ -1,8 +1,18 @@
-"""The sim stage's settings (no heavy imports here: the CLI reads this at start-up)."""
+"""The sim stage's settings (no heavy imports here: the CLI reads this at start-up).
+
+The names the sim stage supports live here, so that a config is checked without
+importing Warp: ``sim.stage`` builds scenes for ``MOTIONS`` (``sim.motions``)
+and meshes for ``REMESHING`` (``parse_setting``).
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+from clothgap import checks
+
+MOTIONS = ("wind", "arm")
+REMESHING = ("uniform1", "uniform2", "uniform3", "adaptive")    # uniform<level>; adaptive refines 1..3
 
 
 @dataclass(frozen=True)
@@ -24,6 +34,32 @@ class SimConfig:
     cg_iterations: int = 30                         # conjugate-gradient iterations per solver step
     device: str = "auto"                            # "auto", "cpu", "cuda", "cuda:N"
     batch_size: int = 512                           # cloths advanced together in one launch
+
+    def problems(self) -> list[str]:
+        """What is wrong with these settings, one message each (empty when they are valid)."""
+        from sim.classes import NUM_CLASSES          # numpy only
+        from sim.materials import list_materials     # numpy only
+
+        out = checks.names("sim.motions", self.motions, MOTIONS, "motion")
+        out += checks.names("sim.remeshing", self.remeshing, REMESHING, "remeshing")
+        bad = [c for c in self.classes if not 0 <= c < NUM_CLASSES]
+        if bad:
+            out.append(f"sim.classes: class index {', '.join(map(str, bad))} out of range 0..{NUM_CLASSES - 1}")
+        else:
+            out += checks.names("sim.classes", self.classes, range(NUM_CLASSES), "class", required=False)
+        out += checks.choice("sim.basis", self.basis, list_materials())
+        out += checks.number("sim.sequences_per_class", self.sequences_per_class, 1)
+        out += checks.number("sim.jitter", self.jitter, 0, 1, hi_open=True)
+        out += checks.number("sim.grid_vertices", self.grid_vertices, 2)
+        out += checks.number("sim.cloth_size_m", self.cloth_size_m, 0, lo_open=True)
+        out += checks.number("sim.frames", self.frames, 1)
+        out += checks.number("sim.fps", self.fps, 0, lo_open=True)
+        out += checks.number("sim.substeps", self.substeps, 1)
+        out += checks.number("sim.settle_s", self.settle_s, 0)
+        out += checks.number("sim.cg_iterations", self.cg_iterations, 1)
+        out += checks.number("sim.batch_size", self.batch_size, 1)
+        out += checks.device("sim.device", self.device)
+        return out
 
     def class_indices(self) -> tuple[int, ...]:
         return self.classes or tuple(range(54))

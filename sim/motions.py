@@ -30,11 +30,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from sim.config import MOTIONS  # noqa: F401 - the motion names ("wind", "arm") are defined with the config
 from sim.materials import Material
 from sim.mesh import ClothMesh
 from sim.solver import ArmSpec, ClothSpec
-
-MOTIONS = ("wind", "arm")
 
 # Wind speed range, m/s. The basis fabric weighs 0.28 kg/m^2 (2.8 Pa under gravity);
 # 1 to 2.5 m/s gives 0.6 to 3.8 Pa of dynamic pressure: from a sway to a billow.

@@ -22,7 +22,6 @@ is retried once with twice the substeps; if it fails again its folder gets a
 from __future__ import annotations
 
 import functools
-import re
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -36,7 +35,7 @@ from sim import classes
 from sim import remesh
 from sim.adaptive import cloth_mesh, simulate_adaptive
 from sim.clip import SimClip
-from sim.config import SimConfig
+from sim.config import REMESHING, SimConfig
 from sim.materials import load_material
 from sim.mesh import ClothMesh, square_cloth, vertices_per_side
 from sim.motions import MOTIONS, ClipScene, arm_scene, wind_scene
@@ -60,13 +59,12 @@ def parse_setting(name: str) -> Setting:
     motion, _, remeshing = name.partition("-")
     if motion not in MOTIONS:
         raise ValueError(f"setting {name!r}: unknown motion {motion!r}; known motions: {', '.join(MOTIONS)}")
+    if remeshing not in REMESHING:
+        raise ValueError(f"setting {name!r}: remeshing {remeshing!r} is not supported by the sim stage; "
+                         f"supported: {', '.join(REMESHING)}")
     if remeshing == "adaptive":
         return Setting(name, motion, remeshing, 1)     # starts at level 1, refines up to 3
-    m = re.fullmatch(r"uniform([123])", remeshing)
-    if not m:
-        raise ValueError(f"setting {name!r}: remeshing {remeshing!r} is not supported by the sim stage; "
-                         "supported: uniform1, uniform2, uniform3, adaptive")
-    return Setting(name, motion, remeshing, int(m.group(1)))
+    return Setting(name, motion, remeshing, int(remeshing.removeprefix("uniform")))
 
 
 @dataclass

@@ -9,8 +9,8 @@ import pytest
 import torch
 
 import learn.train
-from clothgap.config import StudyConfig
-from clothgap.runs import is_done
+from clothgap.config import ConfigError, StudyConfig
+from clothgap.runs import Run, is_done
 from learn.config import TrainConfig
 from learn.predict import load_model, predict_clips
 from learn.split import get_or_make_split
@@ -111,6 +111,9 @@ def test_pretrained_cnn_weights_come_from_a_local_file(tmp_path):
 
 
 def test_unknown_model_in_the_grid_is_named(tmp_path):
-    run = synthetic_run(tmp_path / "run", tiny_config(models=("lrcn", "resnet")))
+    with pytest.raises(ConfigError, match="train.models: unknown model 'resnet'; known: lrcn"):
+        synthetic_run(tmp_path / "bad", tiny_config(models=("lrcn", "resnet")))   # refused when the run starts
+    run = synthetic_run(tmp_path / "run", tiny_config(epochs=1))
+    run = Run(run.root, tiny_config(models=("lrcn", "resnet")))                  # a config never validated
     with pytest.raises(ValueError, match="resnet.*known: lrcn"):
         run_train(run, progress=False)

@@ -38,7 +38,9 @@ def test_smoke_pipeline_end_to_end_and_resume(tmp_path):
     assert not set(split["train"]) & set(split["test"])
     assert len(split["train"]) + len(split["val"]) + len(split["test"]) == n
 
-    # the learned model is better than chance on held-out sequences (4 classes)
+    # eval reports an accuracy. Better than chance (4 classes) is not asserted here: the smoke split holds out
+    # 4 sequences, so accuracy moves in steps of 0.25 and a chance-level model would reach 2 of 4 about a quarter
+    # of the time; tests/test_learn_train.py asserts learning on synthetic clips instead.
     summary = json.loads((run.eval_dir / "summary.json").read_text())
     assert "accuracy" in json.dumps(summary)
 
