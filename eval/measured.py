@@ -166,11 +166,14 @@ def predict_model(run: Run, m, variant: str, names: Sequence[str], *, predictor:
         atomic_write_text(folder / "truth.csv", truth.to_csv(index=False, float_format="%.8g"))
         render_dir = run.measured_render_dir(variant, m.setting)
         t0 = time.perf_counter()
-        real.evaluate_real(render_dir, folder / "truth.csv", m.folder, folder,
-                           max_frames=run.config.sim.frames, resamples=run.config.eval.bootstrap,
-                           confidence=run.config.eval.confidence, seed=run.config.seed,
-                           activations=activations, predictor=predictor, progress=False,
-                           inputs={n: render_dir / n / "ldr" for n in sorted(clips)})
+        try:
+            real.evaluate_real(render_dir, folder / "truth.csv", m.folder, folder,
+                               max_frames=run.config.sim.frames, resamples=run.config.eval.bootstrap,
+                               confidence=run.config.eval.confidence, seed=run.config.seed,
+                               activations=activations, predictor=predictor, progress=False,
+                               inputs={n: render_dir / n / "ldr" for n in sorted(clips)})
+        except real.VideoError as err:     # e.g. clips shorter than the model's sub-sequence
+            raise ConfigError(f"measured clips of {m.setting} cannot be predicted by {m.folder}: {err}") from None
         mark_done(folder, {"clips": sorted(clips), "checkpoint": str(m.checkpoint)})
         if progress:
             print(f"[eval measured] {m.setting}/{m.variant}/{m.model}/s{m.seed} on {variant}: {len(clips)} clips, "

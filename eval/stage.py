@@ -300,7 +300,8 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
         from eval.measured import run_measured
 
         short["measured"] = run_measured(run, models=models, predictor=predictor, progress=progress)
-        summary["files"]["measured"] = {"fabrics": "eval/measured.csv", "correlations": "eval/measured_correlations.csv",
+        summary["files"]["measured"] = {"fabrics": "eval/measured.csv",
+                                        "correlations": "eval/measured_correlations.csv",
                                         "markdown": "eval/measured.md", "summary": "eval/measured.json"}
         atomic_write_json(out / "summary.json", summary)
     return short

@@ -48,10 +48,13 @@ def test_measured_set_end_to_end_through_the_command(tmp_path):
     from sim.measured import measured_index, table2_class
 
     run = tiny_run(tmp_path / "run")
-    result = CliRunner().invoke(cli, ["eval", "measured", str(run.root)])
+    # `clothgap eval RUN`: the tables, then the measured set because the config asks for it
+    result = CliRunner().invoke(cli, ["eval", str(run.root)])
     assert result.exit_code == 0, (result.output, result.exception)
-    summary = json.loads(re.search(r"\[eval measured\] done in .*?: (\{.*\})", result.output).group(1))
+    summary = json.loads(re.search(r"\[eval\] done in .*?: (\{.*\})", result.output).group(1))["measured"]
     assert (summary["simulated"], summary["rendered"], summary["predicted"]) == (2, 2, 1) and summary["heldout"]
+    assert json.loads((run.eval_dir / "summary.json").read_text())["files"]["measured"]["fabrics"] == \
+        "eval/measured.csv"
 
     # sim: the fabric's own tables, seeded per clip; render: the held-out variant, fabric in the meta
     sim_meta = json.loads((run.measured_sim_dir(SETTING) / "royal-target-0" / "meta.json").read_text())
@@ -82,7 +85,7 @@ def test_measured_set_end_to_end_through_the_command(tmp_path):
     folder = run.root / info["models"][0]["folder"]       # the real-video path's own outputs
     assert (folder / "table4.csv").is_file() and (folder / "videos.csv").is_file() and (folder / "DONE").is_file()
 
-    # resumable: nothing simulated, rendered or predicted again
+    # resumable, and on its own as `clothgap eval measured`: nothing simulated, rendered or predicted again
     again = CliRunner().invoke(cli, ["eval", "measured", str(run.root), "--model",
                                      str(run.train_dir(SETTING, "paper", "lrcn", 0))])
     assert again.exit_code == 0, (again.output, again.exception)
@@ -167,7 +170,8 @@ def test_measured_tables_against_table2_and_scipy(tmp_path):
     # the same clips went through the real-video path: its Table 4 agrees on the bending row
     folder = run.eval_dir / "measured" / "heldout" / SETTING / "paper" / "lrcn" / "s0"
     table4 = pd.read_csv(folder / "table4.csv")
-    assert table4.loc[table4.score.str.startswith("k x"), "stiffness_pearson"].item() == pytest.approx(row["pearson"], rel=1e-4)
+    bending_row = table4.score.str.startswith("k x")
+    assert table4.loc[bending_row, "stiffness_pearson"].item() == pytest.approx(row["pearson"], rel=1e-4)
     assert "| 11oz-black-denim | 2 |" in (run.eval_dir / "measured.md").read_text()
 
 
