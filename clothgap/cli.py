@@ -219,7 +219,8 @@ def train(run_dir, preset_name, out, overrides, model_name, variant, setting, tr
 # ---- eval
 @cli.group(cls=DefaultGroup)
 def eval() -> None:  # noqa: A001 - the subcommand is called eval
-    """Evaluate trained models (`clothgap eval RUN_DIR`), or on real videos (`eval real`)."""
+    """Evaluate trained models (`clothgap eval RUN_DIR`), on real videos (`eval real`) or on the
+    measured fabrics (`eval measured`)."""
 
 
 @eval.command("run")
@@ -249,6 +250,28 @@ def eval_real(video_dir: Path, truth: Path, train_dir: Path, out: Path) -> None:
     from eval.real import evaluate_real
 
     click.echo(f"wrote {evaluate_real(video_dir, truth, train_dir, out)}")
+
+
+@eval.command("measured")
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.option("--model", "train_dirs", type=click.Path(path_type=Path), multiple=True,
+              help="Only this trained model's folder (RUN_DIR/train/<setting>/<variant>/<model>/s<seed>; "
+                   "repeatable). Default: every finished model of the run.")
+@click.option("--sequences", type=click.IntRange(min=1), metavar="N",
+              help="Clips per fabric and setting (default: eval.measured_sequences, else 2).")
+@click.option("--variant", metavar="NAME", help="Render variant of the clips (default: eval.measured_variant).")
+def eval_measured(run_dir: Path, train_dirs: tuple[Path, ...], sequences: int | None, variant: str | None) -> None:
+    """The measured-fabric set: the Wang et al. fabrics simulated with their own tables, rendered in a
+    held-out variant, predicted like real videos and compared with the paper's Table 2 classes and
+    the fabrics' measured stiffness and density (writes RUN_DIR/eval/measured.{csv,md,json})."""
+    run = Run.open(run_dir)
+    run.require(run.root / "train", "train")
+    from eval.measured import model_from_dir, run_measured
+
+    models = [model_from_dir(run, d) for d in train_dirs] or None
+    t0 = time.perf_counter()
+    _echo_summary("eval measured", run_measured(run, models=models, sequences=sequences, variant=variant),
+                  time.perf_counter() - t0)
 
 
 # ---- clone

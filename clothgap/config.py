@@ -51,6 +51,7 @@ def _small() -> StudyConfig:
         sim=SimConfig(motions=("wind", "arm"), sequences_per_class=6, frames=30),
         render=RenderConfig(variants=("paper",), resolution=64, spp=4),
         train=TrainConfig(models=("lrcn", "base1"), epochs=15),
+        eval=EvalConfig(measured_sequences=2, sim_analysis=("table2", "sensitivity")),
     )
 
 
@@ -63,6 +64,7 @@ def _paper() -> StudyConfig:
         render=RenderConfig(variants=("paper",), resolution=112, spp=16, backend="cuda_ad_rgb"),
         train=TrainConfig(models=("lrcn", "base1", "base2", "base3"), image_size=112, epochs=30,
                           batch_size=64, width=64, fc6=512, hidden=256, device="cuda"),
+        eval=EvalConfig(measured_sequences=4, sim_analysis=("table2", "sensitivity")),
     )
 
 

@@ -8,6 +8,9 @@ Layout of a run (``runs/<name>`` unless the user names another folder)::
     splits/<setting>.json                        train/val/test clip ids (by sequence)
     train/<setting>/<variant>/<model>/s<seed>/   checkpoint.pt, metrics.csv, tb/, DONE
     eval/                                        predictions, tables (CSV, JSON)
+    measured/sim/<setting>/<fabric>-<n>/         measured-fabric clips (eval.measured): clip.npz, meta.json, DONE
+    measured/render/<variant>/<setting>/<fabric>-<n>/   their frames in the held-out variant
+    sim_analysis/                                the sim stage's Table 2 / sensitivity (eval.sim_analysis)
     report/report.html
 
 The ``DONE`` marker is written last, after everything else in the folder, so a
@@ -133,6 +136,17 @@ class Run:
 
     def train_dir(self, setting: str, variant: str, model: str, seed: int) -> Path:
         return self.root / "train" / setting / variant / model / f"s{seed}"
+
+    def measured_sim_dir(self, setting: str) -> Path:
+        """Measured-fabric clips of ``setting`` (``<fabric>-<n>/``), simulated with the fabrics' own tables."""
+        return self.root / "measured" / "sim" / setting
+
+    def measured_render_dir(self, variant: str, setting: str) -> Path:
+        return self.root / "measured" / "render" / variant / setting
+
+    @property
+    def sim_analysis_dir(self) -> Path:
+        return self.root / "sim_analysis"
 
     @property
     def eval_dir(self) -> Path:

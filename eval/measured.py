@@ -1,169 +1,404 @@
-"""Measured fabrics: the ten Wang et al. 2011 fabrics, simulated with their own tables and
-rendered in a held-out variant, as a ground-truth check between simulation and reality.
+"""The measured-fabric test set: the platform's stand-in for real video (issue 6, item 3).
 
-Input is a folder of rendered clips in the render contract (``<clip>/ldr/%04d.png``,
-``meta.json``, ``DONE``) whose meta names the fabric in ``fabric`` (or
-``material``); the simulation and rendering that make them belong to the sim and
-render stages. For each fabric the clips' sub-sequence probabilities are averaged
-into one predicted class, which is compared with the class the paper assigns it
-in Table 2, and the per-clip predictions are correlated with the fabric's
-measured bending stiffness and density through the same code as real videos
-(``eval.real.table4``; the bootstrap resamples fabrics, not clips).
+``run_measured(run)`` (``clothgap eval measured RUN_DIR``, and part of
+``clothgap eval`` when ``eval.measured_sequences`` > 0):
 
-Outputs in OUT: ``fabrics.csv`` (per fabric: prediction, Table 2 class, matches),
-``match.csv`` (match rates with intervals over fabrics), ``correlations.csv``
-(Table 4 shape, plus predicted p, k against the paper's estimated ratios),
-``measured.md``.
+1. **simulate** the Wang et al. 2011 fabrics with their own full tables
+   (``sim.measured``: not the scaled basis), ``eval.measured_sequences`` clips
+   per fabric under every setting of the run (its motions, each clip with its
+   own wind / arm draws), into ``RUN/measured/sim/<setting>/<fabric>-<n>/``;
+2. **render** them with the render stage's code under ``eval.measured_variant``
+   (default ``heldout``: no training variant uses it) into
+   ``RUN/measured/render/<variant>/<setting>/<fabric>-<n>/``; the meta names the
+   ``fabric``;
+3. **predict** them through the real-video path: every finished model of the run
+   gets ``eval.real.evaluate_real`` on the clips' ``ldr/`` frame folders (frames
+   -> 10-frame sub-sequences -> mean probabilities per clip; Table 4 against the
+   measured bending stiffness and density), in
+   ``eval/measured/<variant>/<setting>/<train_variant>/<model>/s<seed>/``
+   (``videos.csv``, ``table4.csv/.md``, ``truth.csv``, ``scatter.png``,
+   ``activations.png``, ``DONE``);
+4. **compare** per fabric: its class is the argmax of its clips' mean
+   probabilities, set beside the class the paper's Table 2 gives it (exact,
+   p and k match, grid steps), and **correlate** (``eval.metrics``, Pearson and
+   Spearman with percentile bootstrap intervals) the predictions with the
+   fabric's measured stiffness and density (definitions in ``sim.measured``):
+   per clip, resampling whole fabrics, and per fabric.
+
+Every step skips finished work (DONE markers on clips and on each model's
+folder); the tables are rebuilt from those folders each time. Outputs:
+
+``eval/measured.csv``               one row per (model, fabric): prediction, Table 2 class, matches,
+                                    measured and predicted stiffness, checkpoint
+``eval/measured_correlations.csv``  one row per (model, unit, score, target): Pearson / Spearman + intervals
+``eval/measured.md``, ``eval/measured.json``  the same for people and programs (match rates with intervals,
+                                    definitions, generation summaries, files)
+
+Pearson is taken on the raw values, as in Table 4 (``eval.real``); Spearman on ranks.
 """
 
 from __future__ import annotations
 
 import json
+import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import pandas as pd
 
-from clothgap.errors import MissingInputError
-from clothgap.runs import atomic_write_text, is_done
-from clothgap.seeding import stream_id
+from clothgap import seeding
+from clothgap.config import ConfigError
+from clothgap.runs import Run, atomic_write_json, atomic_write_text, fresh_dir, is_done, mark_done
 from eval import classes, metrics, real
 from eval import predictions as preds
 
-# Yang, Liang, Lin 2017, Table 2: estimated ratios to the basis (p~, k~) and the
-# sub-space class (p, k) the paper maps each measured fabric to.
-TABLE2: dict[str, tuple[float, float, float, float]] = {
-    "ivory-rib-knit": (1.3817, 2.3, 1, 2),
-    "pink-ribbon-brown": (2.9343, 12, 3, 10),
-    "camel-ponte-roma": (1, 0.52, 1, 0.5),
-    "white-dots-on-blk": (15.8108, 3.5, 20, 4),
-    "navy-sparkle-sweat": (0.5613, 1.7, 0.5, 2),
-    "gray-interlock": (1.0164, 1.6, 1, 2),
-    "11oz-black-denim": (3.6079, 3, 3, 3),
-    "white-swim-solid": (1.9126, 2.9, 2, 3),
-    "tango-red-jet-set": (1.9784, 1.9, 2, 2),
-    "royal-target": (22.2857, 19, 20, 20),
+DEFAULT_SEQUENCES = 2       # `clothgap eval measured` when the run's eval.measured_sequences is 0
+MATCH_SCORES = ("exact", "p_match", "k_match", "class_dist")
+LABELS = {
+    "pred_bending_N_m": "predicted bending (k x basis, N*m)",
+    "pred_stretching_N_m": "predicted stretching (p x basis, N/m)",
+    "class_index": "class index (paper)",
+    "pred_p": "predicted p", "pred_k": "predicted k",
+    "bending_N_m": "measured bending (N*m)", "stretching_N_m": "measured stretching (N/m)",
+    "density_kg_m2": "density (kg/m^2)", "table2_p_est": "Table 2 p~", "table2_k_est": "Table 2 k~",
 }
-FABRIC_KEYS = ("fabric", "material")
+# (unit, score, target): per clip the bootstrap resamples whole fabrics; per fabric, fabrics.
+CORRELATIONS = (
+    ("clip", "pred_bending_N_m", "bending_N_m"), ("clip", "pred_stretching_N_m", "stretching_N_m"),
+    ("clip", "class_index", "bending_N_m"), ("clip", "pred_bending_N_m", "density_kg_m2"),
+    ("clip", "class_index", "density_kg_m2"),
+    ("fabric", "pred_bending_N_m", "bending_N_m"), ("fabric", "pred_stretching_N_m", "stretching_N_m"),
+    ("fabric", "pred_p", "table2_p_est"), ("fabric", "pred_k", "table2_k_est"),
+)
+MODEL_KEYS = ["setting", "train_variant", "model", "seed", "test_variant"]
 
 Predictor = Callable[[Path, list[Path]], pd.DataFrame]
 
 
-def table2_class(fabric: str) -> int:
-    p_est, k_est, p, k = TABLE2[fabric]
-    return classes.class_of(classes.P_VALUES.index(p), classes.K_VALUES.index(k))
+# ------------------------------------------------------------------ what to make
+
+def resolve(run: Run, sequences: int | None = None, fabrics: Sequence[str] | None = None,
+            variant: str | None = None) -> tuple[int, list[str], str]:
+    """(sequences, fabrics, variant): the arguments, else the run's eval config, else the defaults."""
+    from render.variants import VariantError, get_variant
+    from sim.measured import MAX_SEQUENCES, check_fabrics, table2_fabrics
+
+    cfg = run.config.eval
+    sequences = sequences if sequences is not None else (cfg.measured_sequences or DEFAULT_SEQUENCES)
+    if not 0 < sequences <= MAX_SEQUENCES:
+        raise ConfigError(f"measured sequences per fabric must be 1..{MAX_SEQUENCES}, got {sequences}")
+    fabrics = check_fabrics(list(fabrics or cfg.measured_fabrics or table2_fabrics()))
+    variant = variant or cfg.measured_variant
+    try:
+        get_variant(variant)
+    except VariantError as err:
+        raise ConfigError(f"eval.measured_variant: {err}") from None
+    return sequences, fabrics, variant
 
 
-def measured_values(fabric: str) -> dict[str, float]:
-    """Mean bending entry (N*m) and area density (kg/m^2) of a fabric's measured table."""
-    from sim.materials import load_material
-
-    m = load_material(fabric)
-    return {"stiffness": float(np.mean(m.bending)), "density": float(m.density)}
+def model_folder(run: Run, m, variant: str) -> Path:
+    return run.eval_dir / "measured" / variant / m.setting / m.variant / m.model / f"s{m.seed}"
 
 
-def fabric_clips(clips_dir: Path) -> dict[Path, str]:
-    """Finished clip folders and the fabric each one names."""
-    if not clips_dir.is_dir():
-        raise MissingInputError(f"clip folder {clips_dir} does not exist")
-    found = {}
-    for folder in sorted(p for p in clips_dir.iterdir() if p.is_dir() and is_done(p)):
-        meta = json.loads((folder / "meta.json").read_text())
-        name = next((meta[k] for k in FABRIC_KEYS if isinstance(meta.get(k), str)), None)
-        if name is None:
-            raise ValueError(f"{folder / 'meta.json'} names no fabric (expected a key {' or '.join(FABRIC_KEYS)})")
-        found[folder] = name
-    if not found:
-        raise ValueError(f"no finished clip folders (with DONE) in {clips_dir}")
-    return found
+def model_from_dir(run: Run, train_dir: Path):
+    """The run's TrainedModel for a train folder path (``RUN/train/<setting>/<variant>/<model>/s<seed>``)."""
+    from eval.stage import TrainedModel
+
+    try:
+        parts = Path(train_dir).resolve().relative_to((run.root / "train").resolve()).parts
+    except ValueError:
+        raise ConfigError(f"--model {train_dir} is not a train folder of the run {run.root} "
+                          f"(expected {run.root / 'train'}/<setting>/<variant>/<model>/s<seed>)") from None
+    if len(parts) != 4 or not parts[3].startswith("s") or not parts[3][1:].isdigit():
+        raise ConfigError(f"--model {train_dir}: expected {run.root / 'train'}/<setting>/<variant>/<model>/s<seed>")
+    if not is_done(Path(train_dir)):
+        raise ConfigError(f"--model {train_dir} has no DONE marker: is that training finished?")
+    return TrainedModel(parts[0], parts[1], parts[2], int(parts[3][1:]), run.train_dir(*parts[:3], int(parts[3][1:])))
 
 
-def _default_predictor(train_dir: Path, clip_dirs: list[Path]) -> pd.DataFrame:
-    from learn.predict import predict_clips
+def make_clips(run: Run, sequences: int, fabrics: Sequence[str], variant: str, progress: bool = True) -> dict:
+    """Simulate and render the measured clips that are not finished yet; returns both summaries."""
+    from render.stage import render_measured
+    from sim.measured import clip_name, simulate_measured, wanted_clips
 
-    return predict_clips(train_dir, clip_dirs)
+    sim_summary = simulate_measured(run, fabrics, sequences, progress)
+    names = [clip_name(f, n) for f, n in wanted_clips(fabrics, sequences)]
+    render_summary = render_measured(run, variant, names, progress)
+    return {"sim": sim_summary, "render": render_summary}
 
 
-def compare_with_table2(per_clip: pd.DataFrame) -> pd.DataFrame:
-    """One row per fabric: the class from its clips' mean probabilities against Table 2's."""
+# ------------------------------------------------------------------ prediction (the real-video path)
+
+def _clip_fabrics(folder: Path, names: Sequence[str]) -> dict[str, str]:
+    """Finished rendered clips among ``names`` and the fabric their meta names."""
+    out = {}
+    for name in names:
+        clip = folder / name
+        if is_done(clip):
+            fabric = json.loads((clip / "meta.json").read_text()).get("fabric")
+            if not isinstance(fabric, str):
+                raise ValueError(f"{clip / 'meta.json'} names no fabric (a measured clip's meta has 'fabric')")
+            out[name] = fabric
+    return out
+
+
+def predict_model(run: Run, m, variant: str, names: Sequence[str], *, predictor: Predictor | None = None,
+                  activations: int = 2, progress: bool = True) -> tuple[pd.DataFrame | None, str]:
+    """Per-clip predictions of model ``m`` on the measured clips, through ``eval.real.evaluate_real``.
+
+    Returns (videos frame with ``fabric`` and truth columns, or None when no clip is rendered; status).
+    Kept when the model's folder is finished for the same clips.
+    """
+    from sim.measured import measured_values
+
+    clips = _clip_fabrics(run.measured_render_dir(variant, m.setting), names)
+    if not clips:
+        return None, "no rendered measured clips"
+    folder = model_folder(run, m, variant)
+    status = "reused"
+    done = folder / "DONE"
+    if not (done.is_file() and json.loads(done.read_text()).get("clips") == sorted(clips)):
+        status = "predicted"
+        fresh_dir(folder)
+        truth = pd.DataFrame([{"video": n, "label": f, "bending_N_m2": measured_values(f)["bending_N_m"],
+                               "area_weight_kg_m2": measured_values(f)["density_kg_m2"]} for n, f in clips.items()])
+        atomic_write_text(folder / "truth.csv", truth.to_csv(index=False, float_format="%.8g"))
+        render_dir = run.measured_render_dir(variant, m.setting)
+        t0 = time.perf_counter()
+        try:
+            real.evaluate_real(render_dir, folder / "truth.csv", m.folder, folder,
+                               max_frames=run.config.sim.frames, resamples=run.config.eval.bootstrap,
+                               confidence=run.config.eval.confidence, seed=run.config.seed,
+                               activations=activations, predictor=predictor, progress=False,
+                               inputs={n: render_dir / n / "ldr" for n in sorted(clips)})
+        except real.VideoError as err:     # e.g. clips shorter than the model's sub-sequence
+            raise ConfigError(f"measured clips of {m.setting} cannot be predicted by {m.folder}: {err}") from None
+        mark_done(folder, {"clips": sorted(clips), "checkpoint": str(m.checkpoint)})
+        if progress:
+            print(f"[eval measured] {m.setting}/{m.variant}/{m.model}/s{m.seed} on {variant}: {len(clips)} clips, "
+                  f"{time.perf_counter() - t0:.1f} s", flush=True)
+    videos = pd.read_csv(folder / "videos.csv", dtype={"video": str})
+    videos["fabric"] = videos["video"].map(clips)
+    for key, value in (("stretching_N_m", "stretching_N_m"), ("bending_N_m", "bending_N_m"),
+                       ("density_kg_m2", "density_kg_m2")):
+        videos[key] = videos["fabric"].map(lambda f, v=value: measured_values(f)[v])
+    return videos, status
+
+
+# ------------------------------------------------------------------ tables
+
+def fabric_table(videos: pd.DataFrame) -> pd.DataFrame:
+    """One row per fabric: the argmax of its clips' mean probabilities beside the paper's Table 2 class."""
+    from sim.analysis import PAPER_TABLE2
+    from sim.measured import basis_values, measured_values, table2_class
+
+    basis = basis_values()
     rows = []
-    for fabric, g in per_clip.groupby("fabric", sort=True):
-        pred = int(g[preds.PROB_COLUMNS].to_numpy().mean(axis=0).argmax())
-        row = {"fabric": fabric, "clips": len(g), "pred": pred, "pred_p": float(classes.p_value(pred)),
-               "pred_k": float(classes.k_value(pred))}
-        if fabric in TABLE2:
-            p_est, k_est, p, k = TABLE2[fabric]
-            truth = table2_class(fabric)
-            row.update({"table2_p_est": p_est, "table2_k_est": k_est, "table2_p": p, "table2_k": k,
-                        "table2_class": truth, "exact": float(pred == truth),
-                        "p_match": float(metrics.stretch_correct([truth], [pred])[0]),
-                        "k_match": float(metrics.bend_correct([truth], [pred])[0]),
-                        "class_dist": float(metrics.class_distance([truth], [pred])[0])})
+    for fabric, g in videos.groupby("fabric", sort=False):
+        probs = g[preds.PROB_COLUMNS].to_numpy(float).mean(axis=0)
+        pred = int(probs.argmax())
+        truth = table2_class(fabric)
+        p_est, p_t2, k_est, k_t2 = PAPER_TABLE2.get(fabric, (np.nan,) * 4)
+        values = measured_values(fabric)
+        pred_p, pred_k = float(classes.p_value(pred)), float(classes.k_value(pred))
+        rows.append({
+            "fabric": fabric, "clips": len(g), "pred": pred, "pred_p": pred_p, "pred_k": pred_k,
+            "prob": float(probs[pred]), "vote_share": float((g["pred"] == pred).mean()),
+            "table2_p_est": p_est, "table2_k_est": k_est, "table2_p": float(classes.p_value(truth)),
+            "table2_k": float(classes.k_value(truth)), "table2_class": truth,
+            "class_source": "paper Table 2" if fabric in PAPER_TABLE2 else "nearest class to estimated ratios",
+            "exact": float(pred == truth), "p_match": float(metrics.stretch_correct([truth], [pred])[0]),
+            "k_match": float(metrics.bend_correct([truth], [pred])[0]),
+            "class_dist": float(metrics.class_distance([truth], [pred])[0]),
+            **values, "pred_stretching_N_m": pred_p * basis["stretching_N_m"],
+            "pred_bending_N_m": pred_k * basis["bending_N_m"]})
+    return pd.DataFrame(rows)
+
+
+def with_predicted_values(videos: pd.DataFrame) -> pd.DataFrame:
+    """Per-clip predicted p, k and the stiffness they stand for (the basis's value times p or k)."""
+    from sim.measured import basis_values
+
+    basis = basis_values()
+    out = videos.copy()
+    out["pred_p"] = classes.p_value(out["pred"].to_numpy())
+    out["pred_k"] = classes.k_value(out["pred"].to_numpy())
+    out["pred_stretching_N_m"] = out["pred_p"] * basis["stretching_N_m"]
+    out["pred_bending_N_m"] = out["pred_k"] * basis["bending_N_m"]
+    out["class_index"] = out["pred"]
+    return out
+
+
+def correlation_table(videos: pd.DataFrame, fabrics: pd.DataFrame, *, resamples: int, confidence: float,
+                      rng_for: Callable[..., np.random.Generator]) -> pd.DataFrame:
+    """Pearson and Spearman (with intervals) of each ``CORRELATIONS`` pair."""
+    clips = with_predicted_values(videos)
+    rows = []
+    for unit, score, target in CORRELATIONS:
+        frame = clips if unit == "clip" else fabrics.dropna(subset=[target])
+        row = {"unit": unit, "score": score, "target": target, "description": f"{LABELS[score]} vs {LABELS[target]}",
+               "n": len(frame), "fabrics": int(frame["fabric"].nunique())}
+        for method in ("pearson", "spearman"):
+            est = metrics.bootstrap_correlation(frame[score], frame[target], method=method,
+                                                groups=frame["fabric"] if unit == "clip" else None,
+                                                resamples=resamples, confidence=confidence,
+                                                rng=rng_for(unit, score, target, method))
+            row.update(est.as_dict(method))
         rows.append(row)
     return pd.DataFrame(rows)
 
 
-def evaluate_measured(clips_dir: Path | str, train_dir: Path | str, out_dir: Path | str, *,
-                      resamples: int = 1000, confidence: float = 0.95, seed: int = 0,
-                      predictor: Predictor | None = None, truth: Callable[[str], dict] = measured_values) -> Path:
-    """Predict the measured-fabric clips in ``clips_dir``; returns ``fabrics.csv``'s path.
+def match_table(fabrics: pd.DataFrame, *, resamples: int, confidence: float,
+                rng_for: Callable[..., np.random.Generator]) -> pd.DataFrame:
+    """Mean of each match score over fabrics, with an interval from resampling fabrics."""
+    rows = [{"score": s, "fabrics": len(fabrics),
+             **metrics.bootstrap_mean(fabrics[s], fabrics["fabric"], resamples=resamples, confidence=confidence,
+                                      rng=rng_for("match", s)).as_dict("value")} for s in MATCH_SCORES]
+    return pd.DataFrame(rows, columns=["score", "fabrics", "value", "value_lo", "value_hi"])
 
-    ``truth(fabric)`` gives ``{"stiffness", "density"}`` (default: the fabric's
-    table in assets/materials); ``predictor`` replaces predict_clips (tests).
-    """
-    clips_dir, train_dir, out_dir = map(Path, (clips_dir, train_dir, out_dir))
-    named = fabric_clips(clips_dir)
-    frame = preds.to_flat((predictor or _default_predictor)(train_dir, list(named)))
-    clip_fabric = {json.loads((d / "meta.json").read_text()).get("clip_id", d.name): f for d, f in named.items()}
-    per_clip = preds.per_sequence(frame)
-    per_clip["fabric"] = per_clip["clip_id"].map(clip_fabric)
 
-    fabrics = compare_with_table2(per_clip)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    path = out_dir / "fabrics.csv"
-    atomic_write_text(path, fabrics.to_csv(index=False, float_format="%.6g"))
+def _fmt(value, lo, hi, digits: int = 2) -> str:
+    return metrics.Estimate(value, lo, hi).fmt(1.0, digits)
 
-    known = fabrics.dropna(subset=["table2_class"]) if "table2_class" in fabrics else fabrics.iloc[:0]
-    match_rows = []
-    for i, score in enumerate(("exact", "p_match", "k_match", "class_dist")):
-        if known.empty:
-            break
-        est = metrics.bootstrap_mean(known[score], known["fabric"], resamples=resamples, confidence=confidence,
-                                     rng=np.random.default_rng([seed, stream_id(score)]))
-        match_rows.append({"score": score, "fabrics": len(known), **est.as_dict("value")})
-    match = pd.DataFrame(match_rows, columns=["score", "fabrics", "value", "value_lo", "value_hi"])
-    atomic_write_text(out_dir / "match.csv", match.to_csv(index=False, float_format="%.6g"))
 
-    # Per clip, through the real-video table: predicted bending vs measured stiffness/density.
-    videos = real.per_video(frame).merge(per_clip[["clip_id", "fabric"]], left_on="video", right_on="clip_id")
-    values = {f: truth(f) for f in videos["fabric"].unique()}
-    joined = videos.assign(label=videos["fabric"], stiffness=videos["fabric"].map(lambda f: values[f]["stiffness"]),
-                           density=videos["fabric"].map(lambda f: values[f]["density"]))
-    corr = real.table4(joined, resamples=resamples, confidence=confidence, seed=seed)
-    if not known.empty:  # predicted coefficients against the paper's estimated ratios, per fabric
-        for coef in ("p", "k"):
-            row = {"group": "fabrics (Table 2)", "videos": len(known), "score": f"predicted {coef} vs Table 2 {coef}~"}
-            for method in ("pearson", "spearman"):
-                est = metrics.bootstrap_correlation(np.log(known[f"pred_{coef}"]), np.log(known[f"table2_{coef}_est"]),
-                                                    method=method, resamples=resamples, confidence=confidence,
-                                                    rng=np.random.default_rng([seed, stream_id(coef + method)]))
-                row.update(est.as_dict(f"stiffness_{method}"))
-            corr = pd.concat([corr, pd.DataFrame([row])], ignore_index=True)
-    corr.insert(0, "model", str(train_dir))
-    atomic_write_text(out_dir / "correlations.csv", corr.to_csv(index=False, float_format="%.6g"))
+def markdown(run: Run, variant: str, heldout: bool, table: pd.DataFrame, corr: pd.DataFrame,
+             match: pd.DataFrame) -> str:
+    lines = [f"# Measured fabrics (`{run.root}`, render variant `{variant}`"
+             f"{'' if heldout else ', NOT held out: a model was trained on it'})", "",
+             "Each fabric simulated with its own Wang et al. 2011 tables, predicted through the real-video path "
+             "(mean sub-sequence probabilities per clip, then per fabric), beside the class of the paper's Table 2.",
+             ""]
+    for key, g in table.groupby(MODEL_KEYS, sort=True):
+        setting, train_v, model, seed, test_v = key
+        kmask = np.logical_and.reduce([corr[c] == v for c, v in zip(MODEL_KEYS, key)])
+        mmask = np.logical_and.reduce([match[c] == v for c, v in zip(MODEL_KEYS, key)])
+        lines += [f"## {model} trained on {train_v} ({setting}, seed {seed})", "",
+                  f"Checkpoint: `{g['checkpoint'].iloc[0]}`", "",
+                  "| Fabric | Clips | Predicted (p, k) | Table 2 (p, k) | Exact | p | k | Grid steps | "
+                  "Bending measured / predicted (N*m) | Stretching measured / predicted (N/m) | Density |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+        for _, r in g.iterrows():
+            yes = lambda x: "yes" if x == 1 else "no"  # noqa: E731
+            lines.append(f"| {r.fabric} | {r.clips} | ({r.pred_p:g}, {r.pred_k:g}) | ({r.table2_p:g}, {r.table2_k:g}) "
+                         f"| {yes(r.exact)} | {yes(r.p_match)} | {yes(r.k_match)} | {r.class_dist:g} "
+                         f"| {r.bending_N_m:.3g} / {r.pred_bending_N_m:.3g} "
+                         f"| {r.stretching_N_m:.4g} / {r.pred_stretching_N_m:.4g} | {r.density_kg_m2:.3g} |")
+        lines += ["", "| Score (over fabrics) | Value [95% interval] |", "|---|---|"]
+        lines += [f"| {r.score} | {_fmt(r.value, r.value_lo, r.value_hi)} |" for r in match[mmask].itertuples()]
+        lines += ["", "| Unit | Correlation | n | Pearson r | Spearman rho |", "|---|---|---|---|---|"]
+        lines += [f"| {r.unit} | {r.description} | {r.n} | {_fmt(r.pearson, r.pearson_lo, r.pearson_hi)} "
+                  f"| {_fmt(r.spearman, r.spearman_lo, r.spearman_hi)} |" for r in corr[kmask].itertuples()]
+        lines.append("")
+    return "\n".join(lines)
 
-    lines = [f"# Measured fabrics (model `{train_dir}`, clips `{clips_dir}`)", "",
-             "| Fabric | Clips | Predicted (p, k) | Table 2 (p, k) | Exact | Grid steps |", "|---|---|---|---|---|---|"]
-    for _, r in fabrics.iterrows():
-        t2 = f"({r['table2_p']:g}, {r['table2_k']:g})" if pd.notna(r.get("table2_p", np.nan)) else "not in Table 2"
-        exact = "yes" if r.get("exact") == 1 else ("no" if pd.notna(r.get("exact", np.nan)) else "")
-        dist = f"{r['class_dist']:g}" if pd.notna(r.get("class_dist", np.nan)) else ""
-        lines.append(f"| {r['fabric']} | {r['clips']} | ({r['pred_p']:g}, {r['pred_k']:g}) | {t2} | {exact} | {dist} |")
-    lines += ["", "| Score | Fabrics | Value [95% interval over fabrics] |", "|---|---|---|"]
-    lines += [f"| {r.score} | {r.fabrics} | {metrics.Estimate(r.value, r.value_lo, r.value_hi).fmt(1.0, 2)} |"
-              for r in match.itertuples()]
-    lines += ["", "Correlations: see correlations.csv (the p/k rows hold log-ratio correlations in the "
-              "stiffness columns).", ""]
-    atomic_write_text(out_dir / "measured.md", "\n".join(lines))
-    return path
+
+# ------------------------------------------------------------------ entry point
+
+def run_measured(run: Run, *, models: list | None = None, sequences: int | None = None,
+                 fabrics: Sequence[str] | None = None, variant: str | None = None,
+                 predictor: Predictor | None = None, activations: int = 2, progress: bool = True) -> dict:
+    """Make (or reuse) the measured-fabric clips, predict them with every finished model (or ``models``),
+    and write ``eval/measured.{csv,md,json}`` and ``eval/measured_correlations.csv``; returns a summary."""
+    from eval.stage import finished_models
+    from sim.measured import basis_values, clip_name, wanted_clips
+
+    sequences, fabrics, variant = resolve(run, sequences, fabrics, variant)
+    models = list(models) if models is not None else finished_models(run)
+    if not models:
+        raise ConfigError(f"no finished train folder under {run.root / 'train'}: run `clothgap train {run.root}` "
+                          "first (the measured set is predicted by the run's models)")
+    heldout = variant not in ({m.variant for m in models} | set(run.config.render.variants))
+    if progress and not heldout:
+        print(f"[eval measured] warning: variant {variant!r} is also a training variant, so the set is not held out",
+              flush=True)
+    t0 = time.perf_counter()
+    generation = make_clips(run, sequences, fabrics, variant, progress)
+    names = [clip_name(f, n) for f, n in wanted_clips(fabrics, sequences)]
+    cfg = run.config.eval
+    tables, corrs, matches, entries = [], [], [], []
+    for m in models:
+        videos, status = predict_model(run, m, variant, names, predictor=predictor, activations=activations,
+                                       progress=progress)
+        entry = {"setting": m.setting, "train_variant": m.variant, "model": m.model, "seed": m.seed,
+                 "checkpoint": _rel(run, m.checkpoint), "status": status}
+        if videos is None:
+            entries.append(entry)
+            continue
+        folder = model_folder(run, m, variant)
+        key = {"setting": m.setting, "train_variant": m.variant, "model": m.model, "seed": m.seed,
+               "test_variant": variant}
+
+        def rng_for(*parts: str, m=m) -> np.random.Generator:
+            return seeding.rng(run.config.seed, 0, seeding.EVAL, "bootstrap", "measured", m.setting, m.variant,
+                               m.model, str(m.seed), *parts)
+
+        opts = {"resamples": cfg.bootstrap, "confidence": cfg.confidence, "rng_for": rng_for}
+        table = fabric_table(videos)
+        corr = correlation_table(videos, table, **opts)
+        match = match_table(table, **opts)
+        tables.append(table.assign(**key, checkpoint=_rel(run, m.checkpoint), folder=_rel(run, folder)))
+        corrs.append(corr.assign(**key))
+        matches.append(match.assign(**key))
+        entry.update({"folder": _rel(run, folder), "clips": len(videos),
+                      "skipped": _count_rows(folder / "skipped.csv"),
+                      "match": json.loads(match.to_json(orient="records")),
+                      "correlations": json.loads(corr.to_json(orient="records"))})
+        entries.append(entry)
+    if not tables:
+        raise ConfigError(f"no measured clip was rendered for any model's setting under "
+                          f"{run.root / 'measured' / 'render' / variant}: see the render summary "
+                          f"{json.dumps(generation['render'].get('failed', []))[:500]}")
+
+    def ordered(frames: list[pd.DataFrame]) -> pd.DataFrame:
+        frame = pd.concat(frames, ignore_index=True)
+        return frame[MODEL_KEYS + [c for c in frame.columns if c not in MODEL_KEYS]]
+
+    table, corr, match = ordered(tables), ordered(corrs), ordered(matches)
+    out = run.eval_dir
+    atomic_write_text(out / "measured.csv", table.to_csv(index=False, float_format="%.6g"))
+    atomic_write_text(out / "measured_correlations.csv", corr.to_csv(index=False, float_format="%.6g"))
+    atomic_write_text(out / "measured.md", markdown(run, variant, heldout, table, corr, match))
+    summary = {
+        "variant": variant, "heldout": heldout, "training_variants": sorted({m.variant for m in models}),
+        "fabrics": fabrics, "sequences": sequences, "settings": run.config.sim.settings(),
+        "definitions": {
+            "stretching_N_m": "mean of the low-strain row's k0 (warp), k2 (weft), k3 (shear) entries of the "
+                              "fabric's stretching table (N/m); a class predicts p x the basis's value",
+            "bending_N_m": "mean of the 15 bending-table entries (N*m); a class predicts k x the basis's value",
+            "density_kg_m2": "the fabric's area density",
+            "fabric decision": "argmax of the mean over the fabric's clips of each clip's mean sub-sequence "
+                               "probabilities",
+            "correlations": "Pearson on raw values, Spearman on ranks; unit 'clip' resamples whole fabrics, "
+                            "unit 'fabric' resamples fabrics",
+        },
+        "basis": basis_values(),
+        "bootstrap": {"resamples": cfg.bootstrap, "confidence": cfg.confidence},
+        "generation": generation, "models": entries,
+        "files": {"fabrics": "eval/measured.csv", "correlations": "eval/measured_correlations.csv",
+                  "markdown": "eval/measured.md", "sim": "measured/sim", "render": f"measured/render/{variant}",
+                  "per_model": f"eval/measured/{variant}"},
+        "seconds": round(time.perf_counter() - t0, 2),
+    }
+    atomic_write_json(out / "measured.json", summary)
+    return {"variant": variant, "heldout": heldout, "fabrics": len(fabrics), "sequences": sequences,
+            "simulated": generation["sim"]["simulated"], "rendered": generation["render"]["rendered"],
+            "predicted": sum(e["status"] == "predicted" for e in entries),
+            "reused": sum(e["status"] == "reused" for e in entries),
+            "exact": {f"{e['setting']}/{e['train_variant']}/{e['model']}/s{e['seed']}":
+                      next(r["value"] for r in e["match"] if r["score"] == "exact")
+                      for e in entries if "match" in e}}
+
+
+def _rel(run: Run, path: Path) -> str:
+    try:
+        return str(Path(path).relative_to(run.root))
+    except ValueError:
+        return str(path)
+
+
+def _count_rows(path: Path) -> int:
+    try:
+        return len(pd.read_csv(path))
+    except (FileNotFoundError, pd.errors.EmptyDataError):
+        return 0

@@ -295,24 +295,27 @@ def _scatter(joined: pd.DataFrame):
 def evaluate_real(video_dir: Path | str, truth_csv: Path | str, train_dir: Path | str, out_dir: Path | str, *,
                   max_frames: int = 60, fps: float | None = None, frames_fps: float | None = None,
                   resamples: int = 1000, confidence: float = 0.95, seed: int = 0,
-                  activations: int = 3, predictor: Predictor | None = None, progress: bool = True) -> Path:
+                  activations: int = 3, predictor: Predictor | None = None, progress: bool = True,
+                  inputs: dict[str, Path] | None = None) -> Path:
     """Predict every video in ``video_dir``, correlate with ``truth_csv``; returns ``table4.csv``'s path.
 
     ``fps``: the rate videos are resampled to (default: the simulation's, from the
     run config); ``frames_fps``: the rate of frame folders (default: ``fps``);
     ``activations``: how many videos get conv5 overlays in ``activations.png`` (0: none);
-    ``predictor`` replaces ``learn.predict.predict_clips`` (tests).
+    ``predictor`` replaces ``learn.predict.predict_clips`` (tests);
+    ``inputs`` (video name -> file or frame folder) replaces the listing of
+    ``video_dir`` (the measured-fabric set passes its rendered clips' ``ldr/`` folders).
     """
     video_dir, truth_csv, train_dir, out_dir = map(Path, (video_dir, truth_csv, train_dir, out_dir))
     truth = read_truth(truth_csv)              # every input is checked before the model is loaded
-    inputs = list_inputs(video_dir)
+    listed = inputs if inputs is not None else {p.name: p for p in list_inputs(video_dir)}
     geometry = model_geometry(train_dir)
     fps = fps or geometry["fps"]
     out_dir.mkdir(parents=True, exist_ok=True)
 
     skipped, clip_dirs, names = [], [], {}
-    for path in inputs:
-        name = path.name
+    for name, path in listed.items():
+        path = Path(path)
         try:
             frames = read_video(path, geometry["image_size"], fps, max_frames, frames_fps)
             if len(frames) < geometry["clip_len"]:
@@ -323,7 +326,7 @@ def evaluate_real(video_dir: Path | str, truth_csv: Path | str, train_dir: Path 
             if progress:
                 print(f"[eval real] skipped {err}", flush=True)
             continue
-        folder = out_dir / "clips" / _safe_name(path.stem if path.is_file() else name)
+        folder = out_dir / "clips" / _safe_name(Path(name).stem if path.is_file() else name)
         if folder.exists():
             shutil.rmtree(folder)
         clip_dirs.append(write_clip(frames, folder, name))

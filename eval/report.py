@@ -3,9 +3,12 @@
 Everything is inside the file (figures as base64 PNG, styles inline), so it can
 be mailed or attached to an issue. Sections appear only when their inputs exist:
 the eval tables (``clothgap eval``), learning curves (train folders), sample
-frames (render folders), the sim stage's sensitivity analysis (``sim_analysis/``)
-and real-video / measured-fabric tables (``eval/real*/``, ``eval/measured*/``).
-Every table row names the run folder, config and checkpoint(s) it came from.
+frames (render folders), the sim stage's sensitivity analysis (``sim_analysis/``),
+the measured-fabric set (``eval/measured.csv``, ``clothgap eval measured``) and
+real-video tables (``eval/real*/``).
+Every table row names the run folder, config and checkpoint(s) it came from; paths
+inside the run (config, checkpoints, source CSVs) are relative links from
+``report/``, so they open while the report sits in its run folder.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from __future__ import annotations
 import base64
 import html
 import json
+import os
 import time
 from pathlib import Path
 
@@ -58,9 +62,29 @@ def _img_file(path: Path, caption: str, width: int | None = None) -> str:
     return _img(path.read_bytes(), caption, width)
 
 
-def _table(frame: pd.DataFrame, pct: tuple[str, ...] = ()) -> str:
-    """A frame as an HTML table; ``pct`` columns (fractions) shown as percent with their _lo/_hi."""
-    shown = [c for c in frame.columns if not (c.endswith(("_lo", "_hi")) and c[:-3] in pct)]
+LINK_COLUMNS = ("checkpoints", "checkpoint", "folder")
+
+
+def _link(run: Run, path: Path | str) -> str:
+    """A relative link from report/ to a file or folder of the run (plain code when outside the run)."""
+    target = Path(path) if Path(path).is_absolute() else run.root / path
+    try:
+        shown = target.resolve().relative_to(run.root.resolve())
+    except ValueError:
+        return f"<code>{_esc(path)}</code>"
+    href = os.path.relpath(target.resolve(), run.report_dir.resolve()).replace(os.sep, "/")
+    return f'<a href="{_esc(href)}"><code>{_esc(shown)}</code></a>'
+
+
+def _links(run: Run, paths: str) -> str:
+    """Space-separated run paths (e.g. a cell's checkpoints) as links, one per line."""
+    return "<br>".join(_link(run, p) for p in str(paths).split()) if isinstance(paths, str) else ""
+
+
+def _table(frame: pd.DataFrame, pct: tuple[str, ...] = (), est: tuple[str, ...] = (), run: Run | None = None) -> str:
+    """A frame as an HTML table; ``pct`` columns (fractions) shown as percent with their _lo/_hi,
+    ``est`` columns as value [lo, hi]; with ``run``, path columns (``LINK_COLUMNS``) become links."""
+    shown = [c for c in frame.columns if not (c.endswith(("_lo", "_hi")) and c[:-3] in pct + est)]
     head = "".join(f"<th>{_esc(c)}</th>" for c in shown)
     rows = []
     for _, r in frame.iterrows():
@@ -71,6 +95,10 @@ def _table(frame: pd.DataFrame, pct: tuple[str, ...] = ()) -> str:
                 lo, hi = r.get(f"{c}_lo", np.nan), r.get(f"{c}_hi", np.nan)
                 ci = f' <span class="ci">[{100 * lo:.1f}, {100 * hi:.1f}]</span>' if pd.notna(lo) else ""
                 cells.append(f'<td class="num">{100 * v:.1f}{ci}</td>')
+            elif c in est:
+                cells.append(_est(r, c, 1.0, 2))
+            elif run is not None and c in LINK_COLUMNS:
+                cells.append(f"<td>{_links(run, v)}</td>")
             elif isinstance(v, (float, np.floating)):
                 cells.append(f'<td class="num">{"" if pd.isna(v) else f"{v:.4g}"}</td>')
             else:
@@ -80,9 +108,11 @@ def _table(frame: pd.DataFrame, pct: tuple[str, ...] = ()) -> str:
 
 
 def _est(r, prefix: str, scale: float = 100.0, digits: int = 1) -> str:
-    est = Estimate(r[prefix], r[f"{prefix}_lo"], r[f"{prefix}_hi"])
+    est = Estimate(r[prefix], r.get(f"{prefix}_lo", np.nan), r.get(f"{prefix}_hi", np.nan))
     if not np.isfinite(est.value):
         return "<td></td>"
+    if not (np.isfinite(est.low) and np.isfinite(est.high)):
+        return f'<td class="num">{est.value * scale:.{digits}f}</td>'
     return (f'<td class="num">{est.value * scale:.{digits}f} <span class="ci">[{est.low * scale:.{digits}f}, '
             f"{est.high * scale:.{digits}f}]</span></td>")
 
@@ -92,7 +122,7 @@ def _est(r, prefix: str, scale: float = 100.0, digits: int = 1) -> str:
 def _section_config(run: Run) -> str:
     cfg = run.config
     rows = [("run folder", f"<code>{_esc(run.root.resolve())}</code>"),
-            ("config", f"<code>{_esc(run.root / 'config.json')}</code>"),
+            ("config", _link(run, "config.json")),
             ("settings", _esc(", ".join(cfg.sim.settings()))),
             ("classes", _esc(", ".join(map(str, cfg.sim.class_indices())) if cfg.sim.classes else "all 54")),
             ("sequences per class", _esc(cfg.sim.sequences_per_class)),
@@ -123,7 +153,7 @@ def _section_table3(run: Run) -> str:
     out = [f'<h2 id="table3">Table 3: accuracy on simulated test sequences</h2>',
            "<p>Accuracy over 54 classes (% of 10-frame test sub-sequences) of each model trained and tested on the "
            "same render variant, with the 95% interval from resampling test <em>sequences</em>. "
-           f"Source: <code>{_esc(run.eval_dir / 'table3.csv')}</code>. Paper (wind, Unif-1, Rand): "
+           f"Source: {_link(run, run.eval_dir / 'table3.csv')}. Paper (wind, Unif-1, Rand): "
            "Base-1 53.6, Base-2 53.3, CNN+LSTM 64.7.</p>",
            f"<table><tr>{head}</tr>{''.join(rows)}</table>"]
     detail_cols = (("top3", "Top-3 %", 100.0, 1), ("stretch_acc", "Stretch factor %", 100.0, 1),
@@ -137,7 +167,7 @@ def _section_table3(run: Run) -> str:
             cells = f"<td>{_esc(r['motion'])}-{_esc(r['remeshing'])}</td><td>{_esc(r['variant'])}</td>"
             cells += "".join(_est(r, f"{m}_{key}", scale, digits) for key, _, scale, digits in detail_cols)
             cells += (f'<td class="num">{int(r[f"{m}_sequences"])}</td><td>{_esc(r[f"{m}_seeds"])}</td>'
-                      f"<td><code>{_esc(r[f'{m}_checkpoints'])}</code></td>")
+                      f"<td>{_links(run, r[f'{m}_checkpoints'])}</td>")
             rows.append(f"<tr>{cells}</tr>")
         out.append(f"<h3>{_esc(tables.MODEL_TITLES.get(m, m))}: details</h3>"
                    f"<table><tr>{head}</tr>{''.join(rows)}</table>")
@@ -252,7 +282,8 @@ def _section_activations(run: Run) -> str:
             if rows:
                 fig = overlay_figure(rows, model)
                 rel = chosen.checkpoint.relative_to(run.root)
-                out.append(_img(figures.png_bytes(fig), f"{setting}: conv5 of {rel}"))
+                out.append(_img(figures.png_bytes(fig), f"{setting}: conv5 of {rel}")
+                           + f"<p>Model: {_link(run, chosen.checkpoint)}</p>")
         except Exception as err:  # a report must not fail on one figure; say why it is missing
             out.append(f'<p class="note">conv5 overlays for {_esc(setting)} skipped: {_esc(type(err).__name__)}: '
                        f"{_esc(err)}</p>")
@@ -272,16 +303,20 @@ def _section_gap(run: Run) -> str:
         return ""
     out = ['<h2 id="gap">Domain gap</h2><p><b>drop</b> = in-domain accuracy of the training variant minus '
            "accuracy on the test variant; <b>gap</b> = accuracy of a model trained on the test variant minus this "
-           "one's, both with paired 95% sequence-bootstrap intervals. "
-           f"Source: <code>{_esc(path)}</code>.</p>"]
+           "one's, both with paired 95% sequence-bootstrap intervals. <b>p_spearman</b>, <b>k_spearman</b> "
+           "(Spearman) and <b>p_pearson</b>, <b>k_pearson</b> (Pearson on log coefficients): correlation of the "
+           "predicted class's stretching (p) and bending (k) factor with the true one over test sequences, with "
+           f"95% sequence-bootstrap intervals. Source: {_link(run, path)}.</p>"]
     fig_root = run.eval_dir / "figures" / "gap"
     pngs = sorted(fig_root.rglob("*.png")) if fig_root.is_dir() else []
     if pngs:
         out.append('<div class="figs">' + "".join(_img_file(p, str(p.relative_to(run.root)), 420) for p in pngs)
                    + "</div>")
+    corr = [f"{c}{x}" for c in tables.CORRELATION_COLUMNS for x in ("", "_lo", "_hi")]
     cols = ["setting", "model", "train_variant", "test_variant", "sequences", "acc", "acc_lo", "acc_hi",
-            "drop", "drop_lo", "drop_hi", "gap", "gap_lo", "gap_hi", "checkpoints"]
-    out.append(_table(gap[[c for c in cols if c in gap]], pct=("acc", "drop", "gap")))
+            "drop", "drop_lo", "drop_hi", "gap", "gap_lo", "gap_hi", *corr, "checkpoints"]
+    out.append(_table(gap[[c for c in cols if c in gap]], pct=("acc", "drop", "gap"),
+                      est=tables.CORRELATION_COLUMNS, run=run))
     rank_path = run.eval_dir / "axis_ranking.csv"
     if rank_path.is_file():
         ranking = pd.read_csv(rank_path)
@@ -293,9 +328,9 @@ def _section_gap(run: Run) -> str:
     return "".join(out)
 
 
-def _csv_table(path: Path) -> str:
+def _csv_table(path: Path, run: Run | None = None) -> str:
     try:
-        return _table(pd.read_csv(path))
+        return _table(pd.read_csv(path), run=run)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as e:
         return f'<p class="note">{_esc(path.name)} could not be read: {_esc(e)}</p>'
 
@@ -309,24 +344,93 @@ def _section_sim_analysis(run: Run) -> str:
     if not csvs and not pngs:
         return ""
     out = ['<h2 id="sim">Material sub-space: sensitivity and Table 2</h2>'
-           f"<p>From the sim stage's analysis in <code>{_esc(root)}</code> (the paper's Fig. 3 and Table 2).</p>"]
+           f"<p>From the sim stage's analysis in {_link(run, root)} (the paper's Fig. 3 and Table 2; "
+           "<code>eval.sim_analysis</code> runs them, or <code>clothgap sim table2|sensitivity --out "
+           f"{_esc(root)}</code>).</p>"]
     if pngs:
         out.append('<div class="figs">' + "".join(_img_file(p, str(p.relative_to(run.root)), 520) for p in pngs)
                    + "</div>")
     for p in csvs:
-        out.append(f"<h3>{_esc(p.relative_to(run.root))}</h3>{_csv_table(p)}")
+        out.append(f"<h3>{_link(run, p)}</h3>{_csv_table(p, run)}")
+    return "".join(out)
+
+
+def _section_measured(run: Run) -> str:
+    """The measured-fabric set (eval.measured): per model, fabrics against Table 2, match rates, correlations."""
+    path = run.eval_dir / "measured.csv"
+    if not path.is_file():
+        return ""
+    try:
+        table = pd.read_csv(path)
+        corr_path = run.eval_dir / "measured_correlations.csv"
+        corr = pd.read_csv(corr_path) if corr_path.is_file() else pd.DataFrame()
+        info = json.loads((run.eval_dir / "measured.json").read_text()) if (run.eval_dir / "measured.json").is_file() \
+            else {}
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        return f'<h2 id="measured">Measured fabrics</h2><p class="note">measured tables unreadable: {_esc(e)}</p>'
+    variant = info.get("variant", table["test_variant"].iloc[0] if len(table) else "?")
+    note = "" if info.get("heldout", True) else (' <span class="note">This variant is also a training variant: '
+                                                  "the set is not held out.</span>")
+    out = ['<h2 id="measured">Measured fabrics (the paper\'s Table 2 classes)</h2>'
+           f"<p>The Wang et al. 2011 fabrics simulated with their own measured tables (not the scaled basis), "
+           f"{info.get('sequences', '?')} sequence(s) per fabric and setting, rendered in the held-out variant "
+           f"<code>{_esc(variant)}</code>{note}, and predicted through the real-video path (mean sub-sequence "
+           "probabilities per clip, then per fabric). <b>Exact</b>, <b>p</b>, <b>k</b>: the prediction matches the "
+           "class, stretching or bending factor the paper's Table 2 gives the fabric; <b>steps</b>: grid steps "
+           "between them. Measured stiffness from the tables: stretching = mean at-rest k0, k2, k3 (N/m), "
+           "bending = mean of the bending table (N*m); a class predicts p or k times the basis fabric's value. "
+           f"Sources: {_link(run, path)}, {_link(run, run.eval_dir / 'measured_correlations.csv')}, "
+           f"{_link(run, run.eval_dir / 'measured.md')}, clips in {_link(run, run.root / 'measured')}.</p>"]
+    keys = ["setting", "train_variant", "model", "seed", "test_variant"]
+    for key, g in table.groupby(keys, sort=True):
+        setting, train_v, model, seed, _ = key
+        out.append(f"<h3>{_esc(tables.MODEL_TITLES.get(model, model))} trained on {_esc(train_v)} "
+                   f"({_esc(setting)}, seed {_esc(seed)})</h3><p>Model: {_links(run, g['checkpoint'].iloc[0])}; "
+                   f"per-clip predictions and Table 4: {_links(run, g['folder'].iloc[0])}</p>")
+        head = "".join(f"<th>{h}</th>" for h in ("Fabric", "Clips", "Predicted (p, k)", "Prob.", "Table 2 (p, k)",
+                                                  "Exact", "p", "k", "Steps", "Bending measured / predicted",
+                                                  "Stretching measured / predicted", "Density"))
+        rows = []
+        for _, r in g.iterrows():
+            yes = lambda x: "yes" if x == 1 else "no"  # noqa: E731
+            rows.append(f"<tr><td>{_esc(r['fabric'])}</td><td class=\"num\">{r['clips']}</td>"
+                        f"<td>({r['pred_p']:g}, {r['pred_k']:g})</td><td class=\"num\">{r['prob']:.2f}</td>"
+                        f"<td>({r['table2_p']:g}, {r['table2_k']:g})</td><td>{yes(r['exact'])}</td>"
+                        f"<td>{yes(r['p_match'])}</td><td>{yes(r['k_match'])}</td>"
+                        f"<td class=\"num\">{r['class_dist']:g}</td>"
+                        f"<td class=\"num\">{r['bending_N_m']:.3g} / {r['pred_bending_N_m']:.3g}</td>"
+                        f"<td class=\"num\">{r['stretching_N_m']:.4g} / {r['pred_stretching_N_m']:.4g}</td>"
+                        f"<td class=\"num\">{r['density_kg_m2']:.3g}</td></tr>")
+        out.append(f"<table><tr>{head}</tr>{''.join(rows)}</table>")
+        entry = next((e for e in info.get("models", []) if [e.get(k) for k in keys[:4]] == list(key[:4])), {})
+        if entry.get("match"):
+            match = pd.DataFrame(entry["match"])
+            out.append("<p>Match over fabrics (95% interval resampling fabrics):</p>"
+                       + _table(match[["score", "fabrics", "value", "value_lo", "value_hi"]], est=("value",)))
+        if not corr.empty:
+            sub = corr[np.logical_and.reduce([corr[k] == v for k, v in zip(keys, key)])]
+            cols = ["unit", "description", "n", "fabrics", "pearson", "pearson_lo", "pearson_hi", "spearman",
+                    "spearman_lo", "spearman_hi"]
+            out.append("<p>Correlation with measured values (unit <b>clip</b>: one point per clip, intervals "
+                       "resample whole fabrics; <b>fabric</b>: one point per fabric):</p>"
+                       + _table(sub[[c for c in cols if c in sub]], est=("pearson", "spearman")))
+        folder = run.root / g["folder"].iloc[0]
+        out.append('<div class="figs">' + "".join(_img_file(p, str(p.relative_to(run.root)), 520)
+                                                  for p in (folder / "scatter.png", folder / "activations.png")
+                                                  if p.is_file()) + "</div>")
     return "".join(out)
 
 
 def _section_extra_tables(run: Run) -> str:
-    """Real-video (Table 4) and measured-fabric outputs written under eval/real*/ or eval/measured*/."""
+    """Real-video (Table 4) outputs written under eval/real*/ (and measured-fabric folders a user wrote
+    under eval/measured*/ with --out; the run's own eval/measured/ is the measured section's)."""
     parts = []
-    for pattern, title in (("real*", "Real videos (Table 4)"), ("measured*", "Measured fabrics (Table 2 classes)")):
+    for pattern, title in (("real*", "Real videos (Table 4)"), ("measured*", "Measured fabrics")):
         for folder in sorted(run.eval_dir.glob(pattern)):
-            if not folder.is_dir():
+            if not folder.is_dir() or folder == run.eval_dir / "measured":
                 continue
             for p in sorted(folder.glob("*.csv")):
-                parts.append(f"<h3>{_esc(title)}: <code>{_esc(p.relative_to(run.root))}</code></h3>{_csv_table(p)}")
+                parts.append(f"<h3>{_esc(title)}: {_link(run, p)}</h3>{_csv_table(p, run)}")
             parts += [_img_file(p, str(p.relative_to(run.root)), 520) for p in sorted(folder.glob("*.png"))]
     return '<h2 id="real">Real and measured data</h2>' + "".join(parts) if parts else ""
 
@@ -337,6 +441,7 @@ def write_report(run: Run) -> Path:
                 ("confusion", "Confusion", _section_confusion(run)), ("learning", "Learning", _section_learning(run)),
                 ("frames", "Frames", _section_frames(run)), ("conv5", "conv5", _section_activations(run)),
                 ("gap", "Domain gap", _section_gap(run)),
+                ("measured", "Measured fabrics", _section_measured(run)),
                 ("sim", "Sub-space", _section_sim_analysis(run)), ("real", "Real", _section_extra_tables(run))]
     sections = [s for s in sections if s[2]]
     nav = "".join(f'<a href="#{sid}">{_esc(title)}</a>' for sid, title, _ in sections)

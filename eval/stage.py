@@ -12,6 +12,11 @@ docs/contracts.md) and writes under ``run.eval_dir``::
     figures/confusion/<setting>/<train_variant>/<model>/<test_variant>.png
     figures/gap/<setting>/<model>.png
     summary.json
+    measured.csv, measured_correlations.csv, measured.md, measured.json, measured/...
+                           the measured-fabric set (eval.measured), when eval.measured_sequences > 0
+
+and, when ``eval.sim_analysis`` names them, the sim stage's Table 2 / sensitivity
+analyses into ``RUN/sim_analysis/``.
 
 Test variants are all variants rendered for a setting (``render/*/<setting>``),
 not only those in the config, so a held-out variant rendered later is picked up.
@@ -285,4 +290,51 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
         "config_snapshot": to_dict(cfg),
     }
     atomic_write_json(out / "summary.json", summary)
-    return {"cells": len(cells), **counts, "in_domain_accuracy": headline}
+    short = {"cells": len(cells), **counts, "in_domain_accuracy": headline}
+
+    # Optional parts, each resumable: the sim stage's material analyses and the measured-fabric set.
+    if cfg.eval.sim_analysis:
+        summary["sim_analysis"] = short["sim_analysis"] = run_sim_analysis(run, progress)
+        atomic_write_json(out / "summary.json", summary)
+    if cfg.eval.measured_sequences > 0:
+        from eval.measured import run_measured
+
+        short["measured"] = run_measured(run, models=models, predictor=predictor, progress=progress)
+        summary["files"]["measured"] = {"fabrics": "eval/measured.csv",
+                                        "correlations": "eval/measured_correlations.csv",
+                                        "markdown": "eval/measured.md", "summary": "eval/measured.json"}
+        atomic_write_json(out / "summary.json", summary)
+    return short
+
+
+SIM_ANALYSES = ("table2", "sensitivity")
+
+
+def run_sim_analysis(run: Run, progress: bool = True) -> dict[str, str]:
+    """The sim stage's analyses named in ``eval.sim_analysis`` into ``RUN/sim_analysis`` (kept when present).
+
+    ``table2``: the paper's Table 2 (``sim.analysis.table2``, no simulation);
+    ``sensitivity``: its Fig. 3 curves (``sim.analysis.sensitivity``, simulates on ``sim.device``).
+    The same files as ``clothgap sim table2|sensitivity --out RUN/sim_analysis``.
+    """
+    unknown = [a for a in run.config.eval.sim_analysis if a not in SIM_ANALYSES]
+    if unknown:
+        raise ConfigError(f"eval.sim_analysis: unknown analysis {', '.join(unknown)}; known: {', '.join(SIM_ANALYSES)}")
+    out = run.sim_analysis_dir
+    done: dict[str, str] = {}
+    for name in run.config.eval.sim_analysis:
+        last = out / ("table2.csv" if name == "table2" else "sensitivity.png")   # written last
+        if not last.is_file():
+            t0 = time.perf_counter()
+            from sim import analysis
+
+            if name == "table2":
+                analysis.table2(out)
+            else:
+                from sim.solver import resolve_device
+
+                analysis.sensitivity(out, device=resolve_device(run.config.sim.device))
+            if progress:
+                print(f"[eval] sim analysis {name}: {time.perf_counter() - t0:.1f} s", flush=True)
+        done[name] = _rel(run, last)
+    return done

@@ -15,7 +15,7 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
-from eval import metrics
+from eval import classes, metrics
 from eval import predictions as preds
 
 MODEL_ORDER = ("base1", "base2", "base3", "lrcn")
@@ -156,13 +156,16 @@ def table3_markdown(table: pd.DataFrame) -> str:
 
 def domain_gap(cells: dict[tuple, Cell], results: pd.DataFrame, *, resamples: int, confidence: float,
                rng_for: RngFactory) -> pd.DataFrame:
-    """Accuracy for every (train variant, test variant) pair and its drops, paired by clip.
+    """Accuracy and correlation for every (train variant, test variant) pair and its drops, paired by clip.
 
     ``drop`` = acc(trained on A, tested on A) - acc(A on B): what leaving the
     training domain costs. ``gap`` = acc(B on B) - acc(A on B): how far A's model
     stays from one trained in the test domain itself (the sim-to-"real" gap when B
     stands in for reality). Both intervals resample clip ids jointly for the two
     terms, since the same clip id has the same simulation under every variant.
+    ``p_spearman``, ``p_pearson``, ``k_spearman``, ``k_pearson`` (each with ``_lo``/``_hi``):
+    how the predicted class's stiffness coefficients follow the true ones
+    (``coefficient_correlations``).
     """
     rows = []
     for _, r in results.iterrows():
@@ -183,9 +186,36 @@ def domain_gap(cells: dict[tuple, Cell], results: pd.DataFrame, *, resamples: in
             row[f"{name}_reference_acc"] = (metrics.accuracy(ref.frame["class_index"], ref.frame["pred"])
                                             if ref is not None else float("nan"))
             row.update(est.as_dict(name))
+        row.update(coefficient_correlations(cell, resamples=resamples, confidence=confidence,
+                                            rng_for=lambda *k, key=(s, a, m, b): rng_for("corr", *key, *k)))
         row["checkpoints"] = r["checkpoints"]
         rows.append(row)
     return pd.DataFrame(rows)
+
+
+CORRELATION_COLUMNS = tuple(f"{coef}_{method}" for coef in ("p", "k") for method in ("spearman", "pearson"))
+
+
+def coefficient_correlations(cell: Cell, *, resamples: int, confidence: float, rng_for: RngFactory) -> dict:
+    """Correlation of the predicted class's stiffness coefficients with the true class's, on one cell.
+
+    One decision per (seed, test sequence): the argmax of its mean sub-sequence
+    probabilities. ``p_*`` correlates predicted with true stretching factor p,
+    ``k_*`` bending factor k; Spearman on ranks, Pearson on log coefficients (the
+    grid is geometric, 0.5 .. 20). Intervals resample sequences (all seeds of a
+    sequence together). NaN where either side is constant.
+    """
+    seq = pd.concat([preds.per_sequence(f) for _, f in cell.frame.groupby("seed")], ignore_index=True)
+    groups = seq["clip_id"].to_numpy()
+    out: dict[str, float] = {}
+    for coef, value in (("p", classes.p_value), ("k", classes.k_value)):
+        true = np.log(value(seq["class_index"].to_numpy()))
+        pred = np.log(value(seq["pred"].to_numpy()))
+        for method in ("spearman", "pearson"):
+            est = metrics.bootstrap_correlation(pred, true, method=method, groups=groups, resamples=resamples,
+                                                confidence=confidence, rng=rng_for(coef, method))
+            out.update(est.as_dict(f"{coef}_{method}"))
+    return out
 
 
 def gap_matrix(gap: pd.DataFrame, setting: str, model: str) -> pd.DataFrame:

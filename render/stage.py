@@ -119,24 +119,35 @@ def run_render(run: Run, progress: bool = True, indices: Sequence[int] | None = 
     """
     config = run.config.render
     variants = [get_variant(name) for name in config.variants]  # unknown names fail before any work
-    mi = load_mitsuba(config.backend)
     wanted = None if indices is None else {clip_name(i) for i in select_clips(run.config.sim.num_clips(), indices)}
-    jobs = [(variant, setting, clip_id)
+    jobs = [(variant, setting, run.sim_dir(setting) / clip_id, run.render_dir(variant.name, setting) / clip_id)
             for variant in variants
             for setting in run.config.sim.settings()
             for clip_id in run.done_clips(run.sim_dir(setting)) if wanted is None or clip_id in wanted]
+    return render_jobs(run, jobs, progress, variants=variants)
+
+
+def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], progress: bool = True,
+                label: str = "render", variants: Sequence[RenderVariant] | None = None) -> dict:
+    """Render each ``(variant, setting, sim clip folder, output folder)`` not finished yet (summary as run_render).
+
+    Shared by ``run_render`` and the measured-fabric set (``render_measured``): the
+    same renderer, seeds (the sim meta's clip index), meta, FAILED and DONE markers.
+    """
+    config = run.config.render
+    mi = load_mitsuba(config.backend)
+    if variants is None:
+        variants = list({v.name: v for v, *_ in jobs}.values())
     backgrounds = {v.name: Backgrounds(v, config.resolution) for v in variants}
     summary: dict = {"backend": mi.variant(), "rendered": 0, "skipped": 0, "failed": [], "frames": 0}
     start = time.perf_counter()
     render_seconds = 0.0
     writer = ThreadPoolExecutor(max(1, config.writer_threads), thread_name_prefix="render-writer")
-    for variant, setting, clip_id in tqdm(jobs, desc="render", unit="clip", disable=not progress):
-        out_dir = run.render_dir(variant.name, setting) / clip_id
+    for variant, setting, clip_dir, out_dir in tqdm(jobs, desc=label, unit="clip", disable=not progress):
         if is_done(out_dir):
             summary["skipped"] += 1
             continue
         fresh_dir(out_dir)
-        clip_dir = run.sim_dir(setting) / clip_id
         clip_start = time.perf_counter()
         try:
             clip = SimClip.load(clip_dir)
@@ -146,9 +157,9 @@ def run_render(run: Run, progress: bool = True, indices: Sequence[int] | None = 
         except Exception as e:  # one bad clip must not stop the run; it is recorded and reported
             reason = f"{type(e).__name__}: {e}"
             atomic_write_json(out_dir / FAILED, {"error": reason, "traceback": traceback.format_exc()})
-            summary["failed"].append({"variant": variant.name, "setting": setting, "clip_id": clip_id,
+            summary["failed"].append({"variant": variant.name, "setting": setting, "clip_id": clip_dir.name,
                                       "error": reason})
-            warnings.warn(f"render {variant.name}/{setting}/{clip_id} failed: {reason}", stacklevel=2)
+            warnings.warn(f"{label} {variant.name}/{setting}/{clip_dir.name} failed: {reason}", stacklevel=2)
             continue
         render_seconds += time.perf_counter() - clip_start
         mark_done(out_dir, {"frames": meta["num_frames"]})
@@ -161,3 +172,17 @@ def run_render(run: Run, progress: bool = True, indices: Sequence[int] | None = 
         summary["seconds_per_clip"] = round(render_seconds / summary["rendered"], 4)
         summary["seconds_per_frame"] = round(render_seconds / summary["frames"], 5)
     return summary
+
+
+def render_measured(run: Run, variant: str, names: Sequence[str] | None = None, progress: bool = True) -> dict:
+    """Render the run's finished measured-fabric sim clips (``sim.measured``) under ``variant``.
+
+    ``RUN/measured/sim/<setting>/<fabric>-<n>/`` -> ``RUN/measured/render/<variant>/<setting>/<fabric>-<n>/``,
+    the render clip contract (the meta keeps the sim meta's ``fabric``); ``names``
+    limits it to those clip folders. Resolution, spp and backend are the run's.
+    """
+    chosen = get_variant(variant)
+    jobs = [(chosen, setting, run.measured_sim_dir(setting) / name, run.measured_render_dir(variant, setting) / name)
+            for setting in run.config.sim.settings()
+            for name in run.done_clips(run.measured_sim_dir(setting)) if names is None or name in names]
+    return render_jobs(run, jobs, progress, label="render measured", variants=[chosen])

@@ -26,6 +26,7 @@ import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -163,20 +164,43 @@ def clip_material(cfg: SimConfig, seed: int, index: int) -> tuple[int, float, fl
     return class_index, p, k
 
 
-def build_scene(cfg: SimConfig, seed: int, index: int, setting: Setting, mesh: ClothMesh) -> tuple[ClipScene, dict]:
-    """The scene of one clip and the label part of its meta."""
-    class_index, p, k = clip_material(cfg, seed, index)
-    basis = load_material(cfg.basis)
+def build_scene(cfg: SimConfig, seed: int, index: int, setting: Setting, mesh: ClothMesh,
+                fabric: str | None = None) -> tuple[ClipScene, dict]:
+    """The scene of one clip and the label part of its meta.
+
+    ``fabric`` overrides the material: the named measured fabric (``assets/materials``)
+    with its own full Wang tables, not the basis scaled by a class's (p, k). Its
+    labels are then the paper's Table 2 class (``sim.measured``) and the estimated
+    ratios p~, k~ to the basis; the motion draws are the clip index's as usual.
+    """
     motion_rng = seeding.rng(seed, index, seeding.SIM, f"motion-{setting.motion}")
-    material = basis.scaled(p, k)
+    if fabric is None:
+        class_index, p, k = clip_material(cfg, seed, index)
+        basis = load_material(cfg.basis)
+        material = basis.scaled(p, k)
+        p_class, k_class = classes.class_values(class_index)
+        meta = {"class_index": class_index, "p_class": p_class, "k_class": k_class, "p": p, "k": k,
+                "basis": cfg.basis, "density": basis.density}
+    else:
+        from sim.measured import fabric_labels
+
+        material = load_material(fabric)
+        meta = fabric_labels(fabric)
     if setting.motion == "wind":
         scene = wind_scene(mesh, cfg.cloth_size_m, material, motion_rng)
     else:
         scene = arm_scene(mesh, cfg.cloth_size_m, material, motion_rng, cfg.settle_s, cfg.fps, cfg.frames)
-    p_class, k_class = classes.class_values(class_index)
-    meta = {"class_index": class_index, "p_class": p_class, "k_class": k_class, "p": p, "k": k,
-            "basis": cfg.basis, "density": basis.density}
     return scene, meta
+
+
+@dataclass(frozen=True)
+class ClipJob:
+    """One clip to simulate: its seed index, folder name, sequence number and material override."""
+
+    index: int                  # the clip index every random draw is keyed by (clothgap.seeding)
+    name: str                   # folder name: clip_id(index), or <fabric>-<n> for a measured fabric
+    sequence: int
+    fabric: str | None = None   # a measured fabric simulated with its own tables (build_scene)
 
 
 def run_sim(run: Run, progress: bool = True, indices: Sequence[int] | None = None) -> dict:
@@ -184,21 +208,33 @@ def run_sim(run: Run, progress: bool = True, indices: Sequence[int] | None = Non
 
     ``indices`` limits the work to those clip indices (one shard of ``clothgap.executor``).
     """
-    from tqdm import tqdm
-
     cfg = run.config.sim
-    device = resolve_device(cfg.device)
-    settings = [parse_setting(s) for s in cfg.settings()]
     for c in cfg.class_indices():
         classes.class_indices(c)          # validate early
     n_classes = len(cfg.class_indices())
     wanted = select_clips(cfg.num_clips(), indices)
+    jobs = [ClipJob(i, clip_id(i), i // n_classes) for i in wanted]
+    return simulate_jobs(run, {s: jobs for s in cfg.settings()}, run.sim_dir, progress)
+
+
+def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[[str], Path],
+                  progress: bool = True, label: str = "sim") -> dict:
+    """Simulate the unfinished ``jobs`` of each setting into ``folder_of(setting) / job.name``.
+
+    The batching, health check, retry, FAILED/DONE markers and meta of every sim
+    clip; ``run_sim`` and the measured-fabric set (``sim.measured``) both come here.
+    """
+    from tqdm import tqdm
+
+    cfg = run.config.sim
+    device = resolve_device(cfg.device)
+    settings = [parse_setting(s) for s in jobs]
     summary = {"simulated": 0, "skipped": 0, "failed": 0, "retried": 0, "seconds": 0.0}
     start = time.perf_counter()
     for setting in settings:
-        out = run.sim_dir(setting.name)
-        todo = [i for i in wanted if not is_done(out / clip_id(i))]
-        summary["skipped"] += len(wanted) - len(todo)
+        out = folder_of(setting.name)
+        todo = [j for j in jobs[setting.name] if not is_done(out / j.name)]
+        summary["skipped"] += len(jobs[setting.name]) - len(todo)
         n = vertices_per_side(cfg.grid_vertices, setting.level)
         if setting.remeshing == "adaptive":
             base = remesh.uniform(cfg.grid_vertices, cfg.cloth_size_m, 1)
@@ -208,11 +244,11 @@ def run_sim(run: Run, progress: bool = True, indices: Sequence[int] | None = Non
             mesh = square_cloth(cfg.cloth_size_m, cfg.grid_vertices, setting.level)
             simulate = simulate_scenes
         # Progress in clip-frames: a GPU batch of thousands of clips finishes all at once.
-        bar = tqdm(total=len(todo) * cfg.frames, desc=f"sim {setting.name}", unit="clip-frame",
+        bar = tqdm(total=len(todo) * cfg.frames, desc=f"{label} {setting.name}", unit="clip-frame",
                    unit_scale=True, disable=not progress)
         for b in range(0, len(todo), cfg.batch_size):
             batch = todo[b:b + cfg.batch_size]
-            built = [build_scene(cfg, run.config.seed, i, setting, mesh) for i in batch]
+            built = [build_scene(cfg, run.config.seed, j.index, setting, mesh, j.fabric) for j in batch]
             scenes = [s for s, _ in built]
             results = simulate(scenes, fps=cfg.fps, frames=cfg.frames, substeps=cfg.substeps,
                                settle_s=cfg.settle_s, cg_iterations=cfg.cg_iterations, device=device,
@@ -230,9 +266,9 @@ def run_sim(run: Run, progress: bool = True, indices: Sequence[int] | None = Non
                     results[j] = r
                     substeps[j] = 2 * cfg.substeps
 
-            def write(i: int, scene: ClipScene, labels: dict, result: ClipResult, sub: int) -> bool:
-                folder = fresh_dir(out / clip_id(i))
-                meta = {"clip_id": clip_id(i), "index": i, "sequence": i // n_classes, "setting": setting.name,
+            def write(job: ClipJob, scene: ClipScene, labels: dict, result: ClipResult, sub: int) -> bool:
+                folder = fresh_dir(out / job.name)
+                meta = {"clip_id": job.name, "index": job.index, "sequence": job.sequence, "setting": setting.name,
                         "motion": setting.motion, "remeshing": setting.remeshing, **labels,
                         "seed": run.config.seed, "fps": cfg.fps, "frames": cfg.frames, "substeps": sub,
                         "dt": 1.0 / (cfg.fps * sub), "settle_s": cfg.settle_s, "cloth_size_m": cfg.cloth_size_m,

@@ -31,7 +31,8 @@ def assert_user_error(r: subprocess.CompletedProcess, *names: str) -> None:
 
 
 @pytest.mark.parametrize("sub", [[], ["sim"], ["sim", "run"], ["sim", "sensitivity"], ["sim", "table2"],
-                                 ["render"], ["train"], ["eval"], ["eval", "real"], ["report"], ["pipeline"]])
+                                 ["render"], ["train"], ["eval"], ["eval", "real"], ["eval", "measured"],
+                                 ["report"], ["pipeline"]])
 def test_every_subcommand_has_help(sub):
     r = clothgap(*sub, "--help")
     assert r.returncode == 0, r.stderr

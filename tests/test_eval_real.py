@@ -130,41 +130,6 @@ def test_truth_csv_errors_name_the_column(tmp_path):
     assert list(read_truth(bouman_like).columns) == ["video", "stiffness", "density", "label"]
 
 
-def test_measured_fabrics_against_table2(tmp_path):
-    from eval.measured import TABLE2, evaluate_measured, table2_class
-
-    clips = tmp_path / "clips"
-    fabrics = sorted(TABLE2)
-    for i, fabric in enumerate(fabrics):
-        for j in range(2):
-            folder = clips / f"c{i:02d}{j}"
-            folder.mkdir(parents=True)
-            (folder / "meta.json").write_text(json.dumps({"clip_id": folder.name, "fabric": fabric}))
-            (folder / "DONE").write_text("{}")
-
-    def stub(train_dir, clip_dirs):
-        # Right for every fabric but the first, which is predicted one k step too stiff.
-        rows = []
-        for d in clip_dirs:
-            meta = json.loads((d / "meta.json").read_text())
-            cls = table2_class(meta["fabric"]) + (1 if meta["fabric"] == fabrics[0] else 0)
-            probs = np.eye(54)[cls]
-            rows += [{"clip_id": meta["clip_id"], "start": s, "class_index": -1, "pred": cls, "probs": probs}
-                     for s in (0, 5)]
-        return pd.DataFrame(rows)
-
-    out = tmp_path / "out"
-    evaluate_measured(clips, tmp_path, out, resamples=100, predictor=stub,
-                      truth=lambda f: {"stiffness": TABLE2[f][1], "density": TABLE2[f][0]})
-    table = pd.read_csv(out / "fabrics.csv")
-    assert len(table) == 10 and table["exact"].sum() == 9
-    assert table.loc[table.fabric == fabrics[0], "class_dist"].item() == 1
-    match = pd.read_csv(out / "match.csv").set_index("score")
-    assert match.loc["exact", "value"] == pytest.approx(0.9)
-    corr = pd.read_csv(out / "correlations.csv")
-    assert corr.loc[corr.score.str.contains("predicted k"), "stiffness_spearman"].item() > 0.9
-
-
 def test_basis_bending_constant_matches_the_material_table():
     from sim.materials import load_material
 

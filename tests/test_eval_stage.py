@@ -10,10 +10,12 @@ import numpy as np
 import pandas as pd
 import pytest
 from PIL import Image
+from scipy import stats
 
 from clothgap.config import preset
 from clothgap.runs import Run, clip_id, mark_done
-from eval import tables
+from eval import classes, tables
+from eval import predictions as preds
 from eval.stage import run_eval
 
 CLASSES = (0, 8, 45, 53)
@@ -27,11 +29,11 @@ HIT_RATE = {0: 0.9, 1: 0.5, 2: 0.2}
 
 
 def make_fake_run(root: Path, variants=("paper", "grid"), models=("lrcn",), seeds=(0,), per_class=4,
-                  frames=4) -> Run:
+                  frames=4, **eval_settings) -> Run:
     cfg = preset("smoke")
     cfg = replace(cfg, render=replace(cfg.render, variants=tuple(variants)),
                   train=replace(cfg.train, models=tuple(models), seeds=tuple(seeds)),
-                  eval=replace(cfg.eval, bootstrap=100))
+                  eval=replace(cfg.eval, bootstrap=100, **eval_settings))
     run = Run.create_or_resume(root, cfg)
     setting = cfg.sim.settings()[0]
     ids = []
@@ -113,6 +115,17 @@ def test_run_eval_writes_tables_and_resumes(tmp_path):
     assert off["drop"] == pytest.approx(on["acc"] - off["acc"])
     assert off["drop"] > 0 and off["drop_lo"] <= off["drop"] <= off["drop_hi"]
     assert on["drop"] == 0
+    # correlation of predicted with true stiffness coefficients, beside accuracy, per (train, test) pair
+    for column in tables.CORRELATION_COLUMNS:
+        assert {column, f"{column}_lo", f"{column}_hi"} <= set(gap.columns)
+    assert on["k_spearman"] > off["k_spearman"] and on["k_spearman_lo"] <= on["k_spearman"] <= on["k_spearman_hi"]
+    seq = pd.concat([preds.per_sequence(preds.load(ev / "predictions" / "wind-uniform1" / "paper" / "lrcn" /
+                                                   f"s{s}" / "grid.csv")) for s in (0, 1)])
+    assert off["p_spearman"] == pytest.approx(stats.spearmanr(classes.p_value(seq["pred"]),
+                                                              classes.p_value(seq["class_index"])).statistic, rel=1e-4)
+    assert off["k_pearson"] == pytest.approx(stats.pearsonr(np.log(classes.k_value(seq["pred"])),
+                                                            np.log(classes.k_value(seq["class_index"]))).statistic,
+                                             rel=1e-4)
 
     summary = json.loads((ev / "summary.json").read_text())
     assert summary["variant_axes"] == ["texture"]          # per-clip draws and seeds are not axes
@@ -147,18 +160,22 @@ def test_report_is_self_contained(tmp_path):
 
     from eval.report import write_report
 
-    run = make_fake_run(tmp_path / "run", variants=("paper", "grid"), models=("lrcn",))
-    run_eval(run, progress=False, predictor=stub_predictor)
-    analysis = run.root / "sim_analysis"
-    analysis.mkdir()
-    pd.DataFrame({"material": ["camel-ponte-roma"], "p_est": [1.0], "k_est": [0.52]}).to_csv(
-        analysis / "table2.csv", index=False)
+    run = make_fake_run(tmp_path / "run", variants=("paper", "grid"), models=("lrcn",), sim_analysis=("table2",))
+    out = run_eval(run, progress=False, predictor=stub_predictor)      # eval.sim_analysis runs `sim table2`
+    assert out["sim_analysis"] == {"table2": "sim_analysis/table2.csv"}
+    assert "royal-target" in (run.root / "sim_analysis" / "table2.csv").read_text()
     path = write_report(run)
     doc = path.read_text()
     assert path == run.root / "report" / "report.html"
-    for section in ("Table 3", "Confusion matrices", "Learning curves", "Sample frames", "Domain gap", "table2.csv"):
+    for section in ("Table 3", "Confusion matrices", "Learning curves", "Sample frames", "Domain gap", "table2.csv",
+                    "k_spearman"):
         assert section in doc
-    assert "train/wind-uniform1/paper/lrcn/s0/checkpoint.pt" in doc
+    # figures are embedded; the run's files (config, checkpoints, tables) are relative links that resolve
+    assert 'href="../train/wind-uniform1/paper/lrcn/s0/checkpoint.pt"' in doc
+    assert 'href="../config.json"' in doc
     refs = re.findall(r'(?:src|href)\s*=\s*"([^"]*)"', doc)
-    assert refs and all(r.startswith(("data:image/png;base64,", "#")) for r in refs)
+    assert refs and any(r.startswith("data:image/png;base64,") for r in refs)
+    for ref in refs:
+        assert ref.startswith(("data:image/png;base64,", "#")) or (path.parent / ref).exists(), ref
+    assert all(r.startswith("data:") for r in re.findall(r'src\s*=\s*"([^"]*)"', doc))
     assert "<link" not in doc and "@import" not in doc and "url(" not in doc

@@ -1,0 +1,122 @@
+"""The measured-fabric test set, sim side: the Wang et al. 2011 fabrics with their OWN full tables.
+
+Training clips use the basis fabric scaled by a class's (p, k) (the paper's
+sub-space). The measured set instead simulates each named fabric of
+``assets/materials`` with its measured stretching and bending tables and its own
+density, so the cloth is *not* on the sub-space: the network has to place a real
+material on the grid, which is what the paper's Table 2 does by hand.
+
+Clips: ``RUN/measured/sim/<setting>/<fabric>-<n>/`` for every setting of the run
+(its motions and remeshing levels) and n = 0 .. sequences - 1, in the sim clip
+contract (``clip.npz``, ``meta.json``, ``DONE``). Their random draws (pose,
+gathering, wind speed and direction; arm speed and placement) come from the sim
+stage's motion stream of the clip index ``measured_index(fabric, n)``, a number
+far above any training clip's index, so the draws differ between sequences of a
+fabric (different wind) and from every training clip, are the same under every
+remeshing level, and are reproducible from the run seed.
+
+Labels in ``meta.json`` (besides the usual sim keys): ``material: "measured"``,
+``fabric``, ``class_index``/``p_class``/``k_class`` = the class the paper's
+Table 2 gives the fabric (for a fabric not in Table 2, the nearest class to its
+estimated ratios), ``p``/``k`` = the estimated ratios p~, k~ of its tables to the
+basis (``sim.analysis.estimate_ratios``; nothing was scaled), ``basis: null``,
+``density`` (kg/m^2) and ``measured`` (``measured_values``).
+
+Measured stiffness, from the tables (what predictions are correlated with):
+
+* ``stretching_N_m``: mean of the low-strain (at-rest) row's direct entries
+  k0 (warp), k2 (weft), k3 (shear), N/m; the coupling term k1 is left out (it
+  can be negative). A class's prediction is p times the basis's value.
+* ``bending_N_m``: mean of all 15 bending entries (3 directions x 5
+  curvatures), N*m, the same statistic as ``eval.classes.BASIS_MEAN_BENDING_N_M``,
+  so a class's prediction is k times the basis's value.
+* ``density_kg_m2``: the area density.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from clothgap.config import ConfigError
+from clothgap.runs import Run
+from clothgap.seeding import stream_id
+from sim import classes
+from sim.analysis import BASIS, PAPER_TABLE2, estimate_ratios
+from sim.materials import list_materials, load_material
+
+MEASURED_INDEX_BASE = 1_000_000_000
+MAX_SEQUENCES = 1000
+
+
+def measured_index(fabric: str, n: int) -> int:
+    """The seed index of sequence ``n`` of ``fabric``: stable per name, never a training clip's."""
+    if not 0 <= n < MAX_SEQUENCES:
+        raise ValueError(f"sequence number {n} outside 0..{MAX_SEQUENCES - 1}")
+    return MEASURED_INDEX_BASE + (stream_id(fabric) % 1_000_000) * MAX_SEQUENCES + n
+
+
+def clip_name(fabric: str, n: int) -> str:
+    return f"{fabric}-{n}"
+
+
+def table2_fabrics() -> list[str]:
+    """The ten fabrics of the paper's Table 2, in the paper's order."""
+    return list(PAPER_TABLE2)
+
+
+def check_fabrics(fabrics: Sequence[str]) -> list[str]:
+    known = set(list_materials())
+    unknown = [f for f in fabrics if f not in known]
+    if unknown:
+        raise ConfigError(f"unknown measured fabric(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+    if len(set(fabrics)) != len(fabrics):
+        raise ConfigError(f"measured fabrics listed twice: {', '.join(fabrics)}")
+    return list(fabrics)
+
+
+def table2_class(fabric: str) -> int:
+    """The paper's Table 2 class of a fabric; for one not in Table 2, the nearest class to p~, k~."""
+    if fabric in PAPER_TABLE2:
+        _, p, _, k = PAPER_TABLE2[fabric]
+        return classes.class_index(classes.P_VALUES.index(float(p)), classes.K_VALUES.index(float(k)))
+    return classes.nearest_class(*estimate_ratios(fabric))
+
+
+def measured_values(fabric: str) -> dict[str, float]:
+    """Stretching (N/m) and bending (N*m) stiffness and area density (kg/m^2) from the fabric's tables."""
+    m = load_material(fabric)
+    return {"stretching_N_m": float(m.stretching[0, [0, 2, 3]].mean()), "bending_N_m": float(m.bending.mean()),
+            "density_kg_m2": float(m.density)}
+
+
+def basis_values() -> dict[str, float]:
+    """``measured_values`` of the basis fabric: a class (p, k) predicts p and k times these."""
+    return measured_values(BASIS)
+
+
+def fabric_labels(fabric: str) -> dict:
+    """The label part of a measured clip's meta (see the module docstring)."""
+    m = load_material(fabric)
+    class_index = table2_class(fabric)
+    p_class, k_class = classes.class_values(class_index)
+    p_est, k_est = estimate_ratios(fabric)
+    return {"material": "measured", "fabric": fabric, "class_index": class_index, "p_class": p_class,
+            "k_class": k_class, "class_source": "paper Table 2" if fabric in PAPER_TABLE2 else "nearest class",
+            "p": p_est, "k": k_est, "basis": None, "density": m.density, "measured": measured_values(fabric)}
+
+
+def wanted_clips(fabrics: Sequence[str], sequences: int) -> list[tuple[str, int]]:
+    return [(f, n) for f in fabrics for n in range(sequences)]
+
+
+def simulate_measured(run: Run, fabrics: Sequence[str], sequences: int, progress: bool = True) -> dict:
+    """Simulate ``sequences`` clips of each fabric under every setting of the run (finished ones skipped)."""
+    from sim.stage import ClipJob, simulate_jobs
+
+    check_fabrics(fabrics)
+    if not 0 < sequences <= MAX_SEQUENCES:
+        raise ConfigError(f"measured sequences must be 1..{MAX_SEQUENCES}, got {sequences}")
+    jobs = [ClipJob(measured_index(f, n), clip_name(f, n), n, fabric=f) for f, n in wanted_clips(fabrics, sequences)]
+    return simulate_jobs(run, {s: jobs for s in run.config.sim.settings()}, run.measured_sim_dir, progress,
+                         label="sim measured")
+

@@ -1,0 +1,193 @@
+"""The measured-fabric test set (eval.measured): end to end on CPU with a tiny trained model, and its
+tables against scipy with a stub predictor on clips written here."""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from click.testing import CliRunner
+from PIL import Image
+from scipy import stats
+
+from clothgap.config import preset
+from clothgap.runs import Run, mark_done
+
+SETTING = "wind-uniform1"
+FABRICS = ("navy-sparkle-sweat", "royal-target")       # the softest and the stiffest of Table 2
+
+
+def tiny_run(root: Path) -> Run:
+    """Synthetic training clips, a tiny lrcn trained on them for real, and a config asking for a tiny
+    measured set: 2 fabrics x 1 sequence, 6 frames of 16 px, 1 spp, in the held-out variant."""
+    from learn.synthetic import synthetic_run
+    from learn.train import train_one
+
+    cfg = preset("smoke")
+    cfg = replace(cfg, sim=replace(cfg.sim, sequences_per_class=3, grid_vertices=6, frames=6, settle_s=0.04,
+                                   batch_size=4),
+                  render=replace(cfg.render, resolution=16, spp=1, backend="auto"),
+                  train=replace(cfg.train, image_size=32, clip_len=4, clip_stride=2, epochs=1, batch_size=8,
+                                width=4, fc6=16, hidden=8, val_fraction=0.0, num_threads=2),
+                  eval=replace(cfg.eval, bootstrap=50, measured_sequences=1, measured_fabrics=FABRICS))
+    run = synthetic_run(root, cfg)
+    train_one(run, SETTING, "paper", "lrcn", 0, progress=False)
+    return run
+
+
+@pytest.mark.slow
+def test_measured_set_end_to_end_through_the_command(tmp_path):
+    from clothgap.cli import cli
+    from eval.measured import CORRELATIONS
+    from eval.report import write_report
+    from sim.measured import measured_index, table2_class
+
+    run = tiny_run(tmp_path / "run")
+    # `clothgap eval RUN`: the tables, then the measured set because the config asks for it
+    result = CliRunner().invoke(cli, ["eval", str(run.root)])
+    assert result.exit_code == 0, (result.output, result.exception)
+    summary = json.loads(re.search(r"\[eval\] done in .*?: (\{.*\})", result.output).group(1))["measured"]
+    assert (summary["simulated"], summary["rendered"], summary["predicted"]) == (2, 2, 1) and summary["heldout"]
+    assert json.loads((run.eval_dir / "summary.json").read_text())["files"]["measured"]["fabrics"] == \
+        "eval/measured.csv"
+
+    # sim: the fabric's own tables, seeded per clip; render: the held-out variant, fabric in the meta
+    sim_meta = json.loads((run.measured_sim_dir(SETTING) / "royal-target-0" / "meta.json").read_text())
+    assert sim_meta["fabric"] == "royal-target" and sim_meta["material"] == "measured" and sim_meta["basis"] is None
+    assert sim_meta["index"] == measured_index("royal-target", 0) and sim_meta["class_index"] == 53
+    assert "wind_speed_mps" in sim_meta["motion_params"]
+    rendered = run.measured_render_dir("heldout", SETTING) / "navy-sparkle-sweat-0"
+    meta = json.loads((rendered / "meta.json").read_text())
+    assert meta["fabric"] == "navy-sparkle-sweat" and meta["variant"] == "heldout"
+    assert meta["render"]["lighting"] == "random" and len(list((rendered / "ldr").glob("*.png"))) == 6
+
+    # one row per fabric, the paper's class beside the prediction
+    table = pd.read_csv(run.eval_dir / "measured.csv")
+    assert sorted(table["fabric"]) == sorted(FABRICS) and len(table) == 2
+    assert dict(zip(table["fabric"], table["table2_class"])) == {f: table2_class(f) for f in FABRICS}
+    assert table["pred"].between(0, 53).all() and set(table["exact"]) <= {0.0, 1.0}
+    assert (table["checkpoint"] == "train/wind-uniform1/paper/lrcn/s0/checkpoint.pt").all()
+    for column in ("table2_p", "table2_k", "p_match", "k_match", "class_dist", "bending_N_m", "stretching_N_m",
+                   "density_kg_m2", "pred_bending_N_m", "pred_stretching_N_m"):
+        assert table[column].notna().all(), column
+    corr = pd.read_csv(run.eval_dir / "measured_correlations.csv")
+    assert len(corr) == len(CORRELATIONS) and {"pearson", "pearson_lo", "spearman", "spearman_hi"} <= set(corr)
+    assert (corr.loc[corr.unit == "clip", "n"] == 2).all()     # computed (two points: r is undefined, NaN)
+    md = (run.eval_dir / "measured.md").read_text()
+    assert all(f in md for f in FABRICS) and "Table 2 (p, k)" in md and "Spearman" in md
+    info = json.loads((run.eval_dir / "measured.json").read_text())
+    assert info["heldout"] and info["fabrics"] == list(FABRICS) and info["models"][0]["clips"] == 2
+    folder = run.root / info["models"][0]["folder"]       # the real-video path's own outputs
+    assert (folder / "table4.csv").is_file() and (folder / "videos.csv").is_file() and (folder / "DONE").is_file()
+
+    # resumable, and on its own as `clothgap eval measured`: nothing simulated, rendered or predicted again
+    again = CliRunner().invoke(cli, ["eval", "measured", str(run.root), "--model",
+                                     str(run.train_dir(SETTING, "paper", "lrcn", 0))])
+    assert again.exit_code == 0, (again.output, again.exception)
+    second = json.loads(re.search(r"\[eval measured\] done in .*?: (\{.*\})", again.output).group(1))
+    assert (second["simulated"], second["rendered"], second["predicted"], second["reused"]) == (0, 0, 0, 1)
+
+    doc = write_report(run).read_text()
+    assert "Measured fabrics" in doc and "royal-target" in doc
+    assert 'href="../train/wind-uniform1/paper/lrcn/s0/checkpoint.pt"' in doc
+
+
+def fake_measured_clips(run: Run, fabrics: list[str], sequences: int, frames: int = 10) -> None:
+    """Finished sim and render folders of the measured set (no simulation, blank frames)."""
+    from sim.measured import clip_name, fabric_labels
+
+    for fabric in fabrics:
+        for n in range(sequences):
+            name = clip_name(fabric, n)
+            sim_dir = run.measured_sim_dir(SETTING) / name
+            sim_dir.mkdir(parents=True)
+            mark_done(sim_dir)
+            folder = run.measured_render_dir("heldout", SETTING) / name
+            (folder / "ldr").mkdir(parents=True)
+            for t in range(frames):
+                Image.fromarray(np.full((8, 8, 3), 20 * t, np.uint8)).save(folder / "ldr" / f"{t:04d}.png")
+            (folder / "meta.json").write_text(json.dumps({"clip_id": name, **fabric_labels(fabric),
+                                                          "variant": "heldout"}))
+            mark_done(folder)
+
+
+def test_measured_tables_against_table2_and_scipy(tmp_path):
+    from eval import classes
+    from eval.measured import run_measured
+    from eval.stage import TrainedModel
+    from sim.measured import basis_values, measured_values, table2_class, table2_fabrics
+    from tests.test_eval_real import fresh_model
+
+    train_dir = fresh_model(tmp_path / "run")
+    run = Run.open(tmp_path / "run")
+    fabrics = table2_fabrics()
+    fake_measured_clips(run, fabrics, sequences=2)
+    off = fabrics[0]                      # predicted one k step too stiff in its first clip only
+
+    def stub(train_dir, clip_dirs):
+        rows = []
+        for d in clip_dirs:
+            name = json.loads((d / "meta.json").read_text())["clip_id"]
+            fabric, n = name.rsplit("-", 1)
+            cls = table2_class(fabric) + (1 if (fabric == off and n == "0") else 0)
+            probs = np.full(54, 0.2 / 53)
+            probs[cls] = 0.8
+            rows += [{"clip_id": name, "start": 0, "class_index": -1, "pred": cls, "probs": probs}]
+        return pd.DataFrame(rows)
+
+    model = TrainedModel(SETTING, "paper", "lrcn", 0, train_dir)
+    out = run_measured(run, models=[model], sequences=2, predictor=stub, progress=False, activations=0)
+    assert out["simulated"] == 0 and out["rendered"] == 0 and out["exact"]["wind-uniform1/paper/lrcn/s0"] == 1.0
+
+    table = pd.read_csv(run.eval_dir / "measured.csv").set_index("fabric")
+    assert list(table.index) == sorted(fabrics) and (table["clips"] == 2).all()
+    assert (table["pred"] == table["table2_class"]).all()       # the mean probabilities outvote one wrong clip
+    assert table.loc[off, "vote_share"] == 0.5
+
+    # the per-clip correlations are scipy's on the clip values; intervals hold the point
+    clip_pred = {f"{f}-{n}": table2_class(f) + (1 if (f == off and n == 0) else 0) for f in fabrics for n in (0, 1)}
+    names = sorted(clip_pred)
+    bending = np.array([classes.k_value(clip_pred[v]) for v in names]) * basis_values()["bending_N_m"]
+    measured = np.array([measured_values(v.rsplit("-", 1)[0])["bending_N_m"] for v in names])
+    density = np.array([measured_values(v.rsplit("-", 1)[0])["density_kg_m2"] for v in names])
+    corr = pd.read_csv(run.eval_dir / "measured_correlations.csv")
+    row = corr[(corr.unit == "clip") & (corr.score == "pred_bending_N_m") & (corr.target == "bending_N_m")].iloc[0]
+    assert row["n"] == 20 and row["fabrics"] == 10
+    assert row["pearson"] == pytest.approx(stats.pearsonr(bending, measured).statistic, rel=1e-4)
+    assert row["spearman"] == pytest.approx(stats.spearmanr(bending, measured).statistic, rel=1e-4)
+    assert row["spearman_lo"] <= row["spearman"] <= row["spearman_hi"]
+    dens = corr[(corr.unit == "clip") & (corr.score == "pred_bending_N_m") & (corr.target == "density_kg_m2")]
+    assert dens["pearson"].item() == pytest.approx(stats.pearsonr(bending, density).statistic, rel=1e-4)
+    k_row = corr[(corr.unit == "fabric") & (corr.score == "pred_k")].iloc[0]
+    paper_k = [table.loc[f, "table2_k_est"] for f in sorted(fabrics)]
+    assert k_row["spearman"] == pytest.approx(stats.spearmanr(table["pred_k"], paper_k).statistic, rel=1e-4)
+
+    # the same clips went through the real-video path: its Table 4 agrees on the bending row
+    folder = run.eval_dir / "measured" / "heldout" / SETTING / "paper" / "lrcn" / "s0"
+    table4 = pd.read_csv(folder / "table4.csv")
+    bending_row = table4.score.str.startswith("k x")
+    assert table4.loc[bending_row, "stiffness_pearson"].item() == pytest.approx(row["pearson"], rel=1e-4)
+    assert "| 11oz-black-denim | 2 |" in (run.eval_dir / "measured.md").read_text()
+
+
+def test_measured_config_errors_are_named(tmp_path):
+    from clothgap.config import ConfigError
+    from eval.measured import resolve
+    from sim.measured import measured_index, table2_fabrics
+    from tests.test_eval_real import fresh_model
+
+    fresh_model(tmp_path / "run")
+    run = Run.open(tmp_path / "run")
+    assert resolve(run) == (2, table2_fabrics(), "heldout")          # smoke: off in eval, defaults here
+    with pytest.raises(ConfigError, match="unknown measured fabric.*known: 11oz"):
+        resolve(run, fabrics=["velvet"])
+    with pytest.raises(ConfigError, match="unknown render variant 'nope'"):
+        resolve(run, variant="nope")
+    # seeds: every (fabric, sequence) has its own index, far from any training clip's
+    indices = {measured_index(f, n) for f in table2_fabrics() for n in range(5)}
+    assert len(indices) == 50 and min(indices) > 10 ** 8
