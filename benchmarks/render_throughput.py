@@ -1,34 +1,38 @@
-"""Render throughput: one frame per Mitsuba launch (the baseline) against K frames per launch (render.batch).
+"""Render throughput at one frame per Mitsuba launch: a new scene per clip (the baseline) against pooled scenes.
 
-All loops run in one process, on the same backend, on the same synthetic clips
-(waving sheets, render.synthetic, ``--vertices`` per side) at the same
-resolution, for each spp in ``--spp``:
+All loops run on the same backend, on the same synthetic clips (waving sheets,
+render.synthetic, ``--vertices`` per side, each clip its own texture, lights and
+camera) at the same resolution, for each spp in ``--spp``; every timed frame is
+copied to the host:
 
-* ``one_frame_per_launch``: the stage's one-scene-per-clip path, the cloth
-  moved in place, one ``mi.render`` per frame (ClipRenderer.render_hdr);
-* ``batched_k<K>``: K frames of a clip per launch (BatchRenderer), for each K
-  in ``--k``;
-* with ``--write``, the same again through the stage's ``render_clip`` (tone
-  mapping, EXR + PNG on a writer pool) into a temporary folder, so IO
-  overlapping rendering is measured too.
+* ``scene_per_clip``: a new Mitsuba scene for every clip, the cloth moved in
+  place frame to frame (``reuse_scenes=False``; on CUDA each new scene costs an
+  OptiX compile of the path tracer);
+* ``pooled``: one scene per structure, retargeted to each clip in place
+  (render.scene.ScenePool, the stage's default);
+* ``pooled_frozen``: the same with ``mi.render`` under ``dr.freeze``; beside its
+  rate, ``frozen_rel_error`` is its frames' mean relative difference from the
+  plain frames at the same seeds (0 when replaying is exact on this backend);
+* ``processes_<N>``: N processes sharing the device, each rendering its share of
+  the clips pooled (frozen too with ``--procs-freeze``), timed from a barrier
+  after every process has compiled;
+* ``batched_k<K>`` (with ``--k``): K frames of a clip per launch (render.batch),
+  with its noise against a high-spp reference (batched frames are noisier).
 
-Every timed frame is copied to the host. Host RSS and (with nvidia-smi) GPU
-memory are sampled every ``--sample-s`` seconds over each loop, so a leak shows
-as a slope (``memory``: first, last, max). Batched frames are equal in
-expectation but noisier at equal spp (next-event estimation is spread over
-every slot's lights), so ``noise`` gives each path's RMS error against a
-high-spp reference frame and ``equal_noise_frames_per_s`` rescales each rate by
-(RMS / baseline RMS)^2, the spp factor it would need to be as clean. Writes a
-JSON under benchmarks/results/ with the command line.
+Host RSS and (with nvidia-smi) GPU memory are sampled over each single-process
+loop, so a leak shows as a slope (``memory``: first, last, max). ``--write``
+also times the stage's ``render_clip`` (tone mapping, EXR + PNG on a writer pool).
+Writes a JSON under benchmarks/results/ with the command line.
 
-    python benchmarks/render_throughput.py --device cuda                          # 224 px, 16 and 4 spp, 2,000 frames
-    python benchmarks/render_throughput.py --device cpu --resolution 32 --spp 4 --clips 4 --frames 8 --k 4
+    python benchmarks/render_throughput.py --device cuda --resolution 224 --spp 16 --procs 2,4
+    python benchmarks/render_throughput.py --device cpu --resolution 32 --spp 4 --clips 4 --frames 8 --procs ""
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing as mp
 import os
 import platform
 import shlex
@@ -65,7 +69,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--variant", default="paper")
     p.add_argument("--resolution", type=int, default=224)
     p.add_argument("--spp", default="16,4", help="comma-separated samples per pixel, one round each")
-    p.add_argument("--k", default="4,8,16", help="comma-separated frames per launch for the batched path")
+    p.add_argument("--k", default="", help="comma-separated frames per launch for the batched path (render.batch)")
+    p.add_argument("--procs", default="2,4", help="comma-separated process counts sharing the device")
+    p.add_argument("--procs-freeze", action="store_true", help="processes render frozen too")
+    p.add_argument("--no-freeze", action="store_true", help="skip the pooled_frozen loop")
     p.add_argument("--clips", type=int, default=50)
     p.add_argument("--frames", type=int, default=40, help="frames per clip")
     p.add_argument("--vertices", type=int, default=65, help="sheet vertices per side")
@@ -80,7 +87,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     elif args.device == "cpu":
         args.backend = "llvm_ad_rgb" if find_libllvm() else "scalar_rgb"
     args.spp = [int(s) for s in str(args.spp).split(",")]
-    args.k = [int(k) for k in str(args.k).split(",")]
+    args.k = [int(k) for k in str(args.k).split(",") if k]
+    args.procs = [int(n) for n in str(args.procs).split(",") if n]
     return args
 
 
@@ -128,16 +136,21 @@ class MemorySampler:
         return out
 
 
-def make_renderer(args, clip, index: int, spp: int) -> ClipRenderer:
+# How each single-process loop makes its renderers: (reuse_scenes, freeze).
+MODES = {"scene_per_clip": (False, False), "pooled": (True, False), "pooled_frozen": (True, True)}
+
+
+def make_renderer(args, clip, index: int, spp: int, mode: str = "scene_per_clip") -> ClipRenderer:
+    reuse, freeze = MODES[mode]
     return ClipRenderer(clip, get_variant(args.variant), resolution=args.resolution, spp=spp, run_seed=0,
-                        clip_index=index, backend=args.backend)
+                        clip_index=index, backend=args.backend, reuse_scenes=reuse, freeze=freeze)
 
 
-def render_loop(args, clips, spp: int, k: int) -> int:
-    """Render every frame of every clip to host memory, k frames per launch (1: the baseline). Returns frames."""
+def render_loop(args, clips, spp: int, k: int, mode: str = "scene_per_clip") -> int:
+    """Render every frame of every clip to host memory, k frames per launch. Returns frames."""
     frames = 0
     for index, clip in enumerate(clips):
-        r = make_renderer(args, clip, index, spp)
+        r = make_renderer(args, clip, index, spp, mode if k == 1 else "scene_per_clip")
         if k == 1:
             for t in range(clip.num_frames):
                 r.render_hdr(t)
@@ -146,6 +159,52 @@ def render_loop(args, clips, spp: int, k: int) -> int:
             for _ in BatchRenderer(r, k).hdr_frames():
                 frames += 1
     return frames
+
+
+def frozen_error(args, clips, spp: int) -> float:
+    """Mean relative difference of frozen frames from plain ones (same clips, same seeds), over 3 clips."""
+    errors = []
+    for index, clip in enumerate(clips[:3]):
+        plain = make_renderer(args, clip, index, spp, "pooled")
+        frames = [plain.render_hdr(t) for t in range(clip.num_frames)]
+        frozen = make_renderer(args, clip, index, spp, "pooled_frozen")
+        for t, ref in enumerate(frames):
+            errors.append(float(np.abs(frozen.render_hdr(t) - ref).mean() / max(np.abs(ref).mean(), 1e-12)))
+    return float(np.mean(errors))
+
+
+def _process_worker(args, spp: int, indices: list[int], freeze: bool, barrier, queue) -> None:
+    mode = "pooled_frozen" if freeze else "pooled"
+    render_loop(args, [waving_sheet(frames=args.frames, n=args.vertices, index=10_000 + indices[0])], spp, 1, mode)
+    clips = [waving_sheet(frames=args.frames, n=args.vertices, index=i) for i in indices]
+    barrier.wait()
+    start = time.perf_counter()
+    frames = 0
+    for index, clip in zip(indices, clips):
+        r = make_renderer(args, clip, index, spp, mode)
+        for t in range(clip.num_frames):
+            r.render_hdr(t)
+            frames += 1
+    queue.put((frames, start, time.perf_counter()))
+
+
+def processes_loop(args, spp: int, n: int) -> dict:
+    """N processes sharing the device, each rendering every N-th clip; aggregate rate from the barrier on."""
+    ctx = mp.get_context("spawn")
+    barrier, queue = ctx.Barrier(n), ctx.Queue()
+    shares = [list(range(args.clips))[i::n] for i in range(n)]
+    workers = [ctx.Process(target=_process_worker, args=(args, spp, share, args.procs_freeze, barrier, queue))
+               for share in shares if share]
+    for w in workers:
+        w.start()
+    results = [queue.get() for _ in workers]
+    for w in workers:
+        w.join()
+    frames = sum(r[0] for r in results)
+    seconds = max(r[2] for r in results) - min(r[1] for r in results)
+    return {"processes": len(workers), "frozen": args.procs_freeze, "frames": frames, "seconds": round(seconds, 3),
+            "frames_per_s": round(frames / seconds, 2), "ms_per_frame": round(1000 * seconds / frames, 3),
+            "gpu_used_mib_after": gpu_memory_mib()}
 
 
 def stage_loop(args, clips, spp: int, k: int) -> int:
@@ -186,10 +245,10 @@ def _stage_importable(result: dict) -> bool:
     return True
 
 
-def timed(loop, args, clips, spp: int, k: int) -> dict:
+def timed(loop, args, clips, spp: int, k: int, *extra) -> dict:
     with MemorySampler(args.sample_s) as memory:
         start = time.perf_counter()
-        frames = loop(args, clips, spp, k)
+        frames = loop(args, clips, spp, k, *extra)
         seconds = time.perf_counter() - start
     return {"frames": frames, "seconds": round(seconds, 3), "frames_per_s": round(frames / seconds, 2),
             "ms_per_frame": round(1000 * seconds / frames, 3), "memory": memory.summary()}
@@ -199,30 +258,52 @@ def main(argv: list[str] | None = None) -> dict:
     args = parse_args(argv)
     mi = load_mitsuba(args.backend)
     clips = [waving_sheet(frames=args.frames, n=args.vertices, index=i) for i in range(args.clips)]
-    warm = [waving_sheet(frames=max(args.k), n=args.vertices, index=1000)]
+    warm = [waving_sheet(frames=max([2, *args.k]), n=args.vertices, index=1000 + i) for i in range(2)]
+    modes = [m for m in MODES if not (m == "pooled_frozen" and (args.no_freeze or mi.variant().startswith("scalar")))]
     rounds = []
+    frozen_failure = None
     for spp in args.spp:
-        for k in [1, *args.k]:  # untimed: compile (and cache) every kernel first
+        for mode in list(modes):  # untimed: compile (and cache) every kernel first
+            try:
+                render_loop(args, warm, spp, 1, mode)
+            except RuntimeError as e:  # dr.freeze can refuse a scene on some backends: record why, go on
+                if mode != "pooled_frozen":
+                    raise
+                modes.remove(mode)
+                print(f"pooled_frozen: {e}", flush=True)
+                frozen_failure = f"{type(e).__name__}: {str(e).splitlines()[0][:300]}"
+        for k in args.k:
             render_loop(args, warm, spp, k)
         result: dict = {"spp": spp, "samples_per_frame": args.resolution ** 2 * spp, "render_only": {}}
-        for k in [1, *args.k]:
-            name = "one_frame_per_launch" if k == 1 else f"batched_k{k}"
-            result["render_only"][name] = timed(render_loop, args, clips, spp, k)
-        base = result["render_only"]["one_frame_per_launch"]["frames_per_s"]
-        result["noise_rms"] = noise(args, clips[0], spp, args.k)
-        base_rms = result["noise_rms"]["one_frame_per_launch"]
-        for name, row in result["render_only"].items():
+        if frozen_failure:
+            result["frozen_failure"] = frozen_failure
+        for mode in modes:
+            result["render_only"][mode] = timed(render_loop, args, clips, spp, 1, mode)
+            print(mode, json.dumps(result["render_only"][mode]), flush=True)
+        if "pooled_frozen" in modes:
+            result["frozen_rel_error"] = frozen_error(args, clips, spp)
+            print("frozen_rel_error", result["frozen_rel_error"], flush=True)
+        for k in args.k:
+            result["render_only"][f"batched_k{k}"] = timed(render_loop, args, clips, spp, k)
+        for n in args.procs:
+            result["render_only"][f"processes_{n}"] = processes_loop(args, spp, n)
+            print(f"processes_{n}", json.dumps(result["render_only"][f"processes_{n}"]), flush=True)
+        base = result["render_only"]["scene_per_clip"]["frames_per_s"]
+        for row in result["render_only"].values():
             row["speedup"] = round(row["frames_per_s"] / base, 3)
             row["samples_per_s_M"] = round(row["frames_per_s"] * result["samples_per_frame"] / 1e6, 1)
-            ratio = result["noise_rms"][name] / base_rms
-            row["noise_rms_ratio"] = round(ratio, 3)
-            row["equal_noise_frames_per_s"] = round(row["frames_per_s"] / ratio ** 2, 2)
+        if args.k:
+            result["noise_rms"] = noise(args, clips[0], spp, args.k)
+            base_rms = result["noise_rms"]["one_frame_per_launch"]
+            for k in args.k:
+                row = result["render_only"][f"batched_k{k}"]
+                ratio = result["noise_rms"][f"batched_k{k}"] / base_rms
+                row["noise_rms_ratio"] = round(ratio, 3)
+                row["equal_noise_frames_per_s"] = round(row["frames_per_s"] / ratio ** 2, 2)
         if args.write and _stage_importable(result):
-            best = max(args.k, key=lambda k: result["render_only"][f"batched_k{k}"]["frames_per_s"])
-            result["with_output"] = {name: timed(stage_loop, args, clips, spp, k)
-                                     for name, k in (("one_frame_per_launch", 1), (f"batched_k{best}", best))}
+            result["with_output"] = {"pooled": timed(stage_loop, args, clips, spp, 1)}
         rounds.append(result)
-        print(json.dumps(result, indent=2), flush=True)
+        print(json.dumps({k: v for k, v in result.items() if k != "render_only"}, indent=2), flush=True)
     report = {
         "command": shlex.join([sys.executable, *sys.argv]) if argv is None else shlex.join(argv),
         "time": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -230,7 +311,7 @@ def main(argv: list[str] | None = None) -> dict:
         "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
         "gpu_memory_before_mib": gpu_memory_mib(), "rounds": rounds,
     }
-    out = args.out or RESULTS / f"render_batch-{mi.variant()}-{datetime.now(timezone.utc):%Y%m%dT%H%M%S}.json"
+    out = args.out or RESULTS / f"render_throughput-{mi.variant()}-{datetime.now(timezone.utc):%Y%m%dT%H%M%S}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=2) + "\n")
     print(f"wrote {out}")

@@ -24,6 +24,11 @@ class RenderConfig:
     frames_per_launch: int = 0              # frames of a clip per Mitsuba launch (render.batch); 1 = one scene,
                                             # one frame per render call; 0 = auto (AUTO_FRAMES_PER_LAUNCH)
     writer_threads: int = 4                 # threads that tone-map and write EXR/PNG while the next frames render
+    reuse_scenes: bool = True               # one Mitsuba scene per structure, retargeted clip to clip (render.scene
+                                            # ScenePool); False = a new scene per clip (on CUDA: an OptiX compile each)
+    freeze: bool = False                    # replay mi.render's recorded kernels (dr.freeze) instead of re-tracing
+                                            # them each frame; only where benchmarks/render_throughput.py shows the
+                                            # frozen frames equal the plain ones on that backend
 
     def problems(self) -> list[str]:
         """What is wrong with these settings, one message each (empty when they are valid).

@@ -139,17 +139,21 @@ def scene_pool(mi: ModuleType) -> ScenePool:
 def _copy_params(src, dst, prefix: str) -> None:
     """Copy every parameter of Mitsuba object ``src`` into scene parameters ``dst`` under ``prefix``.
 
-    Plain Python values (flags, sizes, sampling rates) are structure, identical for a
-    given pool key, and are left alone so that no object is reallocated.
+    Film sizes and flags are structure, identical for a given pool key; they are left
+    alone so that no film or object is reallocated. Everything else (transforms,
+    colours, texture data, scales; Python floats on scalar_rgb) is the clip's.
     """
     for key in src.keys():
         target = prefix + key
-        if target not in dst:
+        if target not in dst or key.rsplit(".", 1)[-1] in _STRUCTURE_KEYS:
             continue
         value = src[key]
-        if isinstance(value, (bool, int, float, str)) or type(value).__name__.startswith("Scalar"):
+        if isinstance(value, (bool, str)):
             continue
         dst[target] = value
+
+
+_STRUCTURE_KEYS = {"size", "crop_size", "crop_offset", "allow_thread_reordering"}
 
 
 class ClipRenderer:
@@ -324,7 +328,17 @@ class ClipRenderer:
             topology = self._counts is None or not self.clip.fixed_topology
             p, f, u = self._padded(positions, faces, uv, self._capacity)
             self._assign(self.params, "cloth.", p, f if topology else None, u)
-            self.params.update()
+            if len(p) > len(positions):
+                # Spare vertices belong to no face, so Mitsuba warns that their normals are invalid on every
+                # update; they are never shaded (no ray hits a degenerate face), so the warning is noise here.
+                level = self.mi.log_level()
+                self.mi.set_log_level(self.mi.LogLevel.Error)
+                try:
+                    self.params.update()
+                finally:
+                    self.mi.set_log_level(level)
+            else:
+                self.params.update()
             self._counts = counts
             return
         if self._counts != (len(positions), len(faces)):

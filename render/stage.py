@@ -65,7 +65,8 @@ def render_clip(clip: SimClip, variant: RenderVariant, out_dir: Path, *, config:
     """
     start = time.perf_counter()
     renderer = ClipRenderer(clip, variant, resolution=config.resolution, spp=config.spp, run_seed=run_seed,
-                            clip_index=clip_index, backend=config.backend, backgrounds=backgrounds)
+                            clip_index=clip_index, backend=config.backend, backgrounds=backgrounds,
+                            reuse_scenes=config.reuse_scenes, freeze=config.freeze)
     per_launch = frames_per_launch(config, renderer.mi.variant())
     unbatched = batchable(renderer) if per_launch > 1 else None
     if per_launch > 1 and unbatched is None:

@@ -12,7 +12,7 @@ from PIL import Image
 from clothgap.config import preset
 from clothgap.runs import Run, clip_id, is_done, mark_done
 from dataclasses import replace
-from render.backend import BackendError, MIN_LLVM_VERSION, _LLVM_NAME, find_libllvm, resolve_backend
+from render.backend import BackendError, MIN_LLVM_VERSION, _LLVM_NAME, find_libllvm, load_mitsuba, resolve_backend
 from render.exr import read_exr, write_exr
 from render.scene import ClipRenderer
 from render.synthetic import waving_sheet
@@ -70,10 +70,60 @@ def test_alpha_is_cloth_coverage():
 def test_remeshed_clip_rebuilds_only_when_counts_change():
     clip = waving_sheet(frames=6, n=8, remesh_every=2)
     renderer = ClipRenderer(clip, get_variant("paper"), resolution=16, spp=1, run_seed=0, clip_index=0,
-                            backend=BACKEND)
+                            backend=BACKEND, reuse_scenes=False)
     for t in range(clip.num_frames):
         renderer.render_frame(t)
     assert renderer.rebuilds == 3
+
+
+def _jit_or_scalar() -> list[str]:
+    return ["llvm_ad_rgb", "scalar_rgb"] if find_libllvm() else ["scalar_rgb"]
+
+
+@pytest.mark.parametrize("backend", _jit_or_scalar())
+def test_pooled_scenes_render_exactly_what_a_scene_per_clip_renders(backend):
+    """Retargeting a pooled scene (camera, lights, room, texture, padded mesh) must not change a pixel."""
+    from render.scene import scene_pool
+
+    pool = scene_pool(load_mitsuba(backend))
+    pool.clear()
+    for variant in ("paper", "room", "daylight", "fabric-table"):
+        for index, remesh in ((0, 0), (1, 0), (2, 2), (3, 3)):  # 0, 1 share a scene; so do the remeshed 2, 3
+            clip = waving_sheet(frames=4, n=8, index=index, remesh_every=remesh)
+            kw = dict(resolution=16, spp=2, run_seed=3, clip_index=index, backend=backend)
+            alone = ClipRenderer(clip, get_variant(variant), reuse_scenes=False, **kw)
+            pooled = ClipRenderer(clip, get_variant(variant), **kw)
+            for t in range(clip.num_frames):
+                a, b = pooled.render_hdr(t), alone.render_hdr(t)
+                # Equal up to a rare single path: Mitsuba's parallel BVH builds may break ties between
+                # coincident triangle edges differently from one build to the next (seen with a scene per
+                # clip alone, twice in a row), which moves one sample of a pixel; nothing else may differ.
+                off = np.abs(a - b).max(axis=-1) > 1e-5
+                assert off.mean() <= 0.01, f"{variant} clip {index} frame {t}: {off.sum()} pixels differ"
+    assert pool.retargets > 0, "clips of one structure must share a scene"
+    assert pool.builds < pool.retargets + pool.builds
+
+
+@pytest.mark.xfail(strict=False, reason="known: with random lighting (environment map + area lights), some scene "
+                   "builds render differently from others with identical parameters, a scene per clip included "
+                   "(about 1 build in 20 on scalar_rgb and llvm_ad_rgb); not caused by pooling")
+def test_random_lighting_builds_render_alike():
+    clip = waving_sheet(frames=1, n=8, index=2)
+    kw = dict(resolution=16, spp=2, run_seed=3, clip_index=2, backend=BACKEND, reuse_scenes=False)
+    frames = [ClipRenderer(clip, get_variant("lighting-random"), **kw).render_hdr(0) for _ in range(8)]
+    assert all(np.array_equal(f, frames[0]) for f in frames)
+
+
+def test_a_second_clip_of_the_same_structure_retargets_the_first_ones_scene():
+    from render.scene import scene_pool
+
+    scene_pool(load_mitsuba(BACKEND)).clear()
+    first, _ = render("grid", clip_index=0)
+    second, _ = render("grid", clip_index=1)
+    assert (first.rebuilds, first.retargets) == (1, 0)
+    assert (second.rebuilds, second.retargets) == (0, 1) and second.scene is first.scene
+    again, frame = render("grid", clip_index=0)  # the first clip again, after the second took its scene
+    np.testing.assert_allclose(frame.hdr, render("grid", clip_index=0, reuse_scenes=False)[1].hdr, atol=1e-6)
 
 
 @pytest.mark.parametrize("name", sorted(OPERATORS))
