@@ -150,10 +150,21 @@ def _copy_params(src, dst, prefix: str) -> None:
         value = src[key]
         if isinstance(value, (bool, str)):
             continue
-        dst[target] = value
+        # A freshly loaded object's values can be literals, which Dr.Jit bakes into the kernel: the
+        # path tracer would compile anew for every clip. Opaque values are kernel inputs instead.
+        dst[target] = _opaque(value)
 
 
 _STRUCTURE_KEYS = {"size", "crop_size", "crop_offset", "allow_thread_reordering"}
+
+
+def _opaque(value):
+    """``value`` made a kernel input rather than a literal Dr.Jit would bake into the kernel."""
+    if not isinstance(value, (int, float)):
+        import drjit as dr  # imported here: render.backend must pick libLLVM before drjit is first imported
+
+        dr.make_opaque(value)
+    return value
 
 
 class ClipRenderer:
@@ -192,7 +203,8 @@ class ClipRenderer:
                            "target": self.framing.target.tolist(), "fov_deg": self.framing.fov_deg},
             },
         }
-        self._bsdf = cloth_bsdf(self.mi, variant, self.texture)
+        self._bsdf_object = None  # loaded only when a scene is built: every loaded BSDF joins Dr.Jit's
+                                  # registry, and a registry that changes changes the compiled path tracer
         self._counts: tuple[int, int] | None = None
         self.scene = None
         self.params = None
@@ -205,6 +217,12 @@ class ClipRenderer:
         self._capacity: tuple[int, int] | None = None
 
     # ---------------------------------------------------------------- scene
+
+    @property
+    def _bsdf(self):
+        if self._bsdf_object is None:
+            self._bsdf_object = cloth_bsdf(self.mi, self.variant, self.texture)
+        return self._bsdf_object
 
     def _scene_dict(self) -> dict:
         """The scene without the cloth mesh: integrator, camera, lights, room."""
@@ -283,17 +301,50 @@ class ClipRenderer:
         entry, built = self.pool.get(self._structure_key(capacity), build)
         self.rebuilds += int(built)
         if not built:
-            params = entry.params
-            for name, value in self._scene_dict().items():
-                if isinstance(value, dict) and name != "integrator":
-                    _copy_params(mi.traverse(mi.load_dict(value)), params, f"{name}.")
-            _copy_params(mi.traverse(self._bsdf), params, "cloth.bsdf.")
+            self._retarget(entry)
             self.pool.retargets += 1
             self.retargets += 1
         entry.owner = self
         self._pooled, self._capacity = entry, capacity
         self.scene, self.params = entry.scene, entry.params
         self._counts = None  # faces and uv are written on the first update
+
+    def _retarget(self, entry: PooledScene) -> None:
+        """Write this clip's camera, lights, room and texture into a pooled scene built for another clip.
+
+        Values are computed here, not copied from freshly loaded Mitsuba objects, wherever the plugin's
+        parameters are simple (camera, area lights, constant ambient, room walls, the texture): a new
+        emitter, shape or BSDF object would join Dr.Jit's instance registry, and the path tracer's
+        virtual calls, hence its kernel, depend on that registry (a CUDA compile per clip again).
+        Environment maps and suns go through a loaded copy (``_copy_params``).
+        """
+        mi, params = self.mi, entry.params
+
+        def put(key: str, value) -> None:
+            params[key] = _opaque(value)
+
+        def rgb(entry_: dict) -> object:
+            return mi.Color3f(*[float(x) for x in entry_["value"]])
+
+        for name, value in self._scene_dict().items():
+            if not isinstance(value, dict) or name == "integrator":
+                continue
+            kind = value.get("type")
+            if name == "sensor":
+                put("sensor.to_world", mi.AffineTransform4f(value["to_world"]))
+            elif kind == "rectangle":
+                put(f"{name}.to_world", mi.AffineTransform4f(value["to_world"]))
+                if "emitter" in value:
+                    put(f"{name}.emitter.radiance.value", rgb(value["emitter"]["radiance"]))
+                if "bsdf" in value and f"{name}.bsdf.reflectance.value" in params:
+                    put(f"{name}.bsdf.reflectance.value", rgb(value["bsdf"]["reflectance"]))
+            elif kind == "constant":
+                put(f"{name}.radiance.value", rgb(value["radiance"]))
+            else:
+                _copy_params(mi.traverse(mi.load_dict(value)), params, f"{name}.")
+        texture_keys = [k for k in params.keys() if k.startswith("cloth.bsdf.") and k.endswith(".data")]
+        for key in texture_keys:  # the cloth's colour texture (none for the measured BSDF)
+            put(key, mi.TensorXf(np.ascontiguousarray(self.texture.image)))
 
     def _padded(self, positions, faces, uv, capacity: tuple[int, int]):
         """Geometry padded to the mesh capacity: spare vertices at vertex 0, degenerate faces on the last vertex."""

@@ -11,12 +11,13 @@ from __future__ import annotations
 import io
 from fractions import Fraction
 
-import av
 import numpy as np
 
 
 def compress_frames(frames: list[np.ndarray], crf: int, fps: float = 25.0) -> list[np.ndarray]:
     """The (H, W, 3) uint8 frames as they come out of an H.264 round trip at ``crf``."""
+    import av  # only the video-compression variants need PyAV
+
     if not frames:
         return []
     h, w = frames[0].shape[:2]
