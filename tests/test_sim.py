@@ -387,14 +387,3 @@ def test_adaptive_setting_changes_topology_and_is_reproducible(tmp_path):
         assert clip.meta["remeshing"] == "adaptive" and "vertex_counts" in clip.meta
     soft_wind = SimClip.load(runs[0].sim_dir("wind-adaptive") / "c00000")
     assert not soft_wind.fixed_topology, "a soft cloth in wind should be refined somewhere"
-
-
-def test_table2_lists_every_fabric_with_its_nearest_class(tmp_path):
-    import csv
-
-    from sim.analysis import table2
-
-    rows = list(csv.DictReader(table2(tmp_path).open()))
-    assert len(rows) == 10
-    basis = next(r for r in rows if r["material"] == "camel-ponte-roma")
-    assert float(basis["p_est"]) == 1.0 and int(basis["class_index"]) == classes.nearest_class(1.0, 1.0)
