@@ -130,3 +130,63 @@ def arm_scene(mesh: ClothMesh, size_m: float, material: Material, rng: np.random
               "forearm_angle_deg_per_frame": [min(math.degrees(speed) * (t + 1) / fps, ARM_ANGLE_DEG)
                                               for t in range(frames)]}
     return ClipScene(spec, np.zeros(3), params)
+
+
+def _rotate(v: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
+    """``v`` turned by ``angle`` radians about the unit ``axis`` (Rodrigues)."""
+    c, s = math.cos(angle), math.sin(angle)
+    return v * c + np.cross(axis, v) * s + axis * float(np.dot(axis, v)) * (1.0 - c)
+
+
+def _segment_distance(x: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    ab = b - a
+    t = np.clip((x - a) @ ab / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+    return np.linalg.norm(x - (a + t[:, None] * ab), axis=1)
+
+
+def arm_contact_report(frames, motion_params: dict, cloth_size_m: float, fall_margin_m: float | None = None,
+                       touch_m: float = 0.02) -> dict:
+    """Whether an ``arm`` clip shows a cloth on the arm or a cloth falling off it.
+
+    ``frames``: the recorded positions, (T, V, 3) or a sequence of (V_t, 3) (adaptive clips);
+    ``motion_params``: the clip's ``meta["motion_params"]`` (``arm_scene``'s). Returns, at the last frame
+    (distances in metres, "drop" = how far below the arm's axis, i.e. the elbow's height):
+
+    * ``centroid_drop_m``: of the cloth's centroid (``max_centroid_drop_m``: the largest over all frames);
+    * ``lowest_drop_m``: of the lowest vertex;
+    * ``fallen_fraction``: of the vertices lower than the arm's lowest point minus ``fall_margin_m``
+      (default 0.6 x the cloth's side: a draped vertex hangs at most half the cloth plus the placement offset,
+      0.3 m of a 0.5 m cloth, below the arm's top, i.e. 0.22 m below its lowest point);
+    * ``touching_fraction``: of the vertices within ``touch_m`` of the arm's surface (upper arm or forearm at
+      that frame's angle);
+    * ``on_arm``: no vertex fallen and some touching.
+    """
+    frames = [np.asarray(f, dtype=np.float64) for f in frames]
+    if not frames:
+        raise ValueError("arm_contact_report needs at least one frame")
+    radius = float(motion_params["arm_radius_m"])
+    shoulder, elbow = np.asarray(motion_params["shoulder"], float), np.asarray(motion_params["elbow"], float)
+    forearm = np.asarray(motion_params["forearm_at_rest"], float)
+    axis = np.asarray(motion_params["rotation_axis"], float)
+    axis = axis / np.linalg.norm(axis)
+    angles = motion_params["forearm_angle_deg_per_frame"]
+    margin = 0.6 * cloth_size_m if fall_margin_m is None else fall_margin_m
+    up = elbow[2]
+    x = frames[-1]
+    hand = elbow + _rotate(forearm, axis, math.radians(angles[min(len(frames), len(angles)) - 1]))
+    dist = np.minimum(_segment_distance(x, shoulder, elbow), _segment_distance(x, elbow, hand)) - radius
+    fallen = float(np.mean(x[:, 2] < up - radius - margin))
+    touching = float(np.mean(dist < touch_m))
+    return {"frames": len(frames),
+            "centroid_drop_m": float(up - x[:, 2].mean()),
+            "max_centroid_drop_m": float(max(up - f[:, 2].mean() for f in frames)),
+            "lowest_drop_m": float(up - x[:, 2].min()),
+            "fallen_fraction": fallen,
+            "touching_fraction": touching,
+            "on_arm": bool(fallen == 0.0 and touching > 0.0)}
+
+
+def arm_clip_report(clip) -> dict:
+    """``arm_contact_report`` of a saved ``sim.clip.SimClip`` of an ``arm`` setting."""
+    return arm_contact_report([pos for pos, _, _ in clip.frames()], clip.meta["motion_params"],
+                              float(clip.meta["cloth_size_m"]))
