@@ -16,7 +16,10 @@ horizontally (about the vertical axis through the elbow) through a fixed angle
 bend is compressed into folds whose shape shows bending stiffness; the outside
 flap is swung out. (A vertical sweep was tried first: it stretches the cloth
 over the outside of the elbow faster than vertex-capsule contact lets it slide,
-so edges end up cut through the elbow.) The cloth's placement along and across the arm is drawn per clip.
+so edges end up cut through the elbow.) The cloth's placement along and across the arm is drawn per clip,
+across within 2 cm of centre so that it drapes nearly symmetrically; friction (``SolverParams.friction``,
+static and sliding, inside the implicit solve) holds it there while the forearm turns.
+``arm_contact_report`` tells a clip of a cloth on the arm from one of a cloth falling off it.
 
 A motion builds a ``ClipScene``: the cloth at rest (``ClothSpec`` without wind)
 plus what changes when recording starts, and the parameters written to the
@@ -49,7 +52,8 @@ ARM_UPPER_M = 0.35             # shoulder -> elbow
 ARM_FORE_M = 0.30              # elbow -> hand
 ARM_ANGLE_DEG = 90.0           # the forearm's fixed sweep
 ARM_SPEED_DEG_S = (120.0, 300.0)
-ARM_OFFSET_M = 0.05            # max shift of the cloth's centre along and across the arm
+ARM_ALONG_M = 0.05             # max shift of the cloth's centre along the arm
+ARM_ACROSS_M = 0.02            # max shift across: flaps within 4 cm of each other (0.05 m let one side outweigh)
 
 
 @dataclass
@@ -113,7 +117,7 @@ def arm_scene(mesh: ClothMesh, size_m: float, material: Material, rng: np.random
     """A cloth laid flat over a capsule arm, draping during settling; the forearm starts turning at ``start_s``
     (the first recorded frame). All draws come from ``rng`` (the clip's motion stream)."""
     speed = math.radians(rng.uniform(*ARM_SPEED_DEG_S))
-    along, across = rng.uniform(-ARM_OFFSET_M, ARM_OFFSET_M, size=2)
+    along, across = rng.uniform(-1.0, 1.0, size=2) * (ARM_ALONG_M, ARM_ACROSS_M)
     uv = mesh.uv
     height = ARM_RADIUS_M + 0.01
     pos = np.stack([uv[:, 0] - 0.5 * size_m + along, uv[:, 1] - 0.5 * size_m + across,
