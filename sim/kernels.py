@@ -389,6 +389,16 @@ def closest_on_segment(x: wp.vec3, a: wp.vec3, b: wp.vec3):
     return a + t * ab
 
 
+@wp.func
+def surface_velocity(arm: Arm, moving: float, seg: int, c: wp.vec3, n: wp.vec3, reach: float):
+    """Velocity of the arm's contact surface point c + reach n (c on segment ``seg``'s axis): the forearm
+    (seg 1) turns rigidly about the elbow, the upper arm is still."""
+    u = wp.vec3(0.0)
+    if seg == 1:
+        u = wp.cross(moving * arm.omega * arm.axis, c + reach * n - arm.elbow)
+    return u
+
+
 @wp.kernel
 def collide_arm(arms: wp.array(dtype=Arm), cloth: wp.array(dtype=int), free: wp.array(dtype=float),
                 clock: wp.array(dtype=float), thickness: float, friction: float,
@@ -412,11 +422,9 @@ def collide_arm(arms: wp.array(dtype=Arm), cloth: wp.array(dtype=int), free: wp.
     for s in range(2):
         a = arm.shoulder
         b = arm.elbow
-        wvel = wp.vec3(0.0)
         if s == 1:
             a = arm.elbow
             b = hand
-            wvel = moving * arm.omega * arm.axis
         c = closest_on_segment(xi, a, b)
         d = xi - c
         dl = wp.length(d)
@@ -424,8 +432,7 @@ def collide_arm(arms: wp.array(dtype=Arm), cloth: wp.array(dtype=int), free: wp.
         if dl < reach and dl > 1.0e-9:
             n = d / dl
             xi = c + n * reach
-            # the velocity of the capsule's axis point: sweeping pushes and drags, the round ends do not spin
-            surface_v = wp.cross(wvel, c - arm.elbow)
+            surface_v = surface_velocity(arm, moving, s, c, n, reach)
             rel = vi - surface_v
             vn = wp.dot(rel, n)
             if vn < 0.0:
@@ -500,11 +507,9 @@ def collide_arm_edges(arms: wp.array(dtype=Arm), edge: wp.array2d(dtype=int), cl
     for seg in range(2):
         a = arm.shoulder
         b = arm.elbow
-        wvel = wp.vec3(0.0)
         if seg == 1:
             a = arm.elbow
             b = hand
-            wvel = moving * arm.omega * arm.axis
         st = segment_params(xi, xj, a, b)
         s = st[0]
         if s > 0.0 and s < 1.0:          # an end point is the vertex pass's business
@@ -521,7 +526,7 @@ def collide_arm_edges(arms: wp.array(dtype=Arm), edge: wp.array2d(dtype=int), cl
                     lam = (reach - dl) / norm
                     wp.atomic_add(dx, i, bi * lam * n)
                     wp.atomic_add(dx, j, bj * lam * n)
-                    surface_v = wp.cross(wvel, c - arm.elbow)
+                    surface_v = surface_velocity(arm, moving, seg, c, n, reach)
                     rel = (1.0 - s) * v[i] + s * v[j] - surface_v
                     vn = wp.dot(rel, n)
                     dvp = wp.vec3(0.0)
@@ -572,18 +577,34 @@ def forearm_moving(arm: Arm, t: float):
 @wp.kernel
 def contact_prepare(arms: wp.array(dtype=Arm), cloth: wp.array(dtype=int), free: wp.array(dtype=float),
                     clock: wp.array(dtype=float), thickness: float, tolerance: float, dt: float,
+                    friction: float, slip_velocity: float,
                     x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), released: wp.array(dtype=int),
-                    cn: wp.array(dtype=wp.vec3), y: wp.array(dtype=wp.vec3), vy: wp.array(dtype=wp.vec3)):
+                    jn_prev: wp.array(dtype=float),
+                    cn: wp.array(dtype=wp.vec3), y: wp.array(dtype=wp.vec3), vy: wp.array(dtype=wp.vec3),
+                    fc: wp.array(dtype=float), fb: wp.array(dtype=wp.vec3), recover: wp.array(dtype=wp.vec3)):
     """Contacts of this step, as velocity constraints of the implicit solve: a free vertex within
-    ``tolerance`` of an arm capsule's contact surface (radius + thickness) that is not moving away from it gets
-    its normal velocity prescribed: the surface's normal velocity plus what closes any penetration in one step.
+    ``tolerance`` of an arm capsule's contact surface (radius + thickness) that is not moving away from it, or
+    that pushed on the arm in the previous step (``jn_prev`` > 0: a contact persists until its impulse comes out
+    adhesive), gets its normal velocity prescribed: the surface's normal velocity plus what closes any
+    penetration in one step (``recover``, taken back off after the step by ``contact_recovered``).
     ``cn`` is the constraint normal (zero: unconstrained), ``y`` the prescribed velocity change along it
     (the solve starts from dv = y and never changes dv along ``cn``), ``vy`` = v + y. A vertex whose
-    contact force came out adhesive in the previous step (``released``) is left free for this one."""
+    contact force came out adhesive in the previous step (``released``) is left free for this one.
+
+    Friction, regularised Coulomb, implicit: the contact's tangential velocity relative to the surface,
+    w = P (v + dv - u) with P = I - n n^T, meets the impulse -c w, c = friction J_n / max(|P (v - u)|,
+    ``slip_velocity``), J_n the contact's normal impulse of the previous step (``jn_prev``). Sliding, that
+    is Coulomb's friction J_n against the slip; at rest, a stiff tangential damping that holds
+    the vertex (creeping slower than ``slip_velocity``) as long as the pull stays inside the friction cone.
+    ``fc`` = c goes on the vertex's mass in the system matrix (tangentially: the solve's direction has no
+    normal part at a contact), ``fb`` = -c P (v - u) on the right-hand side."""
     i = wp.tid()
     vi = v[i]
     n_out = wp.vec3(0.0)
     y_out = wp.vec3(0.0)
+    c_out = float(0.0)
+    b_out = wp.vec3(0.0)
+    rec_out = wp.vec3(0.0)
     arm = arms[cloth[i]]
     if arm.active == 1 and free[i] > 0.0 and released[i] == 0:
         t = clock[0]
@@ -592,31 +613,49 @@ def contact_prepare(arms: wp.array(dtype=Arm), cloth: wp.array(dtype=int), free:
         xi = x[i]
         reach = arm.radius + thickness
         best = tolerance
+        u_out = wp.vec3(0.0)
         for seg in range(2):
             a = arm.shoulder
             b = arm.elbow
-            wvel = wp.vec3(0.0)
             if seg == 1:
                 a = arm.elbow
                 b = hand
-                wvel = moving * arm.omega * arm.axis
             c = closest_on_segment(xi, a, b)
             d = xi - c
             dl = wp.length(d)
             gap = dl - reach
             if gap < best and dl > 1.0e-9:
                 n = d / dl
-                u = wp.cross(wvel, c - arm.elbow)
+                u = surface_velocity(arm, moving, seg, c, n, reach)
                 target = wp.dot(u, n) + wp.max(-gap, 0.0) / dt
                 vn = wp.dot(vi, n)
-                if vn <= target:
+                if vn <= target or jn_prev[i] > 0.0:
                     best = gap
                     n_out = n
+                    u_out = u
                     y_out = (target - vn) * n
+                    rec_out = wp.max(-gap, 0.0) / dt * n
+        if wp.length_sq(n_out) > 0.0 and jn_prev[i] > 0.0:
+            rel = vi - u_out
+            slip = rel - wp.dot(rel, n_out) * n_out
+            c_out = friction * jn_prev[i] / wp.max(wp.length(slip), slip_velocity)
+            b_out = -c_out * slip
     released[i] = 0
     cn[i] = n_out
     y[i] = y_out
     vy[i] = vi + y_out
+    fc[i] = c_out
+    fb[i] = b_out
+    recover[i] = rec_out
+
+
+@wp.kernel
+def contact_recovered(recover: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3)):
+    """After ``integrate``: take the penetration-closing part of a contact's prescribed velocity back off. It
+    has moved the vertex out of the arm; left on, the vertex moved away from the surface in the next step, was
+    left free, fell back in, and so was in contact only every other step (no resting contact, so no friction)."""
+    i = wp.tid()
+    v[i] = v[i] - recover[i]
 
 
 @wp.func
@@ -629,19 +668,21 @@ def filter_contact(r: wp.vec3, free: float, n: wp.vec3):
 def cg_start_contact(force: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), kv: wp.array(dtype=wp.vec3),
                      mass: wp.array(dtype=float), free: wp.array(dtype=float), cloth: wp.array(dtype=int),
                      dt: float, damping: float, diag: wp.array(dtype=wp.vec3),
-                     cn: wp.array(dtype=wp.vec3), y: wp.array(dtype=wp.vec3), rn: wp.array(dtype=float),
+                     cn: wp.array(dtype=wp.vec3), y: wp.array(dtype=wp.vec3), fc: wp.array(dtype=float),
+                     fb: wp.array(dtype=wp.vec3), rn: wp.array(dtype=float),
                      dv: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.vec3),
                      p: wp.array(dtype=wp.vec3), ap: wp.array(dtype=wp.vec3),
                      rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float)):
     """``cg_start`` for the modified PCG of Baraff & Witkin: dv starts at the prescribed y, the residual is
     b - A y (``kv`` holds K (v + y)), filtered; ``rn`` keeps the unfiltered residual along the contact normal
-    (minus the contact impulse), to release adhesive contacts after the solve."""
+    (minus the contact impulse), to release adhesive contacts after the solve. The friction term of
+    ``contact_prepare`` adds ``fc`` to the vertex's mass (M (1 + h a) + c P: P y = 0) and ``fb`` to b."""
     i = wp.tid()
     c = cloth[i]
-    m_eff = mass[i] * (1.0 + dt * damping)
+    m_eff = mass[i] * (1.0 + dt * damping) + fc[i]
     n = cn[i]
     yi = y[i]
-    res = dt * (force[i] - damping * mass[i] * v[i]) - dt * dt * kv[i] - m_eff * yi
+    res = dt * (force[i] - damping * mass[i] * v[i]) - dt * dt * kv[i] - (m_eff - fc[i]) * yi + fb[i]
     rn[i] = wp.dot(res, n)
     ri = filter_contact(res, free[i], n)
     dinv = wp.cw_div(wp.vec3(1.0), wp.vec3(m_eff) + dt * dt * diag[i])
@@ -681,9 +722,35 @@ def cg_update_contact(mass: wp.array(dtype=float), free: wp.array(dtype=float), 
 
 
 @wp.kernel
-def contact_release(cn: wp.array(dtype=wp.vec3), rn: wp.array(dtype=float), released: wp.array(dtype=int)):
-    """A contact whose constraint impulse (-rn along the outward normal) came out pulling the cloth onto the
-    arm is released for the next step."""
+def cg_direction_contact(mass: wp.array(dtype=float), cloth: wp.array(dtype=int), dt: float, damping: float,
+                         fc: wp.array(dtype=float), z: wp.array(dtype=wp.vec3), slot: int,
+                         p: wp.array(dtype=wp.vec3), ap: wp.array(dtype=wp.vec3),
+                         rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float)):
+    """``cg_direction`` with the contacts' friction term ``fc`` on the mass (p has no normal part there)."""
     i = wp.tid()
-    if wp.length_sq(cn[i]) > 0.0 and rn[i] > 0.0:
-        released[i] = 1
+    c = cloth[i]
+    den = rz[slot, c]
+    beta = float(0.0)
+    if den > 0.0:
+        beta = rz[slot + 1, c] / den
+    m_eff = mass[i] * (1.0 + dt * damping) + fc[i]
+    pi = z[i] + beta * p[i]
+    p[i] = pi
+    ap[i] = m_eff * pi
+    wp.atomic_add(pap, slot + 1, c, m_eff * wp.dot(pi, pi))
+
+
+@wp.kernel
+def contact_release(cn: wp.array(dtype=wp.vec3), rn: wp.array(dtype=float), released: wp.array(dtype=int),
+                    jn: wp.array(dtype=float)):
+    """A contact whose constraint impulse (-rn along the outward normal) came out pulling the cloth onto the
+    arm is released for the next step; ``jn`` keeps each contact's pushing normal impulse (zero elsewhere)
+    for the next step's friction."""
+    i = wp.tid()
+    j = float(0.0)
+    if wp.length_sq(cn[i]) > 0.0:
+        if rn[i] > 0.0:
+            released[i] = 1
+        else:
+            j = -rn[i]
+    jn[i] = j

@@ -16,7 +16,10 @@ horizontally (about the vertical axis through the elbow) through a fixed angle
 bend is compressed into folds whose shape shows bending stiffness; the outside
 flap is swung out. (A vertical sweep was tried first: it stretches the cloth
 over the outside of the elbow faster than vertex-capsule contact lets it slide,
-so edges end up cut through the elbow.) The cloth's placement along and across the arm is drawn per clip.
+so edges end up cut through the elbow.) The cloth's placement along and across the arm is drawn per clip,
+across within 2 cm of centre so that it drapes nearly symmetrically; friction (``SolverParams.friction``,
+static and sliding, inside the implicit solve) holds it there while the forearm turns.
+``arm_contact_report`` tells a clip of a cloth on the arm from one of a cloth falling off it.
 
 A motion builds a ``ClipScene``: the cloth at rest (``ClothSpec`` without wind)
 plus what changes when recording starts, and the parameters written to the
@@ -49,7 +52,8 @@ ARM_UPPER_M = 0.35             # shoulder -> elbow
 ARM_FORE_M = 0.30              # elbow -> hand
 ARM_ANGLE_DEG = 90.0           # the forearm's fixed sweep
 ARM_SPEED_DEG_S = (120.0, 300.0)
-ARM_OFFSET_M = 0.05            # max shift of the cloth's centre along and across the arm
+ARM_ALONG_M = 0.05             # max shift of the cloth's centre along the arm
+ARM_ACROSS_M = 0.02            # max shift across: flaps within 4 cm of each other (0.05 m let one side outweigh)
 
 
 @dataclass
@@ -113,7 +117,7 @@ def arm_scene(mesh: ClothMesh, size_m: float, material: Material, rng: np.random
     """A cloth laid flat over a capsule arm, draping during settling; the forearm starts turning at ``start_s``
     (the first recorded frame). All draws come from ``rng`` (the clip's motion stream)."""
     speed = math.radians(rng.uniform(*ARM_SPEED_DEG_S))
-    along, across = rng.uniform(-ARM_OFFSET_M, ARM_OFFSET_M, size=2)
+    along, across = rng.uniform(-1.0, 1.0, size=2) * (ARM_ALONG_M, ARM_ACROSS_M)
     uv = mesh.uv
     height = ARM_RADIUS_M + 0.01
     pos = np.stack([uv[:, 0] - 0.5 * size_m + along, uv[:, 1] - 0.5 * size_m + across,
@@ -130,3 +134,63 @@ def arm_scene(mesh: ClothMesh, size_m: float, material: Material, rng: np.random
               "forearm_angle_deg_per_frame": [min(math.degrees(speed) * (t + 1) / fps, ARM_ANGLE_DEG)
                                               for t in range(frames)]}
     return ClipScene(spec, np.zeros(3), params)
+
+
+def _rotate(v: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
+    """``v`` turned by ``angle`` radians about the unit ``axis`` (Rodrigues)."""
+    c, s = math.cos(angle), math.sin(angle)
+    return v * c + np.cross(axis, v) * s + axis * float(np.dot(axis, v)) * (1.0 - c)
+
+
+def _segment_distance(x: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    ab = b - a
+    t = np.clip((x - a) @ ab / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+    return np.linalg.norm(x - (a + t[:, None] * ab), axis=1)
+
+
+def arm_contact_report(frames, motion_params: dict, cloth_size_m: float, fall_margin_m: float | None = None,
+                       touch_m: float = 0.02) -> dict:
+    """Whether an ``arm`` clip shows a cloth on the arm or a cloth falling off it.
+
+    ``frames``: the recorded positions, (T, V, 3) or a sequence of (V_t, 3) (adaptive clips);
+    ``motion_params``: the clip's ``meta["motion_params"]`` (``arm_scene``'s). Returns, at the last frame
+    (distances in metres, "drop" = how far below the arm's axis, i.e. the elbow's height):
+
+    * ``centroid_drop_m``: of the cloth's centroid (``max_centroid_drop_m``: the largest over all frames);
+    * ``lowest_drop_m``: of the lowest vertex;
+    * ``fallen_fraction``: of the vertices lower than the arm's lowest point minus ``fall_margin_m``
+      (default 0.6 x the cloth's side: a draped vertex hangs at most half the cloth plus the placement offset,
+      0.3 m of a 0.5 m cloth, below the arm's top, i.e. 0.22 m below its lowest point);
+    * ``touching_fraction``: of the vertices within ``touch_m`` of the arm's surface (upper arm or forearm at
+      that frame's angle);
+    * ``on_arm``: no vertex fallen and some touching.
+    """
+    frames = [np.asarray(f, dtype=np.float64) for f in frames]
+    if not frames:
+        raise ValueError("arm_contact_report needs at least one frame")
+    radius = float(motion_params["arm_radius_m"])
+    shoulder, elbow = np.asarray(motion_params["shoulder"], float), np.asarray(motion_params["elbow"], float)
+    forearm = np.asarray(motion_params["forearm_at_rest"], float)
+    axis = np.asarray(motion_params["rotation_axis"], float)
+    axis = axis / np.linalg.norm(axis)
+    angles = motion_params["forearm_angle_deg_per_frame"]
+    margin = 0.6 * cloth_size_m if fall_margin_m is None else fall_margin_m
+    up = elbow[2]
+    x = frames[-1]
+    hand = elbow + _rotate(forearm, axis, math.radians(angles[min(len(frames), len(angles)) - 1]))
+    dist = np.minimum(_segment_distance(x, shoulder, elbow), _segment_distance(x, elbow, hand)) - radius
+    fallen = float(np.mean(x[:, 2] < up - radius - margin))
+    touching = float(np.mean(dist < touch_m))
+    return {"frames": len(frames),
+            "centroid_drop_m": float(up - x[:, 2].mean()),
+            "max_centroid_drop_m": float(max(up - f[:, 2].mean() for f in frames)),
+            "lowest_drop_m": float(up - x[:, 2].min()),
+            "fallen_fraction": fallen,
+            "touching_fraction": touching,
+            "on_arm": bool(fallen == 0.0 and touching > 0.0)}
+
+
+def arm_clip_report(clip) -> dict:
+    """``arm_contact_report`` of a saved ``sim.clip.SimClip`` of an ``arm`` setting."""
+    return arm_contact_report([pos for pos, _, _ in clip.frames()], clip.meta["motion_params"],
+                              float(clip.meta["cloth_size_m"]))

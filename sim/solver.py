@@ -24,9 +24,23 @@ handled in two places:
   surface's normal velocity prescribed (plus what closes any penetration in one
   step); CG starts from that dv and filters the normal direction out of the
   residual, so the cloth's stiff forces react against the arm instead of moving
-  the contact vertex. A contact whose constraint impulse comes out adhesive is
-  released for the next step. Without this, contact was resolved only after
-  the solve, which the solve never saw: for a stiff cloth it spent the
+  the contact vertex. A contact persists while its normal impulse pushes: one
+  whose constraint impulse comes out adhesive is released for the next step.
+  The penetration-closing part of the prescribed velocity is taken back off
+  after the step (it moves the vertex, it is not a velocity the cloth keeps).
+  Friction is in the solve too, as regularised Coulomb friction: a tangential
+  damping c P (P = I - n n^T) on the contact vertex's mass, c = mu J_n /
+  max(|slip|, ``slip_velocity``) from the previous step's normal impulse J_n
+  and the slip relative to the (rigidly turning) arm surface: mu J_n against a
+  sliding vertex, and at rest a stiff damping that holds a draped cloth
+  (creeping below ``slip_velocity``) while the pull stays inside the cone.
+  Before, contacts alternated on and off every step (the edge pass below and
+  the penetration recovery left resting vertices moving outward, so they
+  were dropped as "moving away") and friction acted only after the solve on
+  the penetrating part of the velocity: no static friction at all, and soft
+  and stiff cloths alike slid off the arm. Without the contact in the solve,
+  contact was resolved only after the solve, which the solve never saw: for a
+  stiff cloth it spent the
   stretching forces on the contact vertex, and the projection then undid that,
   so the arm acted through an effective spring of stiffness m / h^2 (about
   12 N/m at 8 substeps) instead of the cloth's; stiff cloths dragged by the
@@ -100,7 +114,8 @@ class SolverParams:
     air_drag: float = 0.1                 # kg/(m^2 s), tangential drag coefficient
     damping: float = 0.1                  # 1/s, mass-proportional
     contact_thickness: float = 0.005      # m, kept between the cloth and an arm's surface
-    friction: float = 0.5                 # Coulomb coefficient between cloth and arm
+    friction: float = 0.6                 # Coulomb coefficient between cloth and arm (fabric on skin)
+    slip_velocity: float = 1.0e-3         # m/s, below it friction is a stiff damping (static friction's creep)
     contact_tolerance: float = 0.005      # m, beyond the contact surface a vertex still counts as touching
     contact_iterations: int = 1           # Jacobi passes of the edge-capsule contact after each step
 
@@ -234,6 +249,10 @@ class BatchSolver:
             self.vy = wp.zeros(self.x.shape[0], dtype=wp.vec3, device=dev)
             self.contact_rn = wp.zeros(self.x.shape[0], dtype=float, device=dev)
             self.released = wp.zeros(self.x.shape[0], dtype=int, device=dev)
+            self.contact_jn = wp.zeros(self.x.shape[0], dtype=float, device=dev)
+            self.friction_c = wp.zeros(self.x.shape[0], dtype=float, device=dev)
+            self.friction_b = wp.zeros(self.x.shape[0], dtype=wp.vec3, device=dev)
+            self.contact_recover = wp.zeros(self.x.shape[0], dtype=wp.vec3, device=dev)
 
         nv, nf, nh = self.x.shape[0], self.tri.shape[0], self.hinge.shape[0]
         self.num_vertices, self.num_faces, self.num_hinges = nv, nf, nh
@@ -293,13 +312,15 @@ class BatchSolver:
                                            self.hinge_grad])
         if self.has_arm:
             launch(kernels.contact_prepare, nv, [self.arms, self.vertex_cloth, self.free, self.clock,
-                                                 float(P.contact_thickness), float(P.contact_tolerance), dt, self.x,
-                                                 self.v, self.released, self.contact_n, self.contact_y, self.vy])
+                                                 float(P.contact_thickness), float(P.contact_tolerance), dt,
+                                                 float(P.friction), float(P.slip_velocity), self.x, self.v,
+                                                 self.released, self.contact_jn, self.contact_n, self.contact_y,
+                                                 self.vy, self.friction_c, self.friction_b, self.contact_recover])
             hessian_product(self.vy, self.kv, 1.0, self.scratch, 0)
             launch(kernels.cg_start_contact, nv, [self.force, self.v, self.kv, self.mass, self.free, self.vertex_cloth,
                                                   dt, float(P.damping), self.diag, self.contact_n, self.contact_y,
-                                                  self.contact_rn, self.dv, self.r, self.z, self.p, self.ap, self.rz,
-                                                  self.pap])
+                                                  self.friction_c, self.friction_b, self.contact_rn, self.dv, self.r,
+                                                  self.z, self.p, self.ap, self.rz, self.pap])
         else:
             hessian_product(self.v, self.kv, 1.0, self.scratch, 0)
             launch(kernels.cg_start, nv, [self.force, self.v, self.kv, self.mass, self.free, self.vertex_cloth, dt,
@@ -314,13 +335,18 @@ class BatchSolver:
             else:
                 launch(kernels.cg_update, nv, [self.mass, self.free, self.vertex_cloth, self.diag, self.p, self.ap,
                                                it, self.dv, self.r, self.z, self.rz, self.pap])
-            if it + 1 < P.cg_iterations:
+            if it + 1 < P.cg_iterations and self.has_arm:
+                launch(kernels.cg_direction_contact, nv, [self.mass, self.vertex_cloth, dt, float(P.damping),
+                                                          self.friction_c, self.z, it, self.p, self.ap, self.rz,
+                                                          self.pap])
+            elif it + 1 < P.cg_iterations:
                 launch(kernels.cg_direction, nv, [self.mass, self.vertex_cloth, dt, float(P.damping), self.z, it,
                                                   self.p, self.ap, self.rz, self.pap])
         if self.has_arm:
-            launch(kernels.contact_release, nv, [self.contact_n, self.contact_rn, self.released])
+            launch(kernels.contact_release, nv, [self.contact_n, self.contact_rn, self.released, self.contact_jn])
         launch(kernels.integrate, nv, [self.dv, self.free, dt, self.x, self.v])
         if self.has_arm:
+            launch(kernels.contact_recovered, nv, [self.contact_recover, self.v])
             launch(kernels.advance_clock, 1, [self.clock, dt])
             launch(kernels.collide_arm, nv, [self.arms, self.vertex_cloth, self.free, self.clock,
                                              float(P.contact_thickness), float(P.friction), self.x, self.v])
