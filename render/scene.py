@@ -63,7 +63,7 @@ class Frame:
     ldr: np.ndarray  # (H, W, 3) uint8: sRGB, composited, tone-mapped
 
 
-def frame_camera(lo: np.ndarray, hi: np.ndarray, fov_deg: float = FOV_DEG) -> Framing:
+def frame_camera(lo: np.ndarray, hi: np.ndarray, fov_deg: float = FOV_DEG, margin: float = FRAME_MARGIN) -> Framing:
     """A camera that sees the whole box [lo, hi] (z up) from the side where the box is thinnest.
 
     Cloth hangs roughly in a vertical plane, so looking along the thinner
@@ -77,7 +77,7 @@ def frame_camera(lo: np.ndarray, hi: np.ndarray, fov_deg: float = FOV_DEG) -> Fr
     elevation = np.radians(ELEVATION_DEG)
     direction = np.cos(elevation) * view + np.sin(elevation) * np.array([0.0, 0.0, 1.0])
     across = max(extent[1 - axis], extent[2], 1e-3)
-    distance = FRAME_MARGIN * (across / 2) / np.tan(np.radians(fov_deg) / 2) + extent[axis] / 2
+    distance = margin * (across / 2) / np.tan(np.radians(fov_deg) / 2) + extent[axis] / 2
     radius = float(np.linalg.norm(extent) / 2)
     return Framing(target=center, origin=center + distance * direction, distance=float(distance),
                    radius=max(radius, 1e-3), fov_deg=fov_deg, floor_z=float(lo[2]))
@@ -184,7 +184,12 @@ class ClipRenderer:
         self.texture = make_texture(variant.texture, stream("texture"), variant.texture_tile_m)
         backgrounds = backgrounds or Backgrounds(variant, self.resolution)
         self.background, background_info = backgrounds.draw(stream("background"))
-        self.framing = frame_camera(*clip.bounds())
+        # A fixed camera per setting (the sim's ``view_box``), else one framed on the clip's own bounds
+        # (synthetic clips, garments, runs simulated before view_box existed).
+        box = clip.meta.get("view_box")
+        # The view box already holds every pose with room to spare, so it is framed without a margin.
+        self.framing = (frame_camera(*(np.asarray(b, np.float64) for b in box), margin=1.0) if box
+                        else frame_camera(*clip.bounds()))
         self.lights, lighting_info = emitters(self.mi, variant, self.framing, stream("lighting"))
         self.room = room_shapes(self.mi, variant, self.framing, stream("room"))
         self.camera = draw_camera(variant, stream("camera"))

@@ -136,6 +136,27 @@ def arm_scene(mesh: ClothMesh, size_m: float, material: Material, rng: np.random
     return ClipScene(spec, np.zeros(3), params)
 
 
+def view_box(motion: str, size_m: float) -> tuple[list[float], list[float]]:
+    """The box a fixed camera frames for every clip of ``motion`` (``meta["view_box"]``, used by render).
+
+    The same for every clip of a setting, as the paper's "controlled camera settings": a
+    cloth that stretches, sags or swings more then looks bigger or moves further in the
+    image. (A camera framed on each clip's own bounds would scale that difference away.)
+    The box holds every pose the motion reaches; its depth (y) is no larger than its width
+    (x), so the camera looks along y, at the cloth's face.
+    """
+    s = float(size_m)
+    if motion == "wind":
+        # Hanging from z = s down to 0 (more when stretched); blown mostly toward +y.
+        return [-0.55 * s, -0.25 * s, -0.15 * s], [0.55 * s, 0.85 * s, 1.05 * s]
+    if motion == "arm":
+        # The cloth lies across the arm (x) around the elbow, its flaps hanging about s / 2 below; the
+        # forearm's swing carries its part toward +-y, i.e. toward or away from the camera.
+        half = 0.6 * s + ARM_RADIUS_M
+        return [-half, -half, -0.55 * s - ARM_RADIUS_M], [half, half, 2 * ARM_RADIUS_M]
+    raise ValueError(f"unknown motion {motion!r}")
+
+
 def _rotate(v: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
     """``v`` turned by ``angle`` radians about the unit ``axis`` (Rodrigues)."""
     c, s = math.cos(angle), math.sin(angle)

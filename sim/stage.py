@@ -39,7 +39,7 @@ from sim.clip import SimClip
 from sim.config import REMESHING, SimConfig
 from sim.materials import load_material
 from sim.mesh import ClothMesh, square_cloth, vertices_per_side
-from sim.motions import MOTIONS, ClipScene, arm_scene, wind_scene
+from sim.motions import MOTIONS, ClipScene, arm_scene, view_box, wind_scene
 from sim.solver import BatchSolver, SolverParams, resolve_device
 
 # Health check of every recorded frame: beyond these a cloth has exploded.
@@ -272,7 +272,8 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
                         "motion": setting.motion, "remeshing": setting.remeshing, **labels,
                         "seed": run.config.seed, "fps": cfg.fps, "frames": cfg.frames, "substeps": sub,
                         "dt": 1.0 / (cfg.fps * sub), "settle_s": cfg.settle_s, "cloth_size_m": cfg.cloth_size_m,
-                        "vertices_per_side": n, "motion_params": scene.motion_params}
+                        "vertices_per_side": n, "motion_params": scene.motion_params,
+                        "view_box": view_box(setting.motion, cfg.cloth_size_m)}
                 if result.reason:
                     atomic_write_json(folder / "FAILED", {**meta, "status": "failed", "reason": result.reason})
                     return False

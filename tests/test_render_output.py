@@ -16,6 +16,7 @@ from render.backend import BackendError, MIN_LLVM_VERSION, _LLVM_NAME, find_libl
 from render.exr import read_exr, write_exr
 from render.scene import ClipRenderer
 from render.synthetic import waving_sheet
+from sim.clip import SimClip
 from render.tonemap import OPERATORS, tonemap
 from render.variants import USER_VARIANTS_ENV, get_variant
 
@@ -214,3 +215,18 @@ def test_llvm_backend_matches_scalar_roughly():
         images[backend] = renderer.render_frame(0).hdr
     assert np.abs(images["llvm_ad_rgb"][..., 3] - images["scalar_rgb"][..., 3]).mean() < 0.02
     assert abs(images["llvm_ad_rgb"][..., :3].mean() - images["scalar_rgb"][..., :3].mean()) < 0.05
+
+
+def test_clips_of_a_setting_share_one_camera_and_a_sagging_cloth_looks_longer():
+    """The camera frames the setting's view box, not each clip: a cloth that hangs lower covers more rows."""
+    rest = waving_sheet(frames=1, n=8, index=0)
+    box = [[-0.4, -0.2, -0.2], [0.4, 0.6, 1.1]]
+    p = rest.frame(0)[0][None]
+    long = SimClip.from_fixed({**rest.meta, "view_box": box}, p * np.array([1.0, 1.0, 1.3]) - np.array([0, 0, 0.3]),
+                              rest.faces, rest.uv)
+    short = SimClip.from_fixed({**rest.meta, "view_box": box}, p, rest.faces, rest.uv)
+    a, fa = render("grid", clip=short, resolution=32)
+    b, fb = render("grid", clip=long, resolution=32, clip_index=1)
+    assert np.allclose(a.framing.origin, b.framing.origin) and np.allclose(a.framing.target, b.framing.target)
+    rows = [int((f.hdr[..., 3].max(axis=1) > 0.5).sum()) for f in (fa, fb)]
+    assert rows[1] > rows[0] + 2, rows

@@ -287,8 +287,11 @@ def test_run_sim_writes_skips_and_redoes(tmp_path):
         assert m["class_index"] == cls and m["status"] == "ok" and m["setting"] == "wind-uniform1"
         assert classes.nearest_class(m["p"], m["k"]) == cls
         for key in ("clip_id", "index", "motion", "remeshing", "p_class", "k_class", "basis", "density", "seed",
-                    "fps", "frames", "substeps", "dt", "motion_params"):
+                    "fps", "frames", "substeps", "dt", "motion_params", "view_box"):
             assert key in m
+        lo, hi = map(np.asarray, m["view_box"])  # one camera box for the whole setting, holding every frame
+        assert m["view_box"] == SimClip.load(folder / clip_id(0)).meta["view_box"]
+        assert np.all(clip.positions.min(0) >= lo) and np.all(clip.positions.max(0) <= hi)
     again = run_sim(run, progress=False)
     assert again["simulated"] == 0 and again["skipped"] == 2
     (folder / "c00001" / "DONE").unlink()
