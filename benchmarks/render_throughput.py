@@ -259,7 +259,7 @@ def main(argv: list[str] | None = None) -> dict:
     mi = load_mitsuba(args.backend)
     clips = [waving_sheet(frames=args.frames, n=args.vertices, index=i) for i in range(args.clips)]
     warm = [waving_sheet(frames=max([2, *args.k]), n=args.vertices, index=1000 + i) for i in range(2)]
-    modes = [m for m in MODES if not (m == "pooled_frozen" and (args.no_freeze or mi.variant().startswith("scalar")))]
+    modes = [m for m in MODES if not (m == "pooled_frozen" and (args.no_freeze or not mi.variant().startswith("cuda")))]
     rounds = []
     frozen_failure = None
     for spp in args.spp:

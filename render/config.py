@@ -26,9 +26,10 @@ class RenderConfig:
     writer_threads: int = 4                 # threads that tone-map and write EXR/PNG while the next frames render
     reuse_scenes: bool = True               # one Mitsuba scene per structure, retargeted clip to clip (render.scene
                                             # ScenePool); False = a new scene per clip (on CUDA: an OptiX compile each)
-    freeze: bool = False                    # replay mi.render's recorded kernels (dr.freeze) instead of re-tracing
-                                            # them each frame; only where benchmarks/render_throughput.py shows the
-                                            # frozen frames equal the plain ones on that backend
+    freeze: bool = True                     # replay mi.render's recorded kernels (dr.freeze) instead of re-tracing
+                                            # them every frame: 1.8-2.7x per process on an H100, frames equal to
+                                            # 1e-8. CUDA only: on llvm_ad_rgb the replay kept the BVH of the frame
+                                            # it was recorded on (wrong frames), so it is ignored there
 
     def problems(self) -> list[str]:
         """What is wrong with these settings, one message each (empty when they are valid).

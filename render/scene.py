@@ -172,7 +172,7 @@ class ClipRenderer:
 
     def __init__(self, clip: SimClip, variant: RenderVariant, *, resolution: int, spp: int, run_seed: int,
                  clip_index: int, backend: str = "auto", backgrounds: Backgrounds | None = None,
-                 reuse_scenes: bool = True, freeze: bool = False):
+                 reuse_scenes: bool = True, freeze: bool = True):
         self.mi: ModuleType = load_mitsuba(backend)
         self.clip, self.variant = clip, variant
         self.resolution, self.spp = int(resolution), int(spp)
@@ -216,8 +216,10 @@ class ClipRenderer:
         self.rebuilds = 0       # scenes this clip built (pooled: 0 when an existing scene was retargeted)
         self.retargets = 0      # pooled scenes this clip took over
         self.pool = scene_pool(self.mi) if reuse_scenes else None
-        # dr.freeze needs a JIT backend; scalar_rgb renders without it.
-        self.freeze = bool(freeze) and reuse_scenes and not self.mi.variant().startswith("scalar")
+        # dr.freeze only on CUDA: there replayed frames equal traced ones (benchmarks/render_throughput.py:
+        # frozen_rel_error 1e-8 on an H100), while llvm_ad_rgb replays kept the BVH of the recorded frame
+        # after the cloth moved (wrong frames), and scalar_rgb has no kernels to record.
+        self.freeze = bool(freeze) and reuse_scenes and self.mi.variant().startswith("cuda")
         self._pooled: PooledScene | None = None
         self._capacity: tuple[int, int] | None = None
 
