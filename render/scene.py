@@ -1,27 +1,28 @@
-"""One Mitsuba scene per clip: build it once, move the cloth in place every frame.
+"""A clip's frames from a Mitsuba scene that is never rebuilt per frame.
 
 ``ClipRenderer(clip, variant, ...)`` draws everything random about the clip
-(texture, background, lights, camera errors) from named seed streams, frames a
-camera on the clip's bounding box over all frames, and builds the scene with
-the cloth as an in-memory ``mi.Mesh``. ``render_frame(t)`` writes frame t's
-vertex positions into that mesh (``mi.traverse`` + ``params.update()``; Mitsuba
-recomputes normals and the BVH) and renders; the scene is rebuilt only when the
-vertex or face count changes (adaptive remeshing). Rebuilding per frame would
-leak memory and, on the JIT backends, cost far more than the render itself.
+(texture, background, lights, camera errors) from named seed streams, frames the
+camera on the setting's fixed ``view_box`` from the sim meta (else on the clip's
+own bounds: synthetic clips, garments), and renders the cloth as an in-memory
+``mi.Mesh``. ``render_frame(t)`` writes frame t's vertex positions into that
+mesh (``mi.traverse`` + ``params.update()``; Mitsuba recomputes normals and the
+BVH) and renders. Rebuilding per frame would leak memory and, on the JIT
+backends, cost far more than the render itself.
 
 Scenes outlive clips (``ScenePool``). Building a Mitsuba scene is cheap, but
 on ``cuda_ad_rgb`` every new scene costs a fresh OptiX compile of the path
 tracer (about 0.5 s on an H100, against 1.6 ms of GPU time per 224 px, 16 spp
 frame), so a clip does not build its own: it takes a pooled scene of the same
 structure (variant, light and room layout, mesh capacity) and retargets it in
-place, copying its camera, lights, room and texture in through ``mi.traverse``.
+place, writing its camera, lights, room and texture in through ``mi.traverse``.
 Meshes are allocated for a capacity and padded (unreferenced vertices,
 degenerate faces that no ray hits), so clips and remeshed frames of different
-sizes share one scene. On the JIT backends ``mi.render`` runs under
-``dr.freeze``: its kernels are recorded once per scene and replayed with the
-new parameters, which removes the per-frame tracing of the integrator (the
-larger part of a frame's time at one frame per launch). ``reuse_scenes=False``
-gives the old one-scene-per-clip path, the reference the pool is tested against.
+sizes share one scene. On CUDA ``mi.render`` runs under ``dr.freeze``: its
+kernels are recorded once per scene and replayed with the new parameters, which
+removes the per-frame tracing of the integrator (the larger part of a frame's
+time at one frame per launch). ``reuse_scenes=False`` gives a scene per clip,
+rebuilt when the vertex or face count changes: the reference the pool is tested
+against.
 
 A frame comes back twice: the cloth's linear RGBA radiance (what goes to EXR,
 alpha = coverage, the background not in it) and the 8-bit sRGB image the
