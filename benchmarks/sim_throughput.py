@@ -34,6 +34,7 @@ def main() -> None:
     ap.add_argument("--grid", type=int, default=16)
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--substeps", type=int, default=8)
+    ap.add_argument("--out", type=Path, help="JSON path (default: benchmarks/results/sim_throughput-<device>-n<N>-L<level>.json)")
     args = ap.parse_args()
     device = resolve_device(args.device)
     basis = load_material("camel-ponte-roma")
@@ -65,7 +66,8 @@ def main() -> None:
                           "vertex_steps_per_s": vsteps / single},
         "speedup": single / batched,
     }
-    out = Path(__file__).resolve().parent / "results" / f"sim_throughput-{device.replace(':', '')}-n{args.n}-L{args.level}.json"
+    out = args.out or (Path(__file__).resolve().parent / "results"
+                       / f"sim_throughput-{device.replace(':', '')}-n{args.n}-L{args.level}.json")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(result, indent=2))
