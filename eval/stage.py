@@ -90,14 +90,29 @@ def rendered_variants(run: Run, setting: str) -> list[str]:
     return configured + [n for n in names if n not in configured]
 
 
-def test_clips(run: Run, setting: str) -> list[str]:
+def test_windows(run: Run, setting: str) -> dict[str, list[int] | None]:
+    """``{clip_id: test window starts, or None for every window}`` of the setting's split."""
+    from learn.split import part_windows
+
     path = run.split_path(setting)
     if not path.is_file():
         raise ConfigError(f"no split {path}: run `clothgap train {run.root}` first (it writes the splits)")
     split = json.loads(path.read_text())
     if "test" not in split:
         raise ConfigError(f"{path} has no 'test' list of clip ids")
-    return list(split["test"])
+    return part_windows(split, "test")
+
+
+def test_clips(run: Run, setting: str) -> list[str]:
+    return sorted(test_windows(run, setting))
+
+
+def only_windows(frame: pd.DataFrame, windows: dict[str, list[int] | None]) -> pd.DataFrame:
+    """The rows of a prediction frame whose (clip_id, start) is a test item (a split by sub-sequence)."""
+    if all(w is None for w in windows.values()):
+        return frame
+    keep = [windows.get(c) is None or s in windows[c] for c, s in zip(frame["clip_id"], frame["start"])]
+    return frame[keep].reset_index(drop=True)
 
 
 def _flatten(data: dict, prefix: str = "") -> dict:
@@ -181,7 +196,8 @@ def predict_all(run: Run, models: list[TrainedModel], predictor: Predictor,
     cells: dict[tuple, tables.Cell] = {}
     counts = {"predicted": 0, "reused": 0, "no_test_clips": 0}
     for m in models:
-        test_ids = test_clips(run, m.setting)
+        windows = test_windows(run, m.setting)
+        test_ids = sorted(windows)
         for test_variant in rendered_variants(run, m.setting):
             path = prediction_path(run, m, test_variant)
             if path.is_file():
@@ -201,7 +217,7 @@ def predict_all(run: Run, models: list[TrainedModel], predictor: Predictor,
                 if progress:
                     print(f"[eval] {_rel(run, m.folder)} on {test_variant}: {len(clip_dirs)} clips, "
                           f"{len(frame)} sub-sequences, {time.perf_counter() - t0:.1f} s", flush=True)
-            frame = frame.assign(seed=m.seed)
+            frame = only_windows(frame, windows).assign(seed=m.seed)
             key = (m.setting, m.variant, m.model, test_variant)
             if key in cells:
                 cells[key].frame = pd.concat([cells[key].frame, frame], ignore_index=True)

@@ -14,6 +14,7 @@ from clothgap import checks
 MODEL_NAMES = ("lrcn", "base1", "base2", "base3")   # the registry of learn.models (it checks it builds each)
 READOUTS = ("mean", "last")
 SCHEDULES = ("cosine", "step")
+SPLIT_BY = ("sequence", "subsequence")              # learn.split: whole sequences, or the paper's leaky windows
 IMAGE_SIZES = range(32, 225, 16)                    # FrameCNN: a multiple of 16 from 32 to 224
 
 
@@ -26,6 +27,8 @@ class TrainConfig:
     clip_stride: int = 5                    # start-frame step between sub-sequences of one sequence
     val_fraction: float = 0.1
     test_fraction: float = 1 / 6            # the paper: 432 of 2,592 sequences
+    split_by: str = "sequence"              # "sequence", or "subsequence": the paper's protocol, which leaks
+                                            # (windows of one simulation on both sides; learn.split)
     epochs: int = 10
     batch_size: int = 16
     lr: float = 1e-3
@@ -63,6 +66,10 @@ class TrainConfig:
         if self.val_fraction + self.test_fraction >= 1:
             out.append(f"train.val_fraction={self.val_fraction:g} + train.test_fraction={self.test_fraction:g} "
                        "leaves nothing to train on: their sum must be < 1")
+        out += checks.choice("train.split_by", self.split_by, SPLIT_BY)
+        if self.split_by == "subsequence" and self.clip_stride < self.clip_len:
+            out.append(f"train.split_by=subsequence needs train.clip_stride >= train.clip_len ({self.clip_len}), "
+                       f"got {self.clip_stride}: overlapping windows would share frames across train and test")
         out += checks.number("train.epochs", self.epochs, 1)
         out += checks.number("train.batch_size", self.batch_size, 1)
         out += checks.number("train.lr", self.lr, 0, lo_open=True)

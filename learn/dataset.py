@@ -171,17 +171,22 @@ class SubsequenceDataset(torch.utils.data.Dataset):
     resumed run sees the same augmented data as an uninterrupted one.
     """
 
-    def __init__(self, cache: FrameCache, clip_ids: list[str], clip_len: int, clip_stride: int,
-                 augment: bool = False, seed: int = 0):
+    def __init__(self, cache: FrameCache, clips: list[str] | dict[str, list[int] | None], clip_len: int,
+                 clip_stride: int, augment: bool = False, seed: int = 0):
+        """``clips``: clip ids (every window of each), or ``{clip_id: window starts or None}``
+        (``learn.split.part_windows``) for a split by sub-sequence."""
         self.cache = cache
         self.clip_len, self.clip_stride = clip_len, clip_stride
         self.augment, self.seed, self.epoch = augment, seed, 0
         self.samples: list[tuple[CachedClip, int]] = []
-        for cid in clip_ids:
+        windows = clips if isinstance(clips, dict) else dict.fromkeys(clips)
+        for cid, chosen in windows.items():
             clip = cache.clips.get(cid)
             if clip is None:
                 continue  # not rendered, or left out by the cache with a warning
             starts = subsequence_starts(clip.num_frames, clip_len, clip_stride)
+            if chosen is not None:
+                starts = [s for s in starts if s in set(chosen)]
             if not starts:
                 warnings.warn(f"clip {cid} has {clip.num_frames} frames, fewer than clip_len={clip_len}; left out",
                               stacklevel=2)

@@ -1,11 +1,21 @@
-"""Train/val/test splits by simulated sequence, shared by every variant and model.
+"""Train/val/test splits, shared by every variant and model of a run.
 
-Sub-sequences of one simulated sequence look almost alike, so splitting by frame
-or sub-sequence would leak test material into training. A split therefore lists
-whole clip ids (one clip = one simulated sequence), is stratified by class, and
-is written once per setting to ``splits/<setting>.json``: every render variant
-and model of the run reads the same file, which keeps the domain-gap matrix
-paired.
+``train.split_by = "sequence"`` (the default): sub-sequences of one simulated
+sequence look almost alike, so splitting by frame or sub-sequence would leak
+test material into training. The split lists whole clip ids (one clip = one
+simulated sequence), stratified by class.
+
+``train.split_by = "subsequence"``: the paper's protocol as we read Section 7.1
+("2,592 sequences ... 2,106 for training, 432 for testing; each sequence
+consists of 10 frames", cut from longer simulations): the non-overlapping
+``clip_len``-frame windows of every simulated sequence are the items, split at
+random per class, so windows of one simulation fall on both sides. It exists to
+measure how much that leak is worth (docs/learnability.md); it is not a test of
+generalisation. Items are written ``"<clip_id>@<start frame>"``.
+
+Either way the split is written once per setting to ``splits/<setting>.json``:
+every render variant and model of the run reads the same file, which keeps the
+domain-gap matrix paired.
 """
 
 from __future__ import annotations
@@ -18,6 +28,7 @@ from clothgap.config import ConfigError
 from clothgap.runs import Run, atomic_write_json
 
 PARTS = ("train", "val", "test")
+SPLIT_BY = ("sequence", "subsequence")
 
 
 def split_sequences(labels: dict[str, int], val_fraction: float, test_fraction: float,
@@ -62,22 +73,67 @@ def clip_labels(run: Run, setting: str) -> dict[str, int]:
                       f"run `clothgap sim {run.root}` and `clothgap render {run.root}` first")
 
 
+def window_item(clip_id: str, start: int) -> str:
+    return f"{clip_id}@{start}"
+
+
+def parse_item(item: str) -> tuple[str, int | None]:
+    """``"clip"`` -> (clip, None) (every window); ``"clip@30"`` -> (clip, 30) (one window)."""
+    clip, sep, start = item.rpartition("@")
+    return (clip, int(start)) if sep else (item, None)
+
+
+def part_windows(split: dict, part: str) -> dict[str, list[int] | None]:
+    """``{clip_id: window starts}`` of one part; ``None`` means every window of the clip."""
+    out: dict[str, list[int] | None] = {}
+    for item in split[part]:
+        clip, start = parse_item(item)
+        if start is None:
+            out[clip] = None
+        elif out.get(clip, []) is not None:
+            out.setdefault(clip, []).append(start)
+    return {c: (sorted(s) if s is not None else None) for c, s in out.items()}
+
+
+def part_clips(split: dict, part: str) -> list[str]:
+    """The clip ids with at least one item in ``part``."""
+    return sorted(part_windows(split, part))
+
+
+def split_subsequences(labels: dict[str, int], num_frames: int, clip_len: int, clip_stride: int,
+                       val_fraction: float, test_fraction: float, seed: int) -> dict[str, list[str]]:
+    """The paper's protocol: the windows of every sequence (``clip_stride >= clip_len``: no shared
+    frame), split per class at random."""
+    if clip_stride < clip_len:
+        raise ConfigError(f"a split by subsequence needs clip_stride >= clip_len, got {clip_stride} < {clip_len}")
+    starts = list(range(0, num_frames - clip_len + 1, clip_stride))
+    if not starts:
+        raise ConfigError(f"sequences of {num_frames} frames hold no {clip_len}-frame window")
+    items = {window_item(cid, s): label for cid, label in labels.items() for s in starts}
+    return split_sequences(items, val_fraction, test_fraction, seed)
+
+
 def get_or_make_split(run: Run, setting: str) -> dict:
     """The run's split of ``setting``: read from ``splits/<setting>.json``, made once if absent."""
     path = run.split_path(setting)
-    if path.is_file():
-        return load_split(path)
     cfg = run.config.train
-    parts = split_sequences(clip_labels(run, setting), cfg.val_fraction, cfg.test_fraction, run.config.seed)
-    split = {"by": "sequence", "seed": run.config.seed, **parts}
+    if path.is_file():
+        return load_split(path, cfg.split_by)
+    labels = clip_labels(run, setting)
+    if cfg.split_by == "subsequence":
+        parts = split_subsequences(labels, run.config.sim.frames, cfg.clip_len, cfg.clip_stride, cfg.val_fraction,
+                                   cfg.test_fraction, run.config.seed)
+    else:
+        parts = split_sequences(labels, cfg.val_fraction, cfg.test_fraction, run.config.seed)
+    split = {"by": cfg.split_by, "seed": run.config.seed, **parts}
     atomic_write_json(path, split)
     return split
 
 
-def load_split(path: Path) -> dict:
+def load_split(path: Path, by: str = "sequence") -> dict:
     split = json.loads(Path(path).read_text())
     missing = [k for k in ("by", *PARTS) if k not in split]
-    if missing or split["by"] != "sequence":
-        raise ConfigError(f"{path} is not a split by sequence (missing {missing or 'by=sequence'}); "
-                          "delete it to have it remade")
+    if missing or split["by"] != by:
+        raise ConfigError(f"{path} is not a split by {by} (missing {missing or 'by=' + by}; "
+                          f"it says by={split.get('by')!r}); delete it to have it remade")
     return split

@@ -35,7 +35,7 @@ from clothgap.runs import Run, atomic_write_json, atomic_write_text, fresh_dir, 
 from learn.config import SCHEDULES
 from learn.dataset import SubsequenceDataset, build_cache, to_input
 from learn.models import NUM_CLASSES, ClipClassifier, build_model, load_cnn_weights, model_args
-from learn.split import get_or_make_split
+from learn.split import PARTS, get_or_make_split, part_clips, part_windows
 
 METRIC_COLUMNS = ("epoch", "train_loss", "train_acc", "val_loss", "val_acc", "lr", "seconds")
 
@@ -232,13 +232,14 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
     cache = build_cache(run, variant, setting, cfg.image_size, progress)
     if main:
         _barrier()
-    unassigned = sorted(set(cache.clips) - {c for part in ("train", "val", "test") for c in split[part]})
+    unassigned = sorted(set(cache.clips) - {c for part in PARTS for c in part_clips(split, part)})
     if unassigned and main:
         warnings.warn(f"{len(unassigned)} rendered clip(s) of {setting}/{variant} are in no part of "
                       f"{run.split_path(setting)} (rendered after the split was made?) and are not used: "
                       f"{', '.join(unassigned[:5])}{' ...' if len(unassigned) > 5 else ''}", stacklevel=2)
-    train_set = SubsequenceDataset(cache, split["train"], cfg.clip_len, cfg.clip_stride, cfg.augment, torch_seed)
-    val_set = SubsequenceDataset(cache, split["val"], cfg.clip_len, cfg.clip_stride)
+    train_set = SubsequenceDataset(cache, part_windows(split, "train"), cfg.clip_len, cfg.clip_stride,
+                                   cfg.augment, torch_seed)
+    val_set = SubsequenceDataset(cache, part_windows(split, "val"), cfg.clip_len, cfg.clip_stride)
     if not len(train_set):
         raise ConfigError(f"no training sub-sequences for {setting}/{variant}: {len(split['train'])} train clips, "
                           f"clip_len={cfg.clip_len}; are the clips rendered and long enough?")

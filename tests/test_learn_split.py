@@ -59,3 +59,46 @@ def test_missing_clips_name_the_command(tmp_path):
     run = Run.create_or_resume(tmp_path / "run", StudyConfig())
     with pytest.raises(ConfigError, match="clothgap sim"):
         get_or_make_split(run, "wind-uniform1")
+
+
+def test_split_by_subsequence_puts_windows_of_one_sequence_on_both_sides(tmp_path):
+    # The paper's protocol (as read): disjoint windows are the items, so one simulation
+    # feeds train and test. Windows never share a frame; each window is on one side.
+    from learn.split import parse_item, part_clips, part_windows, split_subsequences
+
+    labels = _labels(54, 12)
+    split = split_subsequences(labels, num_frames=40, clip_len=10, clip_stride=10, val_fraction=0.1,
+                               test_fraction=1 / 6, seed=3)
+    items = [i for p in ("train", "val", "test") for i in split[p]]
+    assert len(items) == len(set(items)) == 54 * 12 * 4
+    assert {parse_item(i)[1] for i in items} == {0, 10, 20, 30}
+    shared = set(part_clips(split, "train")) & set(part_clips(split, "test"))
+    assert len(shared) > len(part_clips(split, "test")) // 2     # the leak it exists to measure
+    windows = part_windows(split, "test")
+    assert all(starts and set(starts) <= {0, 10, 20, 30} for starts in windows.values())
+    with pytest.raises(ConfigError, match="clip_stride >= clip_len"):
+        split_subsequences(labels, 40, 10, 5, 0.1, 0.2, seed=0)
+    assert TrainConfig(split_by="subsequence", clip_stride=5).problems()
+    assert not TrainConfig(split_by="subsequence", clip_stride=10).problems()
+    assert TrainConfig(split_by="frames").problems()
+
+
+def test_a_split_file_of_the_other_protocol_is_refused(tmp_path):
+    cfg = StudyConfig(train=TrainConfig(val_fraction=0.0, test_fraction=0.25))
+    run = Run.create_or_resume(tmp_path / "run", cfg)
+    setting = cfg.sim.settings()[0]
+    run.split_path(setting).parent.mkdir(parents=True, exist_ok=True)
+    run.split_path(setting).write_text(json.dumps({"by": "subsequence", "train": [], "val": [], "test": []}))
+    with pytest.raises(ConfigError, match="delete it"):
+        get_or_make_split(run, setting)
+
+
+def test_eval_scores_only_the_test_windows_of_a_split_by_subsequence():
+    import pandas as pd
+
+    from eval.stage import only_windows
+
+    frame = pd.DataFrame({"clip_id": ["a", "a", "a", "b"], "start": [0, 10, 20, 0], "pred": [1, 2, 3, 4]})
+    assert only_windows(frame, {"a": None, "b": None}).equals(frame)
+    kept = only_windows(frame, {"a": [10], "b": [0]})
+    assert list(zip(kept["clip_id"], kept["start"])) == [("a", 10), ("b", 0)]

@@ -117,3 +117,18 @@ def test_unknown_model_in_the_grid_is_named(tmp_path):
     run = Run(run.root, tiny_config(models=("lrcn", "resnet")))                  # a config never validated
     with pytest.raises(ValueError, match="resnet.*known: lrcn"):
         run_train(run, progress=False)
+
+
+def test_split_by_subsequence_trains_on_exactly_the_train_windows(tmp_path):
+    from learn.split import part_windows
+
+    run = synthetic_run(tmp_path / "run", tiny_config(epochs=1, split_by="subsequence", clip_stride=6))
+    out = train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
+    split = get_or_make_split(run, SETTING)
+    assert split["by"] == "subsequence" and all("@" in item for item in split["train"])
+    resolved = json.loads((out / "config.json").read_text())
+    assert resolved["train_subsequences"] == len(split["train"])
+    assert resolved["val_subsequences"] == len(split["val"])
+    train, test = part_windows(split, "train"), part_windows(split, "test")
+    assert set(train) & set(test)       # one simulation on both sides, as the protocol intends
+    assert all(not set(train[c]) & set(test[c]) for c in set(train) & set(test))
