@@ -286,6 +286,33 @@ def eval_measured(run_dir: Path, train_dirs: tuple[Path, ...], sequences: int | 
                   time.perf_counter() - t0)
 
 
+@eval.command("learnability")
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.option("--setting", "settings", multiple=True, metavar="NAME",
+              help="Only this simulated setting, e.g. wind-uniform1 (repeatable). Default: every simulated one.")
+@click.option("--clip-len", type=click.IntRange(min=2), default=10, show_default=True,
+              help="Frames per window.")
+@click.option("--stride", type=click.IntRange(min=1), metavar="N",
+              help="Start-frame step between windows (default: --clip-len, so windows share no frame).")
+def eval_learnability(run_dir: Path, settings: tuple[str, ...], clip_len: int, stride: int | None) -> None:
+    """How well the simulated 3D sequences alone tell the material, split by sequence and by the
+    paper's sub-sequence protocol (writes RUN_DIR/eval/learnability.{json,md}; needs only `clothgap sim`)."""
+    run = Run.open(run_dir)
+    run.require(run.root / "sim", "sim")
+    known = run.config.sim.settings()
+    unknown = [s for s in settings if s not in known]
+    if unknown:
+        raise ConfigError(f"unknown setting(s) {', '.join(unknown)}; this run simulates {', '.join(known)}")
+    if stride is not None and stride < clip_len:
+        raise ConfigError(f"--stride {stride} < --clip-len {clip_len}: overlapping windows would share frames "
+                          "across train and test in the split by sub-sequence")
+    from eval.learnability import run_probe
+
+    t0 = time.perf_counter()
+    _echo_summary("eval learnability", run_probe(run, list(settings) or None, clip_len=clip_len,
+                                                 stride=stride or clip_len), time.perf_counter() - t0)
+
+
 # ---- clone
 @cli.command()
 @click.argument("video", type=click.Path(path_type=Path))

@@ -1,0 +1,203 @@
+"""How much of the material class the simulated geometry itself carries: a probe on the sim clips.
+
+A CNN trained on renders can only learn what the pixels carry, and the pixels
+can only carry what the simulated 3D sequence carries. This probe skips the
+renderer: it reads each 10-frame window of every simulated sequence of a
+setting as the positions of a fixed 8 x 8 lattice of points of the cloth
+(nearest vertex in uv space, so adaptive meshes work too), summarises the
+window (mean and spread of each point over time, mean speed, bounding box) and
+fits classifiers to the 54 classes and to the 6 stretching and 9 bending bins.
+
+It is run under both split protocols (``learn.split``):
+
+* ``sequence``: whole simulations on one side; a test of generalisation to new
+  simulations, the number a model on renders should be compared with.
+* ``subsequence``: the paper's protocol as we read it; windows of one simulation
+  on both sides. The 1-nearest-neighbour classifier measures the leak: it is
+  right when the closest training window is a neighbour from the same
+  simulation, whatever the material.
+
+The classifiers are deliberately plain (multinomial logistic regression, a
+two-layer MLP, 1-NN on standardised features), trained full-batch in torch on
+CPU in seconds: the figures are a floor on what the geometry tells, not a
+ceiling.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from clothgap.runs import Run, atomic_write_json, atomic_write_text
+from sim.classes import class_indices
+
+LATTICE = 8                    # points per side of the probed lattice
+TARGETS = {"class": 54, "stretching": 6, "bending": 9}
+CLASSIFIERS = ("linear", "mlp", "nearest")
+
+
+def lattice_vertices(uv: np.ndarray, n: int = LATTICE) -> np.ndarray:
+    """Index of the vertex nearest to each point of an n x n lattice in uv space (inset by half a cell)."""
+    grid = (np.arange(n) + 0.5) / n
+    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    pts = lo + np.stack(np.meshgrid(grid, grid, indexing="ij"), -1).reshape(-1, 2) * (hi - lo)
+    return np.argmin(((uv[None, :, :] - pts[:, None, :]) ** 2).sum(-1), axis=1)
+
+
+def clip_lattice(folder: Path, n: int = LATTICE) -> np.ndarray:
+    """(T, n*n, 3) lattice positions of a simulated clip, frame by frame."""
+    from sim.clip import SimClip
+
+    clip = SimClip.load(folder)
+    out = []
+    index = lattice_vertices(clip.uv, n) if clip.fixed_topology else None
+    for pos, _faces, uv in clip.frames():
+        out.append(pos[index if index is not None else lattice_vertices(uv, n)])
+    return np.stack(out).astype(np.float32)
+
+
+def window_features(lattice: np.ndarray) -> np.ndarray:
+    """Features of one window (T, P, 3): per-point mean and std over time, mean speed, bounding box."""
+    speed = np.linalg.norm(np.diff(lattice, axis=0), axis=-1).mean(axis=0) if len(lattice) > 1 else \
+        np.zeros(lattice.shape[1], np.float32)
+    box = np.concatenate([lattice.min(axis=(0, 1)), lattice.max(axis=(0, 1))])
+    return np.concatenate([lattice.mean(0).ravel(), lattice.std(0).ravel(), speed, box]).astype(np.float32)
+
+
+def load_windows(run: Run, setting: str, clip_len: int, stride: int, progress: bool = True):
+    """Features (N, D), clip ids (N,), window starts (N,), classes (N,) of every finished sim clip."""
+    folder = run.sim_dir(setting)
+    ids = run.done_clips(folder)
+    if not ids:
+        from clothgap.errors import ConfigError
+        raise ConfigError(f"no finished sim clips in {folder}: run `clothgap sim {run.root}` first")
+    feats, clips, starts, labels = [], [], [], []
+    for cid in tqdm(ids, desc=f"probe {setting}", unit="clip", disable=not progress):
+        lattice = clip_lattice(folder / cid)
+        label = int(json.loads((folder / cid / "meta.json").read_text())["class_index"])
+        for s in range(0, len(lattice) - clip_len + 1, stride):
+            feats.append(window_features(lattice[s:s + clip_len]))
+            clips.append(cid)
+            starts.append(s)
+            labels.append(label)
+    return np.stack(feats), np.array(clips), np.array(starts), np.array(labels)
+
+
+def _targets(labels: np.ndarray) -> dict[str, np.ndarray]:
+    pk = np.array([class_indices(int(c)) for c in labels])
+    return {"class": labels, "stretching": pk[:, 0], "bending": pk[:, 1]}
+
+
+def fit_predict(kind: str, x_train: np.ndarray, y_train: np.ndarray, x_test: np.ndarray, classes: int,
+                seed: int = 0) -> np.ndarray:
+    """Predicted labels of ``x_test`` from one plain classifier trained on (x_train, y_train)."""
+    mean, std = x_train.mean(0), x_train.std(0) + 1e-6
+    xt = torch.from_numpy((x_train - mean) / std)
+    xs = torch.from_numpy((x_test - mean) / std)
+    if kind == "nearest":
+        d = torch.cdist(xs, xt)
+        return y_train[d.argmin(1).numpy()]
+    torch.manual_seed(seed)
+    y = torch.from_numpy(y_train.astype(np.int64))
+    if kind == "linear":
+        # Multinomial logistic regression with an L2 penalty, solved by L-BFGS.
+        model = torch.nn.Linear(xt.shape[1], classes)
+        opt = torch.optim.LBFGS(model.parameters(), lr=1.0, max_iter=200, history_size=20,
+                                line_search_fn="strong_wolfe")
+
+        def closure():
+            opt.zero_grad()
+            loss = torch.nn.functional.cross_entropy(model(xt), y) + 1e-1 * model.weight.pow(2).sum()
+            loss.backward()
+            return loss
+
+        opt.step(closure)
+    elif kind == "mlp":
+        model = torch.nn.Sequential(torch.nn.Linear(xt.shape[1], 256), torch.nn.ReLU(), torch.nn.Dropout(0.3),
+                                    torch.nn.Linear(256, 256), torch.nn.ReLU(), torch.nn.Dropout(0.3),
+                                    torch.nn.Linear(256, classes))
+        opt = torch.optim.AdamW(model.parameters(), lr=3e-3, weight_decay=1e-2)
+        for _ in range(300):
+            opt.zero_grad()
+            torch.nn.functional.cross_entropy(model(xt), y).backward()
+            opt.step()
+    else:
+        raise ValueError(f"unknown classifier {kind!r}; known: {', '.join(CLASSIFIERS)}")
+    model.eval()
+    with torch.no_grad():
+        return model(xs).argmax(1).numpy()
+
+
+def probe(run: Run, setting: str, clip_len: int = 10, stride: int = 10, test_fraction: float = 1 / 6,
+          classifiers: tuple[str, ...] = CLASSIFIERS, progress: bool = True) -> dict:
+    """Test accuracy of each classifier x target under both split protocols, with chance levels."""
+    from learn.split import parse_item, split_sequences, split_subsequences
+
+    t0 = time.perf_counter()
+    x, clips, starts, labels = load_windows(run, setting, clip_len, stride, progress)
+    first = {c: int(l) for c, l in zip(clips, labels)}
+    seed = run.config.seed
+    frames = int(starts.max()) + clip_len
+    protocols = {
+        "sequence": split_sequences(first, 0.0, test_fraction, seed),
+        "subsequence": split_subsequences(first, frames, clip_len, stride, 0.0, test_fraction, seed),
+    }
+    key = {(c, int(s)): i for i, (c, s) in enumerate(zip(clips, starts))}
+    of_clip: dict[str, list[int]] = {}
+    for i, c in enumerate(clips):
+        of_clip.setdefault(c, []).append(i)
+    all_targets = _targets(labels)
+    results = []
+    for protocol, split in protocols.items():
+        rows = {}
+        for part in ("train", "test"):
+            idx = []
+            for item in split[part]:
+                clip, start = parse_item(item)
+                idx += of_clip[clip] if start is None else [key[(clip, start)]]
+            rows[part] = np.array(sorted(idx))
+        tr, te = rows["train"], rows["test"]
+        for target, classes in TARGETS.items():
+            y = all_targets[target]
+            for kind in classifiers:
+                pred = fit_predict(kind, x[tr], y[tr], x[te], classes, seed)
+                results.append({"protocol": protocol, "target": target, "classifier": kind,
+                                "accuracy": float((pred == y[te]).mean()), "chance": 1.0 / classes,
+                                "train_windows": int(len(tr)), "test_windows": int(len(te))})
+    return {"setting": setting, "clips": int(len(first)), "windows": int(len(x)), "clip_len": clip_len,
+            "stride": stride, "features": int(x.shape[1]), "lattice": LATTICE, "results": results,
+            "seconds": round(time.perf_counter() - t0, 1)}
+
+
+def markdown(report: dict) -> str:
+    """One table per protocol: targets down, classifiers across, accuracy in percent (chance)."""
+    lines = [f"# What the simulated geometry tells: {report['setting']}", "",
+             f"{report['clips']} simulated sequences, {report['windows']} windows of {report['clip_len']} frames "
+             f"(every {report['stride']}), {report['features']} features from an {report['lattice']} x "
+             f"{report['lattice']} lattice. Test accuracy, %; chance in brackets.", ""]
+    res = report["results"]
+    kinds = list(dict.fromkeys(r["classifier"] for r in res))
+    for protocol in dict.fromkeys(r["protocol"] for r in res):
+        lines += [f"## split by {protocol}", "", "| target | " + " | ".join(kinds) + " |",
+                  "|---|" + "---|" * len(kinds)]
+        for target in TARGETS:
+            cells = {r["classifier"]: r for r in res if r["protocol"] == protocol and r["target"] == target}
+            chance = next(iter(cells.values()))["chance"]
+            lines.append(f"| {target} ({100 * chance:.1f}) | "
+                         + " | ".join(f"{100 * cells[k]['accuracy']:.1f}" for k in kinds) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def run_probe(run: Run, settings: list[str] | None = None, progress: bool = True, **kwargs) -> dict:
+    """Probe each simulated setting; write ``eval/learnability.{json,md}``."""
+    settings = settings or [s for s in run.config.sim.settings() if run.done_clips(run.sim_dir(s))]
+    reports = [probe(run, s, progress=progress, **kwargs) for s in settings]
+    atomic_write_json(run.eval_dir / "learnability.json", {"settings": reports})
+    atomic_write_text(run.eval_dir / "learnability.md", "\n\n".join(markdown(r) for r in reports))
+    return {"settings": settings, "written": str(run.eval_dir / "learnability.md")}
