@@ -32,7 +32,7 @@ def assert_user_error(r: subprocess.CompletedProcess, *names: str) -> None:
 
 @pytest.mark.parametrize("sub", [[], ["sim"], ["sim", "run"], ["sim", "sensitivity"], ["sim", "table2"],
                                  ["render"], ["train"], ["eval"], ["eval", "real"], ["eval", "measured"],
-                                 ["report"], ["pipeline"]])
+                                 ["eval", "learnability"], ["report"], ["pipeline"]])
 def test_every_subcommand_has_help(sub):
     r = clothgap(*sub, "--help")
     assert r.returncode == 0, r.stderr
@@ -58,6 +58,16 @@ def test_missing_stage_input_names_the_command_to_run(tmp_path):
     r = clothgap("render", str(tmp_path / "r"))
     assert r.returncode == 2
     assert "clothgap sim" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_eval_learnability_names_what_is_missing_or_wrong(tmp_path):
+    Run.create_or_resume(tmp_path / "r", preset("smoke"))
+    assert_user_error(clothgap("eval", "learnability", str(tmp_path / "r")), "clothgap sim")
+    folder = tmp_path / "r" / "sim" / "wind-uniform1" / "c00000"
+    folder.mkdir(parents=True)
+    assert_user_error(clothgap("eval", "learnability", str(tmp_path / "r"), "--setting", "arm-uniform9"),
+                      "arm-uniform9", "wind-uniform1")
+    assert_user_error(clothgap("eval", "learnability", str(tmp_path / "r"), "--stride", "5"), "--stride 5")
 
 
 def test_unknown_option_and_bad_override_are_named(tmp_path):
