@@ -294,11 +294,15 @@ def eval_measured(run_dir: Path, train_dirs: tuple[Path, ...], sequences: int | 
               help="Frames per window.")
 @click.option("--stride", type=click.IntRange(min=1), metavar="N",
               help="Start-frame step between windows (default: --clip-len, so windows share no frame).")
-def eval_learnability(run_dir: Path, settings: tuple[str, ...], clip_len: int, stride: int | None) -> None:
+@click.option("--pixels", "variant", metavar="VARIANT",
+              help="Probe the rendered frames of this variant (16 px window summaries) instead of the geometry: "
+                   "how well a clip is recognised by its look (texture, background, light) alone.")
+def eval_learnability(run_dir: Path, settings: tuple[str, ...], clip_len: int, stride: int | None,
+                      variant: str | None) -> None:
     """How well the simulated 3D sequences alone tell the material, split by sequence and by the
     paper's sub-sequence protocol (writes RUN_DIR/eval/learnability.{json,md}; needs only `clothgap sim`)."""
     run = Run.open(run_dir)
-    run.require(run.root / "sim", "sim")
+    run.require(run.root / ("render" if variant else "sim"), "render" if variant else "sim")
     known = run.config.sim.settings()
     unknown = [s for s in settings if s not in known]
     if unknown:
@@ -310,7 +314,8 @@ def eval_learnability(run_dir: Path, settings: tuple[str, ...], clip_len: int, s
 
     t0 = time.perf_counter()
     _echo_summary("eval learnability", run_probe(run, list(settings) or None, clip_len=clip_len,
-                                                 stride=stride or clip_len), time.perf_counter() - t0)
+                                                 stride=stride or clip_len, pixels=variant),
+                  time.perf_counter() - t0)
 
 
 # ---- clone

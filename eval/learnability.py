@@ -69,6 +69,28 @@ def window_features(lattice: np.ndarray) -> np.ndarray:
     return np.concatenate([lattice.mean(0).ravel(), lattice.std(0).ravel(), speed, box]).astype(np.float32)
 
 
+PIXEL_SIZE = 16               # side of the frames the pixel probe reads
+
+
+def pixel_windows(run: Run, variant: str, setting: str, clip_len: int, stride: int, progress: bool = True):
+    """Like ``load_windows``, from the rendered frames of a variant: each window's mean and spread
+    over time of its frames shrunk to 16 x 16 px (what a model could memorise a clip by: texture,
+    background, light), as the same (features, clip ids, starts, classes)."""
+    from learn.dataset import build_cache
+
+    cache = build_cache(run, variant, setting, PIXEL_SIZE, progress)
+    frames = cache.frames
+    feats, clips, starts, labels = [], [], [], []
+    for cid, clip in cache.clips.items():
+        for s in range(0, clip.num_frames - clip_len + 1, stride):
+            window = np.asarray(frames[clip.offset + s: clip.offset + s + clip_len], np.float32) / 255
+            feats.append(np.concatenate([window.mean(0).ravel(), window.std(0).ravel()]))
+            clips.append(cid)
+            starts.append(s)
+            labels.append(clip.class_index)
+    return np.stack(feats), np.array(clips), np.array(starts), np.array(labels)
+
+
 def load_windows(run: Run, setting: str, clip_len: int, stride: int, progress: bool = True):
     """Features (N, D), clip ids (N,), window starts (N,), classes (N,) of every finished sim clip."""
     folder = run.sim_dir(setting)
@@ -142,12 +164,18 @@ def fit_predict(kind: str, x_train: np.ndarray, y_train: np.ndarray, x_test: np.
 
 
 def probe(run: Run, setting: str, clip_len: int = 10, stride: int = 10, test_fraction: float = 1 / 6,
-          classifiers: tuple[str, ...] = CLASSIFIERS, progress: bool = True) -> dict:
-    """Test accuracy of each classifier x target under both split protocols, with chance levels."""
+          classifiers: tuple[str, ...] = CLASSIFIERS, progress: bool = True, pixels: str | None = None) -> dict:
+    """Test accuracy of each classifier x target under both split protocols, with chance levels.
+
+    ``pixels``: probe the rendered frames of this render variant instead of the geometry.
+    """
     from learn.split import parse_item, split_sequences, split_subsequences
 
     t0 = time.perf_counter()
-    x, clips, starts, labels = load_windows(run, setting, clip_len, stride, progress)
+    if pixels:
+        x, clips, starts, labels = pixel_windows(run, pixels, setting, clip_len, stride, progress)
+    else:
+        x, clips, starts, labels = load_windows(run, setting, clip_len, stride, progress)
     first = {c: int(l) for c, l in zip(clips, labels)}
     seed = run.config.seed
     frames = int(starts.max()) + clip_len
@@ -178,17 +206,22 @@ def probe(run: Run, setting: str, clip_len: int = 10, stride: int = 10, test_fra
                                 "accuracy": float((pred == y[te]).mean()), "chance": 1.0 / classes,
                                 "within_one_bin": within_one_bin(target, pred, y[te]),
                                 "train_windows": int(len(tr)), "test_windows": int(len(te))})
-    return {"setting": setting, "clips": int(len(first)), "windows": int(len(x)), "clip_len": clip_len,
+    return {"setting": setting, "source": f"pixels of {pixels}" if pixels else "geometry",
+            "clips": int(len(first)), "windows": int(len(x)), "clip_len": clip_len,
             "stride": stride, "features": int(x.shape[1]), "lattice": LATTICE, "results": results,
             "seconds": round(time.perf_counter() - t0, 1)}
 
 
 def markdown(report: dict) -> str:
     """One table per protocol: targets down, classifiers across, accuracy in percent (chance)."""
-    lines = [f"# What the simulated geometry tells: {report['setting']}", "",
+    source = report.get("source", "geometry")
+    what = (f"an {report['lattice']} x {report['lattice']} lattice" if source == "geometry"
+            else f"{PIXEL_SIZE} x {PIXEL_SIZE} px frames")
+    title = "What the simulated geometry tells" if source == "geometry" else f"What the {source} tell"
+    lines = [f"# {title}: {report['setting']}", "",
              f"{report['clips']} simulated sequences, {report['windows']} windows of {report['clip_len']} frames "
-             f"(every {report['stride']}), {report['features']} features from an {report['lattice']} x "
-             f"{report['lattice']} lattice. Test accuracy, % (at most one bin off, %); chance in brackets.", ""]
+             f"(every {report['stride']}), {report['features']} features from {what}. "
+             "Test accuracy, % (at most one bin off, %); chance in brackets.", ""]
     res = report["results"]
     kinds = list(dict.fromkeys(r["classifier"] for r in res))
     for protocol in dict.fromkeys(r["protocol"] for r in res):
@@ -204,10 +237,14 @@ def markdown(report: dict) -> str:
     return "\n".join(lines)
 
 
-def run_probe(run: Run, settings: list[str] | None = None, progress: bool = True, **kwargs) -> dict:
-    """Probe each simulated setting; write ``eval/learnability.{json,md}``."""
-    settings = settings or [s for s in run.config.sim.settings() if run.done_clips(run.sim_dir(s))]
-    reports = [probe(run, s, progress=progress, **kwargs) for s in settings]
-    atomic_write_json(run.eval_dir / "learnability.json", {"settings": reports})
-    atomic_write_text(run.eval_dir / "learnability.md", "\n\n".join(markdown(r) for r in reports))
-    return {"settings": settings, "written": str(run.eval_dir / "learnability.md")}
+def run_probe(run: Run, settings: list[str] | None = None, progress: bool = True, pixels: str | None = None,
+              **kwargs) -> dict:
+    """Probe each simulated setting; write ``eval/learnability.{json,md}`` (``learnability-pixels-<variant>``
+    with ``pixels``)."""
+    found = (lambda s: run.done_clips(run.render_dir(pixels, s))) if pixels else (lambda s: run.done_clips(run.sim_dir(s)))
+    settings = settings or [s for s in run.config.sim.settings() if found(s)]
+    reports = [probe(run, s, progress=progress, pixels=pixels, **kwargs) for s in settings]
+    name = f"learnability-pixels-{pixels}" if pixels else "learnability"
+    atomic_write_json(run.eval_dir / f"{name}.json", {"settings": reports})
+    atomic_write_text(run.eval_dir / f"{name}.md", "\n\n".join(markdown(r) for r in reports))
+    return {"settings": settings, "written": str(run.eval_dir / f"{name}.md")}

@@ -67,3 +67,19 @@ def test_run_probe_writes_json_and_markdown(tmp_path):
     saved = json.loads((run.eval_dir / "learnability.json").read_text())
     assert summary["settings"] == ["wind-uniform1"] and saved["settings"][0]["clip_len"] == 10
     assert (run.eval_dir / "learnability.md").read_text().startswith("# What the simulated geometry tells")
+
+
+def test_pixel_probe_reads_rendered_frames(tmp_path):
+    # Synthetic rendered clips (learn.synthetic): per-sequence backgrounds make each clip recognisable,
+    # so 1-NN on pixels finds a window's own sequence when the split lets it.
+    from learn.config import TrainConfig
+    from learn.synthetic import synthetic_run
+
+    cfg = StudyConfig(sim=SimConfig(classes=CLASSES, sequences_per_class=6, frames=20),
+                      train=TrainConfig(image_size=32))
+    run = synthetic_run(tmp_path / "run", cfg)
+    summary = run_probe(run, progress=False, pixels="paper", classifiers=("nearest",))
+    report = json.loads((run.eval_dir / "learnability-pixels-paper.json").read_text())["settings"][0]
+    assert summary["settings"] == ["wind-uniform1"] and report["source"] == "pixels of paper"
+    assert report["features"] == 2 * 16 * 16 * 3 and report["windows"] == 24 * 2
+    assert _acc(report, "subsequence", "class", "nearest") > 0.9
