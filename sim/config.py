@@ -13,6 +13,7 @@ from clothgap import checks
 
 MOTIONS = ("wind", "arm")
 REMESHING = ("uniform1", "uniform2", "uniform3", "adaptive")    # uniform<level>; adaptive refines 1..3
+WIND_NUISANCE = ("full", "speed")                               # what a wind clip draws (sim.motions.wind_scene)
 
 
 @dataclass(frozen=True)
@@ -34,6 +35,9 @@ class SimConfig:
     cg_iterations: int = 30                         # conjugate-gradient iterations per solver step
     device: str = "auto"                            # "auto", "cpu", "cuda", "cuda:N"
     batch_size: int = 512                           # cloths advanced together in one launch
+    wind_nuisance: str = "full"                     # "full": pose, gathering, wind speed and direction drawn
+                                                    # per clip; "speed": only the wind speed (the paper varies
+                                                    # "the external force magnitude"); rod pose, fixed gathering
 
     def problems(self) -> list[str]:
         """What is wrong with these settings, one message each (empty when they are valid)."""
@@ -58,6 +62,7 @@ class SimConfig:
         out += checks.number("sim.settle_s", self.settle_s, 0)
         out += checks.number("sim.cg_iterations", self.cg_iterations, 1)
         out += checks.number("sim.batch_size", self.batch_size, 1)
+        out += checks.choice("sim.wind_nuisance", self.wind_nuisance, WIND_NUISANCE)
         out += checks.device("sim.device", self.device)
         return out
 

@@ -94,14 +94,24 @@ def gathered_positions(mesh: ClothMesh, size_m: float, ratio: float, waves: int)
     return pos, top
 
 
-def wind_scene(mesh: ClothMesh, size_m: float, material: Material, rng: np.random.Generator) -> ClipScene:
-    """A gathered hanging cloth and a constant wind, all drawn from ``rng`` (the clip's motion stream)."""
+def wind_scene(mesh: ClothMesh, size_m: float, material: Material, rng: np.random.Generator,
+               nuisance: str = "full") -> ClipScene:
+    """A gathered hanging cloth and a constant wind, all drawn from ``rng`` (the clip's motion stream).
+
+    ``nuisance="speed"`` keeps only the wind speed random (rod pose, the middle gathering, wind along
+    the cloth's normal): the paper's "external force magnitude". The draws are made either way, so a
+    clip's speed is the same under both.
+    """
     pose = POSES[int(rng.integers(len(POSES)))]
     ratio = rng.uniform(*GATHER_RATIO)
     waves = int(rng.integers(GATHER_WAVES[0], GATHER_WAVES[1] + 1))
     speed = rng.uniform(*WIND_SPEED_MPS)
     azimuth = math.radians(rng.uniform(-WIND_AZIMUTH_DEG, WIND_AZIMUTH_DEG))
     elevation = math.radians(rng.uniform(-WIND_ELEVATION_DEG, WIND_ELEVATION_DEG))
+    if nuisance == "speed":
+        pose, ratio, waves, azimuth, elevation = "rod", sum(GATHER_RATIO) / 2, 3, 0.0, 0.0
+    elif nuisance != "full":
+        raise ValueError(f"nuisance={nuisance!r}: expected 'full' or 'speed'")
     wind = speed * np.array([math.sin(azimuth) * math.cos(elevation), math.cos(azimuth) * math.cos(elevation),
                              math.sin(elevation)])
     pos, top = gathered_positions(mesh, size_m, ratio, waves)

@@ -187,7 +187,7 @@ def build_scene(cfg: SimConfig, seed: int, index: int, setting: Setting, mesh: C
         material = load_material(fabric)
         meta = fabric_labels(fabric)
     if setting.motion == "wind":
-        scene = wind_scene(mesh, cfg.cloth_size_m, material, motion_rng)
+        scene = wind_scene(mesh, cfg.cloth_size_m, material, motion_rng, cfg.wind_nuisance)
     else:
         scene = arm_scene(mesh, cfg.cloth_size_m, material, motion_rng, cfg.settle_s, cfg.fps, cfg.frames)
     return scene, meta

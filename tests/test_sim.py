@@ -414,3 +414,22 @@ def test_adaptive_setting_changes_topology_and_is_reproducible(tmp_path):
         assert clip.meta["remeshing"] == "adaptive" and "vertex_counts" in clip.meta
     soft_wind = SimClip.load(runs[0].sim_dir("wind-adaptive") / "c00000")
     assert not soft_wind.fixed_topology, "a soft cloth in wind should be refined somewhere"
+
+
+def test_wind_nuisance_speed_keeps_only_the_wind_speed_random():
+    from sim.config import SimConfig
+    from sim.materials import load_material
+    from sim.motions import wind_scene
+
+    mesh, material = square_cloth(0.5, 8), load_material("camel-ponte-roma")
+    full = [wind_scene(mesh, 0.5, material, np.random.default_rng(s)) for s in range(6)]
+    speed = [wind_scene(mesh, 0.5, material, np.random.default_rng(s), "speed") for s in range(6)]
+    assert len({(c.motion_params["pose"], c.motion_params["gather_half_waves"]) for c in full}) > 1
+    fixed = {(c.motion_params["pose"], c.motion_params["gather_ratio"], c.motion_params["gather_half_waves"],
+              c.motion_params["wind_azimuth_deg"], c.motion_params["wind_elevation_deg"]) for c in speed}
+    assert len(fixed) == 1
+    # the same clip stream gives the same speed under both, along the cloth's normal (+y)
+    for f, s in zip(full, speed):
+        assert s.motion_params["wind_speed_mps"] == f.motion_params["wind_speed_mps"]
+        assert np.allclose(s.wind, [0, f.motion_params["wind_speed_mps"], 0])
+    assert SimConfig(wind_nuisance="gusts").problems()
