@@ -71,7 +71,21 @@ def _paper() -> StudyConfig:
     )
 
 
-PRESETS: dict[str, typing.Callable[[], StudyConfig]] = {"smoke": _smoke, "small": _small, "paper": _paper}
+# The paper's Table 3: per motion, adaptive meshes with grid, colour and random textures, and uniform
+# 1-3 with random ones: twelve (setting, texture) datasets.
+TABLE3_PAIRS = tuple(f"{variant}:{motion}-adaptive" for variant in ("grid", "color") for motion in ("wind", "arm"))
+
+
+def _study() -> StudyConfig:
+    # The paper's whole study on one GPU: the paper preset plus the grid and colour textures on the
+    # adaptive settings only (render.variant_settings), twelve datasets in all.
+    base = _paper()
+    return replace(base, name="study", render=replace(base.render, variants=("paper", "grid", "color"),
+                                                      variant_settings=TABLE3_PAIRS))
+
+
+PRESETS: dict[str, typing.Callable[[], StudyConfig]] = {"smoke": _smoke, "small": _small, "paper": _paper,
+                                                        "study": _study}
 
 
 def preset(name: str) -> StudyConfig:
@@ -158,7 +172,19 @@ def problems(cfg: StudyConfig) -> list[str]:
         out.append(f"seed={cfg.seed}: must be >= 0")
     for stage in (cfg.sim, cfg.render, cfg.train, cfg.eval):
         out += stage.problems()
+    settings = cfg.sim.settings()
+    for pair in cfg.render.variant_settings:
+        setting = pair.partition(":")[2]
+        if setting and setting not in settings:
+            out.append(f"render.variant_settings: {pair!r} names setting {setting!r}, which the run does not "
+                       f"simulate ({', '.join(settings)})")
     return out
+
+
+def pairs(cfg: StudyConfig) -> list[tuple[str, str]]:
+    """(setting, variant) pairs the run renders, trains and evaluates, setting-major."""
+    return [(setting, variant) for setting in cfg.sim.settings() for variant in cfg.render.variants
+            if setting in cfg.render.settings_of(variant, cfg.sim.settings())]
 
 
 def validate(cfg: StudyConfig, where: str = "") -> StudyConfig:

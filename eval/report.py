@@ -197,7 +197,7 @@ def _section_learning(run: Run) -> str:
     cfg = run.config
     figs = []
     for setting in cfg.sim.settings():
-        for variant in cfg.render.variants:
+        for variant in [v for v in cfg.render.variants if setting in cfg.render.settings_of(v, cfg.sim.settings())]:
             for model in cfg.train.models:
                 for seed in cfg.train.seeds:
                     folder = run.train_dir(setting, variant, model, seed)

@@ -71,13 +71,14 @@ def finished_models(run: Run) -> list[TrainedModel]:
     """Every train folder of the config's grid that holds a DONE marker."""
     cfg = run.config
     found = []
-    for setting in cfg.sim.settings():
-        for variant in cfg.render.variants:
-            for model in cfg.train.models:
-                for seed in cfg.train.seeds:
-                    folder = run.train_dir(setting, variant, model, seed)
-                    if is_done(folder):
-                        found.append(TrainedModel(setting, variant, model, seed, folder))
+    from clothgap.config import pairs
+
+    for setting, variant in pairs(cfg):
+        for model in cfg.train.models:
+            for seed in cfg.train.seeds:
+                folder = run.train_dir(setting, variant, model, seed)
+                if is_done(folder):
+                    found.append(TrainedModel(setting, variant, model, seed, folder))
     return found
 
 

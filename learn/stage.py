@@ -14,9 +14,10 @@ def training_grid(run: Run) -> list[tuple[str, str, str, int]]:
     if unknown:
         raise ValueError(f"unknown model(s) {', '.join(unknown)} in train.models; known: {', '.join(MODEL_NAMES)}")
     models = sorted(cfg.models, key=lambda m: (m == "base2", MODEL_NAMES.index(m)))
+    from clothgap.config import pairs
+
     return [(setting, variant, model, seed)
-            for setting in run.config.sim.settings()
-            for variant in run.config.render.variants
+            for setting, variant in pairs(run.config)
             for seed in cfg.seeds
             for model in models]
 

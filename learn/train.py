@@ -382,6 +382,8 @@ def main(argv: list[str] | None = None) -> None:
             return
         for setting in opts.setting or cfg.sim.settings():
             for variant in opts.variant or cfg.render.variants:
+                if setting not in cfg.render.settings_of(variant, cfg.sim.settings()):
+                    continue   # render.variant_settings leaves this pair out
                 for seed in opts.seed or cfg.train.seeds:
                     for model_name in opts.model or cfg.train.models:
                         folder = train_one(run, setting, variant, model_name, seed, progress=not opts.no_progress)

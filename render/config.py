@@ -17,6 +17,10 @@ AUTO_FRAMES_PER_LAUNCH = {"cuda_ad_rgb": 1, "llvm_ad_rgb": 1, "scalar_rgb": 1}
 @dataclass(frozen=True)
 class RenderConfig:
     variants: tuple[str, ...] = ("paper",)  # names from the variant registry (`clothgap render --list-variants`)
+    variant_settings: tuple[str, ...] = ()  # "VARIANT:SETTING" pairs: a variant named here is rendered (and
+                                            # trained on) only for its listed settings, e.g. "grid:wind-adaptive"
+                                            # (the paper's Table 3 has grid and colour on adaptive meshes only);
+                                            # a variant not named here goes with every setting
     resolution: int = 64                    # square frames, pixels
     spp: int = 4                            # samples per pixel
     backend: str = "auto"                   # Mitsuba variant: "auto", "cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb"
@@ -30,6 +34,11 @@ class RenderConfig:
                                             # them every frame: 1.8-2.7x per process on an H100, frames equal to
                                             # 1e-8. CUDA only: on llvm_ad_rgb the replay kept the BVH of the frame
                                             # it was recorded on (wrong frames), so it is ignored there
+
+    def settings_of(self, variant: str, settings: list[str]) -> list[str]:
+        """The settings (of ``settings``, in order) that ``variant`` is rendered for."""
+        listed = [p.partition(":")[2] for p in self.variant_settings if p.partition(":")[0] == variant]
+        return [s for s in settings if s in listed] if listed else list(settings)
 
     def problems(self) -> list[str]:
         """What is wrong with these settings, one message each (empty when they are valid).
@@ -45,6 +54,13 @@ class RenderConfig:
         except VariantError as e:                   # e.g. $CLOTHGAP_VARIANTS_DIR is not a folder
             return [f"render.variants: {e}"]
         out += checks.names("render.variants", self.variants, known, "render variant")
+        for pair in self.variant_settings:
+            variant, sep, setting = pair.partition(":")
+            if not sep or not variant or not setting:
+                out.append(f"render.variant_settings: {pair!r} is not of the form VARIANT:SETTING")
+            elif variant not in self.variants:
+                out.append(f"render.variant_settings: {pair!r} names variant {variant!r}, which is not in "
+                           f"render.variants ({', '.join(self.variants)})")
         for name in dict.fromkeys(v for v in self.variants if v in known):
             try:
                 get_variant(name)

@@ -123,7 +123,7 @@ def run_render(run: Run, progress: bool = True, indices: Sequence[int] | None = 
     wanted = None if indices is None else {clip_name(i) for i in select_clips(run.config.sim.num_clips(), indices)}
     jobs = [(variant, setting, run.sim_dir(setting) / clip_id, run.render_dir(variant.name, setting) / clip_id)
             for variant in variants
-            for setting in run.config.sim.settings()
+            for setting in config.settings_of(variant.name, run.config.sim.settings())
             for clip_id in run.done_clips(run.sim_dir(setting)) if wanted is None or clip_id in wanted]
     return render_jobs(run, jobs, progress, variants=variants)
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from clothgap.config import preset
+from clothgap.config import ConfigError, preset, validate
 from clothgap.runs import Run, clip_id, is_done, mark_done
 from dataclasses import replace
 from render.backend import BackendError, MIN_LLVM_VERSION, _LLVM_NAME, find_libllvm, load_mitsuba, resolve_backend
@@ -162,10 +162,11 @@ def test_corrupt_background_is_reported_by_name_and_the_run_goes_on(tmp_path, mo
     assert named == set(summary["skipped_backgrounds"])  # every skipped file was reported by name
 
 
-def make_run(root, variants=("paper",), clips=2, frames=3):
+def make_run(root, variants=("paper",), clips=2, frames=3, remeshing=("uniform1",), variant_settings=()):
     cfg = preset("smoke")
-    cfg = replace(cfg, sim=replace(cfg.sim, frames=frames),
-                  render=replace(cfg.render, variants=variants, resolution=16, spp=1, backend=BACKEND))
+    cfg = replace(cfg, sim=replace(cfg.sim, frames=frames, remeshing=remeshing),
+                  render=replace(cfg.render, variants=variants, resolution=16, spp=1, backend=BACKEND,
+                                 variant_settings=variant_settings))
     run = Run.create_or_resume(root, cfg)
     for setting in cfg.sim.settings():
         for i in range(clips):
@@ -193,6 +194,29 @@ def test_stage_writes_frames_meta_and_done_and_skips_done_clips(tmp_path):
     assert meta["render"]["sampler_seed"] > 0 and meta["render"]["spp"] == 1
     again = run_render(run, progress=False)
     assert again["rendered"] == 0 and again["skipped"] == 4
+
+
+def test_variant_settings_render_and_train_only_the_listed_pairs(tmp_path):
+    # The paper's Table 3 puts the grid texture on adaptive meshes only.
+    from clothgap.config import pairs
+    from learn.stage import training_grid
+    from render.stage import run_render
+
+    run = make_run(tmp_path / "run", variants=("paper", "grid"), clips=1, frames=2,
+                   remeshing=("uniform1", "adaptive"), variant_settings=("grid:wind-adaptive",))
+    assert pairs(run.config) == [("wind-uniform1", "paper"), ("wind-adaptive", "paper"), ("wind-adaptive", "grid")]
+    summary = run_render(run, progress=False)
+    assert summary["rendered"] == 3 and summary["failed"] == []
+    assert not run.render_dir("grid", "wind-uniform1").exists()
+    assert is_done(run.render_dir("grid", "wind-adaptive") / clip_id(0))
+    assert {(s, v) for s, v, _m, _seed in training_grid(run)} == set(pairs(run.config))
+    with pytest.raises(ConfigError, match="not simulate"):
+        validate(replace(run.config, render=replace(run.config.render, variant_settings=("grid:arm-adaptive",))))
+    with pytest.raises(ConfigError, match="VARIANT:SETTING"):
+        validate(replace(run.config, render=replace(run.config.render, variant_settings=("grid",))))
+    study = preset("study")
+    assert len(pairs(study)) == 12 and ("arm-adaptive", "color") in pairs(study)
+    assert ("arm-uniform3", "grid") not in pairs(study)
 
 
 def test_backend_choice():
