@@ -305,7 +305,7 @@ def main(argv: list[str] | None = None) -> dict:
         rounds.append(result)
         print(json.dumps({k: v for k, v in result.items() if k != "render_only"}, indent=2), flush=True)
     report = {
-        "command": shlex.join([sys.executable, *sys.argv]) if argv is None else shlex.join(argv),
+        "command": shlex.join([Path(sys.executable).name, *sys.argv]) if argv is None else shlex.join(argv),
         "time": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "machine": platform.node(), "backend": mi.variant(), "mitsuba": mi.__version__,
         "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},

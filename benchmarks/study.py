@@ -220,7 +220,7 @@ def main() -> None:
     device = args.device if args.device != "auto" else ("cuda" if gpu_used_mib() is not None else "cpu")
     work = args.work or Path(tempfile.mkdtemp(prefix="clothgap-study-"))
     work.mkdir(parents=True, exist_ok=True)
-    report = {"command": shlex.join([sys.executable, *sys.argv]),
+    report = {"command": shlex.join([Path(sys.executable).name, *sys.argv]),
               "time": datetime.now(timezone.utc).isoformat(timespec="seconds"),
               "device": device, "machine": platform.node(), "platform": platform.platform(),
               "gpu_memory_before_mib": gpu_used_mib()}

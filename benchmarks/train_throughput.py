@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> Path:
              "bf16_compile_channels_last": time_loop(args, device, batches, amp=True, compile_=compile_fast,
                                                      channels_last=True)}
     report = {
-        "command": shlex.join([sys.executable, *sys.argv]) if argv is None else shlex.join(["train_throughput", *argv]),
+        "command": shlex.join([Path(sys.executable).name, *sys.argv]) if argv is None else shlex.join(["train_throughput", *argv]),
         "when": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "device": torch.cuda.get_device_name(device) if device.type == "cuda" else _cpu_name(),
         "torch": torch.__version__, "threads": torch.get_num_threads(),

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import click
 
-from clothgap.config import ConfigError, PRESETS, StudyConfig, apply_overrides, preset, with_name
+from clothgap.config import ConfigError, PRESETS, StudyConfig, apply_overrides, pairs, preset, with_name
 from clothgap.errors import UserError
 from clothgap.runs import Run, atomic_write_json
 
@@ -209,9 +209,9 @@ def train(run_dir, preset_name, out, overrides, model_name, variant, setting, tr
     for s in settings:
         if s not in cfg.sim.settings():
             raise ConfigError(f"unknown setting {s!r}; this run has {', '.join(cfg.sim.settings())}")
-        for v in variants:
-            if s in cfg.render.settings_of(v, cfg.sim.settings()):
-                run.require(run.render_dir(v, s), "render")
+    chosen = [(s, v) for s, v in pairs(cfg) if s in settings and v in variants]
+    for s, v in chosen:
+        run.require(run.render_dir(v, s), "render")
     t0 = time.perf_counter()
     if model_name or variant or setting or train_seed is not None:
         from learn.models import MODEL_NAMES
@@ -221,8 +221,7 @@ def train(run_dir, preset_name, out, overrides, model_name, variant, setting, tr
             raise ConfigError(f"unknown model {model_name!r}; known models: {', '.join(MODEL_NAMES)}")
         models = [model_name] if model_name else list(cfg.train.models)
         seeds = [train_seed] if train_seed is not None else list(cfg.train.seeds)
-        done = [str(train_one(run, s, v, m, sd)) for s in settings for v in variants
-                if s in cfg.render.settings_of(v, cfg.sim.settings()) for m in models for sd in seeds]
+        done = [str(train_one(run, s, v, m, sd)) for s, v in chosen for m in models for sd in seeds]
         _echo_summary("train", {"trained": done}, time.perf_counter() - t0)
     else:
         from learn.stage import run_train

@@ -34,7 +34,7 @@ import numpy as np
 import pandas as pd
 
 from clothgap import seeding
-from clothgap.config import ConfigError, to_dict
+from clothgap.config import ConfigError, pairs, to_dict
 from clothgap.runs import Run, atomic_write_json, atomic_write_text, is_done
 from eval import figures, metrics, tables
 from eval import predictions as preds
@@ -71,8 +71,6 @@ def finished_models(run: Run) -> list[TrainedModel]:
     """Every train folder of the config's grid that holds a DONE marker."""
     cfg = run.config
     found = []
-    from clothgap.config import pairs
-
     for setting, variant in pairs(cfg):
         for model in cfg.train.models:
             for seed in cfg.train.seeds:

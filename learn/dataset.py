@@ -186,7 +186,8 @@ class SubsequenceDataset(torch.utils.data.Dataset):
                 continue  # not rendered, or left out by the cache with a warning
             starts = subsequence_starts(clip.num_frames, clip_len, clip_stride)
             if chosen is not None:
-                starts = [s for s in starts if s in set(chosen)]
+                chosen = set(chosen)
+                starts = [s for s in starts if s in chosen]
             if not starts:
                 warnings.warn(f"clip {cid} has {clip.num_frames} frames, fewer than clip_len={clip_len}; left out",
                               stacklevel=2)

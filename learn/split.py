@@ -28,7 +28,6 @@ from clothgap.config import ConfigError
 from clothgap.runs import Run, atomic_write_json
 
 PARTS = ("train", "val", "test")
-SPLIT_BY = ("sequence", "subsequence")
 
 
 def split_sequences(labels: dict[str, int], val_fraction: float, test_fraction: float,

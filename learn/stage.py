@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from clothgap.config import pairs
 from clothgap.runs import Run, atomic_write_json, is_done
 from learn.models import MODEL_NAMES
 from learn.train import is_main, train_one
@@ -14,8 +15,6 @@ def training_grid(run: Run) -> list[tuple[str, str, str, int]]:
     if unknown:
         raise ValueError(f"unknown model(s) {', '.join(unknown)} in train.models; known: {', '.join(MODEL_NAMES)}")
     models = sorted(cfg.models, key=lambda m: (m == "base2", MODEL_NAMES.index(m)))
-    from clothgap.config import pairs
-
     return [(setting, variant, model, seed)
             for setting, variant in pairs(run.config)
             for seed in cfg.seeds

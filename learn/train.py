@@ -30,7 +30,7 @@ import torch
 from torch.utils.data import DataLoader, DistributedSampler
 
 from clothgap import seeding
-from clothgap.config import ConfigError
+from clothgap.config import ConfigError, pairs
 from clothgap.runs import Run, atomic_write_json, atomic_write_text, fresh_dir, is_done, mark_done
 from learn.config import SCHEDULES
 from learn.dataset import SubsequenceDataset, build_cache, to_input
@@ -380,15 +380,14 @@ def main(argv: list[str] | None = None) -> None:
 
             run_train(run, progress=not opts.no_progress)
             return
-        for setting in opts.setting or cfg.sim.settings():
-            for variant in opts.variant or cfg.render.variants:
-                if setting not in cfg.render.settings_of(variant, cfg.sim.settings()):
-                    continue   # render.variant_settings leaves this pair out
-                for seed in opts.seed or cfg.train.seeds:
-                    for model_name in opts.model or cfg.train.models:
-                        folder = train_one(run, setting, variant, model_name, seed, progress=not opts.no_progress)
-                        if is_main():
-                            print(folder)
+        for setting, variant in pairs(cfg):
+            if (opts.setting and setting not in opts.setting) or (opts.variant and variant not in opts.variant):
+                continue
+            for seed in opts.seed or cfg.train.seeds:
+                for model_name in opts.model or cfg.train.models:
+                    folder = train_one(run, setting, variant, model_name, seed, progress=not opts.no_progress)
+                    if is_main():
+                        print(folder)
     finally:
         if torch.distributed.is_initialized():
             torch.distributed.destroy_process_group()

@@ -3,7 +3,7 @@
 Tables live in ``assets/materials/<name>.json`` (schema ``clothgap.material/1``:
 named fields with units). ``stretching_stiffness`` and ``bending_stiffness`` are
 the reference evaluation of the model exactly as ArcSim uses it (see
-``/work/shared/reference/wang2011-model.md``); the Warp kernels in
+``shared/reference/wang2011-model.md`` in the project workspace); the Warp kernels in
 ``sim.solver`` evaluate the same formulas and the tests compare the two.
 
 Source: Wang, Ramamoorthi, O'Brien, Data-Driven Elastic Models for Cloth,
