@@ -319,6 +319,37 @@ def eval_learnability(run_dir: Path, settings: tuple[str, ...], clip_len: int, s
                   time.perf_counter() - t0)
 
 
+@eval.command("ablation")
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.option("--recipe", "recipes", multiple=True, required=True, metavar="LEVER[+LEVER...]",
+              help="A training recipe: levers joined by '+', each a named lever (baseline, augment, best, "
+                   "motion, geometry, factored, smooth, last, narrow, decay) or a train setting key=value, "
+                   "e.g. augment+geometry+aux_geometry=0.3 (repeatable; the first is the reference).")
+@click.option("--setting", help="The simulated setting (default: the run's first).")
+@click.option("--variant", help="The render variant trained and tested on (default: the run's first).")
+@click.option("--model", "models", multiple=True, metavar="NAME", help="Models to train (default: train.models).")
+@click.option("--seed", "seeds", multiple=True, type=int, help="Training seeds (default: train.seeds).")
+def eval_ablation(run_dir: Path, recipes: tuple[str, ...], setting: str | None, variant: str | None,
+                  models: tuple[str, ...], seeds: tuple[int, ...]) -> None:
+    """Train several recipes on the same data and score them on the same test clips, with intervals and
+    paired differences (trains into RUN_DIR/ablation/<recipe>/, writes RUN_DIR/eval/ablation-*.{json,md})."""
+    run = Run.open(run_dir)
+    run.require(run.root / "render", "render")
+    known = pairs(run.config)
+    setting = setting or known[0][0]
+    variant = variant or next((v for s, v in known if s == setting), known[0][1])
+    if (setting, variant) not in known:
+        raise ConfigError(f"--setting {setting} --variant {variant} is not a pair this run renders: "
+                          f"{', '.join(f'{s}/{v}' for s, v in known)}")
+    from eval.ablation import recipe_config, run_ablation
+
+    for recipe in recipes:
+        recipe_config(run.config, recipe)   # every recipe is checked before any training
+    t0 = time.perf_counter()
+    _echo_summary("eval ablation", run_ablation(run, setting, variant, list(recipes), list(models) or None,
+                                                list(seeds) or None), time.perf_counter() - t0)
+
+
 # ---- clone
 @cli.command()
 @click.argument("video", type=click.Path(path_type=Path))

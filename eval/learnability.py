@@ -36,30 +36,10 @@ from tqdm import tqdm
 from clothgap.errors import ConfigError
 from clothgap.runs import Run, atomic_write_json, atomic_write_text
 from sim.classes import class_indices
+from sim.lattice import LATTICE, clip_lattice
 
-LATTICE = 8                    # points per side of the probed lattice
 TARGETS = {"class": 54, "stretching": 6, "bending": 9}
 CLASSIFIERS = ("linear", "mlp", "nearest")
-
-
-def lattice_vertices(uv: np.ndarray, n: int = LATTICE) -> np.ndarray:
-    """Index of the vertex nearest to each point of an n x n lattice in uv space (inset by half a cell)."""
-    grid = (np.arange(n) + 0.5) / n
-    lo, hi = uv.min(axis=0), uv.max(axis=0)
-    pts = lo + np.stack(np.meshgrid(grid, grid, indexing="ij"), -1).reshape(-1, 2) * (hi - lo)
-    return np.argmin(((uv[None, :, :] - pts[:, None, :]) ** 2).sum(-1), axis=1)
-
-
-def clip_lattice(folder: Path, n: int = LATTICE) -> np.ndarray:
-    """(T, n*n, 3) lattice positions of a simulated clip, frame by frame."""
-    from sim.clip import SimClip
-
-    clip = SimClip.load(folder)
-    out = []
-    index = lattice_vertices(clip.uv, n) if clip.fixed_topology else None
-    for pos, _faces, uv in clip.frames():
-        out.append(pos[index if index is not None else lattice_vertices(uv, n)])
-    return np.stack(out).astype(np.float32)
 
 
 def window_features(lattice: np.ndarray) -> np.ndarray:

@@ -91,6 +91,13 @@ def class_distance(truth, pred) -> np.ndarray:
             + np.abs(classes.k_index(truth) - classes.k_index(pred))).astype(float)
 
 
+def within_one_bin(truth, pred) -> np.ndarray:
+    """1 where the prediction is at most one bin off in stretching and at most one in bending."""
+    truth, pred = _check(truth, pred)
+    return ((np.abs(classes.p_index(truth) - classes.p_index(pred)) <= 1)
+            & (np.abs(classes.k_index(truth) - classes.k_index(pred)) <= 1)).astype(float)
+
+
 def confusion_matrix(truth, pred, num_classes: int = classes.NUM_CLASSES) -> np.ndarray:
     """counts[t, p]: rows are true classes, columns predicted ones."""
     truth, pred = _check(truth, pred)
@@ -244,6 +251,7 @@ SCORES = {
     "stretch_acc": "stretching-factor accuracy",
     "bend_acc": "bending-factor accuracy",
     "class_dist": "mean class distance (grid steps)",
+    "within1": "within one bin of stretching and of bending",
 }
 
 
@@ -255,6 +263,7 @@ def row_scores(truth, pred, probs) -> dict[str, np.ndarray]:
         "stretch_acc": stretch_correct(truth, pred),
         "bend_acc": bend_correct(truth, pred),
         "class_dist": class_distance(truth, pred),
+        "within1": within_one_bin(truth, pred),
     }
 
 

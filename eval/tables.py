@@ -21,7 +21,7 @@ from eval import predictions as preds
 MODEL_ORDER = ("base1", "base2", "base3", "lrcn")
 MODEL_TITLES = {"base1": "Base-1 (CNN, RGB-I)", "base2": "Base-2 (fixed CNN+LSTM, RGB-V)",
                 "base3": "Base-3 (CNN+RNN, RGB-V)", "lrcn": "CNN+LSTM (RGB-V)"}
-DETAIL_SCORES = ("top3", "stretch_acc", "bend_acc", "class_dist", "seq_acc")
+DETAIL_SCORES = ("top3", "stretch_acc", "bend_acc", "within1", "class_dist", "seq_acc")
 
 # rng_for(key...) -> Generator: the stage passes clothgap.seeding-derived generators
 RngFactory = Callable[..., np.random.Generator]

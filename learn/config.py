@@ -14,6 +14,7 @@ from clothgap import checks
 MODEL_NAMES = ("lrcn", "base1", "base2", "base3")   # the registry of learn.models (it checks it builds each)
 READOUTS = ("mean", "last")
 SCHEDULES = ("cosine", "step")
+KEEP = ("last", "best")                             # which epoch's weights become checkpoint.pt
 SPLIT_BY = ("sequence", "subsequence")              # learn.split: whole sequences, or the paper's leaky windows
 IMAGE_SIZES = range(32, 225, 16)                    # FrameCNN: a multiple of 16 from 32 to 224
 
@@ -47,7 +48,12 @@ class TrainConfig:
     pretrained: str = ""                    # local weights file for the CNN; never downloaded
     amp: bool = True                        # bf16 autocast (CUDA only; ignored on CPU)
     compile: bool = False                   # torch.compile the model (CUDA only; ignored on CPU)
-    num_workers: int = 0                    # DataLoader worker processes
+    num_workers: int = 0                    # unused: batches are cut from frames held on the device
+                                            # (learn.windows); kept so that older run folders load
+    motion: bool = False                    # frame differences beside the frames (6 input channels)
+    aux_geometry: float = 0.0               # weight of the auxiliary lattice regression (learn.geometry)
+    label_smoothing: float = 0.0
+    keep: str = "last"                      # "last" epoch, or the "best" epoch by validation accuracy
 
     def problems(self) -> list[str]:
         """What is wrong with these settings, one message each (empty when they are valid)."""
@@ -83,4 +89,9 @@ class TrainConfig:
         out += checks.device("train.device", self.device, extra=("mps",))
         out += checks.number("train.num_threads", self.num_threads, 0)
         out += checks.number("train.num_workers", self.num_workers, 0)
+        out += checks.number("train.aux_geometry", self.aux_geometry, 0)
+        out += checks.number("train.label_smoothing", self.label_smoothing, 0, 1, hi_open=True)
+        out += checks.choice("train.keep", self.keep, KEEP)
+        if self.keep == "best" and self.val_fraction <= 0:
+            out.append("train.keep=best needs validation clips: set train.val_fraction > 0")
         return out

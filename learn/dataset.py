@@ -7,8 +7,9 @@ array of shape (total frames, size, size, 3) opened as a memmap, with
 written last, so a cache without one is unfinished and is rebuilt.
 
 A sequence of T frames yields sub-sequences starting every ``clip_stride``
-frames (``clip_len`` frames each). A clip with a missing or unreadable frame is
-reported by a warning naming the clip and the file, and left out.
+frames (``clip_len`` frames each); ``learn.windows`` cuts them into batches. A
+clip with a missing or unreadable frame is reported by a warning naming the
+clip and the file, and left out.
 """
 
 from __future__ import annotations
@@ -21,11 +22,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from PIL import Image
 from tqdm import tqdm
 
-from clothgap import seeding
 from clothgap.errors import MissingInputError
 from clothgap.runs import Run, atomic_write_json
 
@@ -160,77 +159,3 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
 def to_input(frames: torch.Tensor, device: torch.device | str) -> torch.Tensor:
     """uint8 (B, T, 3, H, W) -> float in [0, 1] on ``device`` (the models normalise further)."""
     return frames.to(device, non_blocking=True).float().div_(255)
-
-
-class SubsequenceDataset(torch.utils.data.Dataset):
-    """Sub-sequences of the given clips: items are (uint8 frames (T, 3, H, W), class index).
-
-    With ``augment``, each item gets a random temporal shift of its start frame,
-    a random resized crop, a horizontal flip and a colour jitter, the same for
-    every frame of the item. The draws depend only on (seed, epoch, item), so a
-    resumed run sees the same augmented data as an uninterrupted one.
-    """
-
-    def __init__(self, cache: FrameCache, clips: list[str] | dict[str, list[int] | None], clip_len: int,
-                 clip_stride: int, augment: bool = False, seed: int = 0):
-        """``clips``: clip ids (every window of each), or ``{clip_id: window starts or None}``
-        (``learn.split.part_windows``) for a split by sub-sequence."""
-        self.cache = cache
-        self.clip_len, self.clip_stride = clip_len, clip_stride
-        self.augment, self.seed, self.epoch = augment, seed, 0
-        self.samples: list[tuple[CachedClip, int]] = []
-        windows = clips if isinstance(clips, dict) else dict.fromkeys(clips)
-        for cid, chosen in windows.items():
-            clip = cache.clips.get(cid)
-            if clip is None:
-                continue  # not rendered, or left out by the cache with a warning
-            starts = subsequence_starts(clip.num_frames, clip_len, clip_stride)
-            if chosen is not None:
-                chosen = set(chosen)
-                starts = [s for s in starts if s in chosen]
-            if not starts:
-                warnings.warn(f"clip {cid} has {clip.num_frames} frames, fewer than clip_len={clip_len}; left out",
-                              stacklevel=2)
-            self.samples += [(clip, s) for s in starts]
-
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = epoch
-
-    @property
-    def labels(self) -> list[int]:
-        return [clip.class_index for clip, _ in self.samples]
-
-    def __len__(self) -> int:
-        return len(self.samples)
-
-    def __getitem__(self, i: int) -> tuple[torch.Tensor, int]:
-        clip, start = self.samples[i]
-        gen = None
-        if self.augment:
-            gen = torch.Generator().manual_seed(seeding.derive_int(self.seed, i, seeding.TRAIN, "augment", self.epoch))
-            shift = int(torch.randint(-(self.clip_stride // 2), self.clip_stride // 2 + 1, (1,), generator=gen))
-            start = min(max(start + shift, 0), clip.num_frames - self.clip_len)
-        rows = self.cache.frames[clip.offset + start: clip.offset + start + self.clip_len]
-        frames = torch.from_numpy(np.array(rows)).permute(0, 3, 1, 2)
-        if gen is not None:
-            frames = augment_frames(frames, gen)
-        return frames.contiguous(), clip.class_index
-
-
-def augment_frames(frames: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
-    """Random resized crop (70-100% of the side), flip and colour jitter of uint8 (T, 3, H, W)."""
-    _, _, h, w = frames.shape
-    r = torch.rand(7, generator=gen).tolist()
-    side = 0.7 + 0.3 * r[0]
-    ch, cw = max(1, round(h * side)), max(1, round(w * side))
-    y0, x0 = round((h - ch) * r[1]), round((w - cw) * r[2])
-    x = frames[:, :, y0:y0 + ch, x0:x0 + cw].float() / 255
-    x = F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
-    if r[3] < 0.5:
-        x = x.flip(-1)
-    brightness, contrast, saturation = 0.8 + 0.4 * r[4], 0.8 + 0.4 * r[5], 0.8 + 0.4 * r[6]
-    x = x * brightness
-    x = (x - x.mean()) * contrast + x.mean()
-    grey = x.mean(dim=1, keepdim=True)
-    x = (x - grey) * saturation + grey
-    return (x.clamp(0, 1) * 255).round().to(torch.uint8)

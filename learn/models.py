@@ -21,8 +21,10 @@ from torch import nn
 
 from clothgap.errors import MissingInputError
 from learn.config import IMAGE_SIZES, MODEL_NAMES, READOUTS
+from sim.lattice import LATTICE
 
 NUM_CLASSES = 54
+GEOMETRY_DIM = LATTICE * LATTICE * 3    # the auxiliary target: the 8 x 8 lattice of cloth points (learn.geometry)
 NUM_STRETCH = 6      # class index = NUM_BEND * stretching index + bending index
 NUM_BEND = 9
 # The frames' mean and spread (roughly ImageNet's), taken out inside the model so
@@ -48,13 +50,13 @@ class FrameCNN(nn.Module):
     between clips and the recurrent models hardly learned (tiny-batch tests).
     """
 
-    def __init__(self, image_size: int, width: int, fc6: int, dropout: float = 0.5):
+    def __init__(self, image_size: int, width: int, fc6: int, dropout: float = 0.5, in_channels: int = 3):
         super().__init__()
         if image_size not in IMAGE_SIZES:
             raise ValueError(f"image_size={image_size}: must be a multiple of 16 from 32 to 224")
         c1, c2, c3, c4, c5 = width, 3 * width, 6 * width, 4 * width, 4 * width
         self.features = nn.Sequential(
-            *_conv(3, c1, 11, stride=4), nn.MaxPool2d(3, 2, padding=1),
+            *_conv(in_channels, c1, 11, stride=4), nn.MaxPool2d(3, 2, padding=1),
             *_conv(c1, c2, 5), nn.MaxPool2d(3, 2, padding=1),
             *_conv(c2, c3, 3), *_conv(c3, c4, 3), *_conv(c4, c5, 3), nn.MaxPool2d(3, 2, padding=1),
         )
@@ -72,7 +74,7 @@ class FrameCNN(nn.Module):
                     nn.init.zeros_(layer.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """(N, 3, H, W) in [0, 1] -> (N, fc6)."""
+        """(N, C, H, W) in [0, 1] (C = 3, or 6 with frame differences) -> (N, fc6)."""
         return self.fc6(self.pool(self.features((x - _PIXEL_MEAN) / _PIXEL_STD)))
 
 
@@ -80,8 +82,15 @@ class ClipClassifier(nn.Module):
     """A FrameCNN on every frame, optionally a recurrent layer over frames, per-step heads."""
 
     def __init__(self, cnn: FrameCNN, temporal: str | None, hidden: int, readout: str = "mean",
-                 factored: bool = False, freeze_cnn: bool = False, num_classes: int = NUM_CLASSES):
+                 factored: bool = False, freeze_cnn: bool = False, num_classes: int = NUM_CLASSES,
+                 motion: bool = False, geometry_dim: int = 0):
         super().__init__()
+        # motion: each frame goes in beside its difference from the previous frame (zero for the
+        # first), so the first convolution sees motion directly, not only through the recurrence.
+        # geometry_dim: a per-frame regression head on the CNN's features (learn.geometry), trained
+        # as an auxiliary target and unused at prediction.
+        self.motion, self.geometry_dim = motion, geometry_dim
+        self.channels_last = False   # set by the trainer on CUDA: the convolutions' fast layout
         if readout not in READOUTS:
             raise ValueError(f"readout={readout!r}: known readouts are {', '.join(READOUTS)}")
         self.cnn, self.readout, self.freeze_cnn = cnn, readout, freeze_cnn
@@ -99,6 +108,8 @@ class ClipClassifier(nn.Module):
         if factored:
             self.head_stretch = nn.Linear(features, NUM_STRETCH)
             self.head_bend = nn.Linear(features, NUM_BEND)
+        if geometry_dim:
+            self.head_geometry = nn.Linear(cnn.out_features, geometry_dim)
         if freeze_cnn:
             self.cnn.requires_grad_(False)
 
@@ -109,29 +120,43 @@ class ClipClassifier(nn.Module):
         return self
 
     def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
-        """(B, T, 3, H, W) -> {"logits": (B, T, 54)[, "stretch": (B, T, 6), "bend": (B, T, 9)]}."""
+        """(B, T, 3, H, W) -> {"logits": (B, T, 54)[, "stretch": (B, T, 6), "bend": (B, T, 9)]
+        [, "geometry": (B, T, geometry_dim)]}."""
         b, t = x.shape[:2]
-        feats = self.cnn(x.flatten(0, 1)).unflatten(0, (b, t))
+        if self.motion:
+            x = torch.cat([x, x - torch.cat([x[:, :1], x[:, :-1]], dim=1)], dim=2)
+        frames = x.flatten(0, 1)
+        if self.channels_last:
+            frames = frames.contiguous(memory_format=torch.channels_last)
+        feats = self.cnn(frames).unflatten(0, (b, t))
+        geometry = self.head_geometry(feats) if self.geometry_dim else None
         if self.temporal is not None:
             feats, _ = self.temporal(feats)
         out = {"logits": self.head(feats)}
         if self.factored:
             out["stretch"] = self.head_stretch(feats)
             out["bend"] = self.head_bend(feats)
+        if geometry is not None:
+            out["geometry"] = geometry
         return out
 
     def _steps(self, z: torch.Tensor) -> torch.Tensor:
         return z if self.readout == "mean" else z[:, -1:]
 
-    def loss(self, out: dict[str, torch.Tensor], labels: torch.Tensor) -> torch.Tensor:
-        """Cross-entropy on the steps the readout uses (and on both factors when factored)."""
+    def loss(self, out: dict[str, torch.Tensor], labels: torch.Tensor, *, geometry: torch.Tensor | None = None,
+             geometry_weight: float = 0.0, label_smoothing: float = 0.0) -> torch.Tensor:
+        """Cross-entropy on the steps the readout uses (and on both factors when factored), plus
+        ``geometry_weight`` x the smooth-L1 error of the geometry head on every frame when a target is given."""
         def ce(z: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
             z = self._steps(z).float()
-            return F.cross_entropy(z.flatten(0, 1), y[:, None].expand(-1, z.shape[1]).flatten())
+            return F.cross_entropy(z.flatten(0, 1), y[:, None].expand(-1, z.shape[1]).flatten(),
+                                   label_smoothing=label_smoothing)
 
         total = ce(out["logits"], labels)
         if self.factored:
             total = total + ce(out["stretch"], labels // NUM_BEND) + ce(out["bend"], labels % NUM_BEND)
+        if geometry is not None and geometry_weight and "geometry" in out:
+            total = total + geometry_weight * F.smooth_l1_loss(out["geometry"].float(), geometry)
         return total
 
     def probs(self, out: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -153,19 +178,22 @@ if tuple(_SPECS) != MODEL_NAMES:      # the names a config may use are listed in
 
 
 def build_model(name: str, *, image_size: int, width: int, fc6: int, hidden: int, dropout: float = 0.5,
-                readout: str = "mean", factored: bool = False, num_classes: int = NUM_CLASSES) -> ClipClassifier:
+                readout: str = "mean", factored: bool = False, motion: bool = False, geometry_dim: int = 0,
+                num_classes: int = NUM_CLASSES) -> ClipClassifier:
     """A model by registry name; ``model_args(cfg)`` gives the keyword arguments from a TrainConfig."""
     if name not in _SPECS:
         raise ValueError(f"unknown model {name!r}; known models: {', '.join(MODEL_NAMES)}")
     temporal, freeze_cnn, forced_readout = _SPECS[name]
-    return ClipClassifier(FrameCNN(image_size, width, fc6, dropout), temporal, hidden,
-                          forced_readout or readout, factored, freeze_cnn, num_classes)
+    cnn = FrameCNN(image_size, width, fc6, dropout, in_channels=6 if motion else 3)
+    return ClipClassifier(cnn, temporal, hidden, forced_readout or readout, factored, freeze_cnn, num_classes,
+                          motion=motion, geometry_dim=geometry_dim)
 
 
 def model_args(cfg) -> dict:
     """The ``build_model`` keyword arguments a TrainConfig asks for (stored in checkpoints)."""
     return dict(image_size=cfg.image_size, width=cfg.width, fc6=cfg.fc6, hidden=cfg.hidden,
-                dropout=cfg.dropout, readout=cfg.readout, factored=cfg.factored)
+                dropout=cfg.dropout, readout=cfg.readout, factored=cfg.factored, motion=cfg.motion,
+                geometry_dim=GEOMETRY_DIM if cfg.aux_geometry > 0 else 0)
 
 
 def load_cnn_weights(model: ClipClassifier, source: Path | str | dict) -> None:

@@ -5,13 +5,18 @@
     config.json     the resolved settings (train config, model args, seeds, data sizes)
     metrics.csv     epoch, train_loss, train_acc, val_loss, val_acc, lr, seconds
     tb/             TensorBoard scalars
-    last.pt         model, optimizer, scheduler and RNG states after each epoch
-    checkpoint.pt   the final model in the contract format (docs/contracts.md)
+    last.pt         model, optimizer, scheduler and RNG states after each epoch (tensors and plain
+                    data only: it is read with ``weights_only=True``, so a run folder cannot run code)
+    checkpoint.pt   the kept model (``train.keep``: the last epoch, or the best by validation
+                    accuracy) in the contract format (docs/contracts.md)
     DONE            written last
 
 A killed run resumes from ``last.pt`` and ends with the same weights as an
 uninterrupted one: the data order and augmentations of an epoch depend only on
-(seed, epoch), and every other random state is restored.
+(seed, epoch), and every other random state is restored. Batches are cut from
+the setting's frames held on the training device (``learn.windows``), so a step
+costs what the network costs. A loss or weight that turns non-finite stops the
+run with ``TrainingDiverged`` before anything is marked done.
 """
 
 from __future__ import annotations
@@ -27,15 +32,18 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, DistributedSampler
+from tqdm import tqdm
 
 from clothgap import seeding
 from clothgap.config import ConfigError, pairs
+from clothgap.errors import UserError
 from clothgap.runs import Run, atomic_write_json, atomic_write_text, fresh_dir, is_done, mark_done
-from learn.config import SCHEDULES
-from learn.dataset import SubsequenceDataset, build_cache, to_input
+from learn.config import SCHEDULES, TrainConfig
+from learn.dataset import build_cache
+from learn.geometry import geometry_targets
 from learn.models import NUM_CLASSES, ClipClassifier, build_model, load_cnn_weights, model_args
 from learn.split import PARTS, get_or_make_split, part_clips, part_windows
+from learn.windows import WindowSet
 
 METRIC_COLUMNS = ("epoch", "train_loss", "train_acc", "val_loss", "val_acc", "lr", "seconds")
 
@@ -70,25 +78,28 @@ def make_scheduler(optimizer: torch.optim.Optimizer, name: str, epochs: int):
     raise ConfigError(f"train.schedule={name!r}: known schedules are {', '.join(SCHEDULES)}")
 
 
-def run_epoch(net: torch.nn.Module, model: ClipClassifier, loader: DataLoader, device: torch.device,
-              optimizer=None, amp: bool = False, progress: bool = False, desc: str = "") -> torch.Tensor:
-    """One pass over ``loader``, training when given an optimizer, else evaluating.
+class TrainingDiverged(UserError, RuntimeError):
+    """The loss or the weights became non-finite; the run is left unfinished."""
+
+
+def run_epoch(net: torch.nn.Module, model: ClipClassifier, batches, device: torch.device, optimizer=None,
+              amp: bool = False, progress: bool = False, desc: str = "", total: int | None = None,
+              geometry_weight: float = 0.0, label_smoothing: float = 0.0) -> torch.Tensor:
+    """One pass over ``batches`` (``WindowSet.batches``), training when given an optimizer, else evaluating.
 
     ``net`` is what runs the forward pass (``model`` itself, or it wrapped by
     DDP / torch.compile); ``model`` gives the loss and readout. Returns the sums
     (loss x clips, correct clips, clips) as a float64 tensor, so that ranks can add them.
     """
-    from tqdm import tqdm
-
     training = optimizer is not None
     net.train(training)
     sums = torch.zeros(3, dtype=torch.float64, device=device)   # summed on the device: no sync per step
     with torch.set_grad_enabled(training):
-        for frames, labels in tqdm(loader, desc=desc, disable=not progress, leave=False):
-            x, y = to_input(frames, device), labels.to(device)
+        for x, y, target in tqdm(batches, desc=desc, disable=not progress, leave=False, total=total):
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
                 out = net(x)
-            loss = model.loss(out, y)
+            loss = model.loss(out, y, geometry=target, geometry_weight=geometry_weight,
+                              label_smoothing=label_smoothing if training else 0.0)
             if training:
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
@@ -157,7 +168,11 @@ def _write_metrics(path: Path, rows: list[dict]) -> None:
 
 
 def _rng_states() -> dict:
-    states = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+    """Every random state, as tensors and plain data (``last.pt`` is read with ``weights_only=True``)."""
+    kind, keys, pos, has_gauss, cached = np.random.get_state()
+    states = {"torch": torch.get_rng_state(),
+              "numpy": [kind, torch.from_numpy(keys.astype(np.int64)), int(pos), int(has_gauss), float(cached)],
+              "python": random.getstate()}
     if torch.cuda.is_available():
         states["cuda"] = torch.cuda.get_rng_state_all()
     return states
@@ -165,71 +180,78 @@ def _rng_states() -> dict:
 
 def _set_rng_states(states: dict) -> None:
     torch.set_rng_state(states["torch"])
-    np.random.set_state(states["numpy"])
-    random.setstate(states["python"])
+    kind, keys, pos, has_gauss, cached = states["numpy"]
+    np.random.set_state((kind, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
+    version, internal, gauss = states["python"]
+    random.setstate((version, tuple(internal), gauss))
     if "cuda" in states and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(states["cuda"])
 
 
 def _resumable_state(out: Path, resolved: dict) -> dict | None:
-    """``last.pt`` of an unfinished run with the same settings, else None (the folder is then redone)."""
+    """``last.pt`` of an unfinished run with the same settings, else None (the folder is then redone).
+
+    Read with ``weights_only=True``: a ``last.pt`` that holds anything but tensors and plain
+    data (a pickle payload, or a file cut short) is not resumed from, with a warning.
+    """
     last, config = out / "last.pt", out / "config.json"
     if not (last.is_file() and config.is_file()):
         return None
-    stored = json.loads(config.read_text())
+    try:
+        stored = json.loads(config.read_text())
+    except (OSError, ValueError):
+        return None
     wanted = json.loads(json.dumps(resolved))   # tuples read back as lists
     if any(stored.get(k) != wanted[k] for k in ("train", "model_args", "torch_seed", "cnn_init")):
         return None
-    return torch.load(last, map_location="cpu", weights_only=False)
+    try:
+        return torch.load(last, map_location="cpu", weights_only=True)
+    except Exception as err:   # noqa: BLE001 - any unreadable state means: start this model over
+        warnings.warn(f"{last} cannot be resumed from ({type(err).__name__}: {str(err).splitlines()[0][:200]}); "
+                      "training this model from its first epoch", stacklevel=2)
+        return None
 
 
 # ---------------------------------------------------------------- the frozen CNN of base2
 
-def _cnn_init(run: Run, setting: str, variant: str, model_name: str, seed: int, progress: bool) -> str:
+def _cnn_init(run: Run, setting: str, variant: str, model_name: str, seed: int, progress: bool,
+              cfg: TrainConfig, root: Path | None) -> str:
     """Where the CNN's starting weights come from: a file path, or "random".
 
     base2 freezes base1's CNN: the base1 checkpoint of the same (setting,
-    variant, seed) in this run, trained first when missing, unless the config
+    variant, seed) beside it, trained first when missing, unless the config
     names ``train.pretrained`` weights, which are then used instead of training
     base1. The other models start from ``train.pretrained`` when given.
     """
-    pretrained = run.config.train.pretrained
     if model_name != "base2":
-        return pretrained or "random"
-    base1 = run.train_dir(setting, variant, "base1", seed)
+        return cfg.pretrained or "random"
+    base1 = train_folder(run, setting, variant, "base1", seed, root)
     if is_done(base1):
         return str(base1 / "checkpoint.pt")
-    if pretrained:
-        return pretrained
-    return str(train_one(run, setting, variant, "base1", seed, progress) / "checkpoint.pt")
+    if cfg.pretrained:
+        return cfg.pretrained
+    return str(train_one(run, setting, variant, "base1", seed, progress, config=cfg, root=root) / "checkpoint.pt")
 
 
-# ---------------------------------------------------------------- training
+def train_folder(run: Run, setting: str, variant: str, model_name: str, seed: int, root: Path | None = None) -> Path:
+    """A model's training folder: the run's own, or the same layout under ``root`` (an ablation's)."""
+    if root is None:
+        return run.train_dir(setting, variant, model_name, seed)
+    return Path(root) / setting / variant / model_name / f"s{seed}"
 
-def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, progress: bool = True) -> Path:
-    """Train ``model_name`` on ``variant``'s clips of ``setting``; returns the finished folder.
 
-    A finished folder (``DONE``) is returned as is; an unfinished one with a
-    matching ``last.pt`` resumes after its last epoch; anything else starts over.
-    Under torchrun (an initialised process group) every process trains its share
-    of each epoch through DDP, ``batch_size`` is per process, and rank 0 writes.
+def window_sets(run: Run, setting: str, variant: str, cfg: TrainConfig, device: torch.device,
+                progress: bool) -> tuple[WindowSet, WindowSet]:
+    """The train and validation windows of a (setting, variant), their frames on ``device``.
+
+    Under torchrun rank 0 writes the split, the frame cache and the geometry cache first.
     """
-    cfg = run.config.train
-    out = run.train_dir(setting, variant, model_name, seed)
-    if is_done(out):
-        return out
-    if cfg.num_threads:
-        torch.set_num_threads(cfg.num_threads)
-    main, world = is_main(), _world_size()
-    progress = progress and main
-    device = _process_device(cfg.device)
-    cnn_init = _cnn_init(run, setting, variant, model_name, seed, progress)
-    torch_seed = training_seed(run, model_name, seed)
-
+    main = is_main()
     if not main:
-        _barrier()  # rank 0 writes the split and the frame cache first; the others then read them
+        _barrier()
     split = get_or_make_split(run, setting)
     cache = build_cache(run, variant, setting, cfg.image_size, progress)
+    targets = geometry_targets(run, setting, cache, progress) if cfg.aux_geometry > 0 else None
     if main:
         _barrier()
     unassigned = sorted(set(cache.clips) - {c for part in PARTS for c in part_clips(split, part)})
@@ -237,17 +259,55 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
         warnings.warn(f"{len(unassigned)} rendered clip(s) of {setting}/{variant} are in no part of "
                       f"{run.split_path(setting)} (rendered after the split was made?) and are not used: "
                       f"{', '.join(unassigned[:5])}{' ...' if len(unassigned) > 5 else ''}", stacklevel=2)
-    train_set = SubsequenceDataset(cache, part_windows(split, "train"), cfg.clip_len, cfg.clip_stride,
-                                   cfg.augment, torch_seed)
-    val_set = SubsequenceDataset(cache, part_windows(split, "val"), cfg.clip_len, cfg.clip_stride)
+    train_set = WindowSet(cache, part_windows(split, "train"), cfg.clip_len, cfg.clip_stride, device, targets)
+    val_set = WindowSet(cache, part_windows(split, "val"), cfg.clip_len, cfg.clip_stride, device)
     if not len(train_set):
         raise ConfigError(f"no training sub-sequences for {setting}/{variant}: {len(split['train'])} train clips, "
                           f"clip_len={cfg.clip_len}; are the clips rendered and long enough?")
+    return train_set, val_set
+
+
+def _check_finite(model: torch.nn.Module, train_loss: float, cfg: TrainConfig, where: str, epoch: int) -> None:
+    bad = [name for name, p in model.named_parameters() if not bool(torch.isfinite(p).all())]
+    if math.isfinite(train_loss) and not bad:
+        return
+    raise TrainingDiverged(
+        f"{where}: training diverged at epoch {epoch} (loss {train_loss:g}, {len(bad)} non-finite weight "
+        f"tensor(s){': ' + ', '.join(bad[:3]) if bad else ''}); the learning rate train.lr={cfg.lr:g} is the "
+        "likely cause: lower it and run again (the folder is left unfinished and will start over)")
+
+
+# ---------------------------------------------------------------- training
+
+def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, progress: bool = True, *,
+              config: TrainConfig | None = None, root: Path | None = None) -> Path:
+    """Train ``model_name`` on ``variant``'s clips of ``setting``; returns the finished folder.
+
+    A finished folder (``DONE``) is returned as is; an unfinished one with a
+    matching ``last.pt`` resumes after its last epoch; anything else starts over.
+    Under torchrun (an initialised process group) every process trains its share
+    of each epoch through DDP, ``batch_size`` is per process, and rank 0 writes.
+    ``config`` replaces the run's train settings and ``root`` the run's ``train/``
+    folder (both for ablations that train several recipes on the same data).
+    """
+    cfg = config or run.config.train
+    out = train_folder(run, setting, variant, model_name, seed, root)
+    if is_done(out):
+        return out
+    if cfg.num_threads:
+        torch.set_num_threads(cfg.num_threads)
+    main, world = is_main(), _world_size()
+    progress = progress and main
+    device = _process_device(cfg.device)
+    cnn_init = _cnn_init(run, setting, variant, model_name, seed, progress, cfg, root)
+    torch_seed = training_seed(run, model_name, seed)
+    train_set, val_set = window_sets(run, setting, variant, cfg, device, progress)
     args = model_args(cfg)
     resolved = {"train": dataclasses.asdict(cfg), "model": model_name, "model_args": args, "setting": setting,
                 "variant": variant, "seed": seed, "run_seed": run.config.seed, "torch_seed": torch_seed,
                 "cnn_init": cnn_init, "device": str(device), "world_size": world,
-                "train_subsequences": len(train_set), "val_subsequences": len(val_set)}
+                "train_subsequences": len(train_set), "val_subsequences": len(val_set),
+                "frames_on_device": train_set.resident}
     state = _resumable_state(out, resolved)
     _barrier()  # every rank has read last.pt before rank 0 may clear the folder
     if state is None and main:
@@ -259,10 +319,16 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
     if cnn_init != "random":
         load_cnn_weights(model, cnn_init)
     model.to(device)
+    on_cuda = device.type == "cuda"
+    if on_cuda:
+        torch.backends.cudnn.benchmark = True
+        model.cnn.to(memory_format=torch.channels_last)
+        model.channels_last = True
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
     scheduler = make_scheduler(optimizer, cfg.schedule, cfg.epochs)
     metrics: list[dict] = []
+    best: dict | None = None        # {"epoch", "val_acc", "model"}: the best epoch so far (train.keep=best)
     start_epoch = 0
     if state is not None:
         model.load_state_dict(state["model"])
@@ -273,24 +339,16 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
             warnings.warn(f"{out}: last.pt was written by {len(rng)} process(es), resuming with {world}: "
                           "the result will differ from an uninterrupted run", stacklevel=2)
         _set_rng_states(rng[min(_rank(), len(rng) - 1)])
-        metrics, start_epoch = state["metrics"], state["epoch"] + 1
+        metrics, start_epoch, best = state["metrics"], state["epoch"] + 1, state.get("best")
 
-    on_cuda = device.type == "cuda"
     amp = cfg.amp and on_cuda
     net: torch.nn.Module = model
     if world > 1:
         net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if on_cuda else None)
     if cfg.compile and on_cuda:
         net = torch.compile(net)
-    loader_args = dict(batch_size=cfg.batch_size, num_workers=cfg.num_workers, pin_memory=on_cuda)
-    # The shuffle depends only on (seed, epoch): a resumed run sees the same order.
-    sampler = DistributedSampler(train_set, num_replicas=world, rank=_rank(), shuffle=True,
-                                 seed=seeding.derive_int(torch_seed, 0, seeding.TRAIN, "order"))
-    loader = DataLoader(train_set, sampler=sampler, **loader_args)
-    val_loader = DataLoader(val_set, shuffle=False, **loader_args)
 
     from torch.utils.tensorboard import SummaryWriter
-    from tqdm import tqdm
 
     writer = SummaryWriter(str(out / "tb"), purge_step=start_epoch) if main else None
     name = f"{model_name} {setting}/{variant} s{seed}"
@@ -298,18 +356,26 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
                total=cfg.epochs)
     for epoch in bar:
         started = time.perf_counter()
-        train_set.set_epoch(epoch)
-        sampler.set_epoch(epoch)
-        sums = run_epoch(net, model, loader, device, optimizer, amp, progress, f"epoch {epoch}")
+        order = train_set.order(torch_seed, epoch, _rank(), world)
+        augment = train_set.augment_table(torch_seed, epoch) if cfg.augment else None
+        steps = len(order) // cfg.batch_size if len(order) >= cfg.batch_size else 1
+        batches = train_set.batches(cfg.batch_size, order=order, augment=augment, drop_last=True)
+        sums = run_epoch(net, model, batches, device, optimizer, amp, progress, f"epoch {epoch}", steps,
+                         cfg.aux_geometry, cfg.label_smoothing)
         train_loss, train_acc = _loss_and_accuracy(sums, all_ranks=True)
+        _check_finite(model, train_loss, cfg, str(out), epoch)
         # Every rank scores the whole (small) val set with its own copy of the same weights.
-        val_loss, val_acc = (_loss_and_accuracy(run_epoch(model, model, val_loader, device, None, amp))
+        val_loss, val_acc = (_loss_and_accuracy(run_epoch(model, model, val_set.batches(cfg.batch_size), device,
+                                                          None, amp))
                              if len(val_set) else (math.nan, math.nan))
         lr = optimizer.param_groups[0]["lr"]
         scheduler.step()
         row = {"epoch": epoch, "train_loss": train_loss, "train_acc": train_acc, "val_loss": val_loss,
                "val_acc": val_acc, "lr": lr, "seconds": time.perf_counter() - started}
         metrics.append(row)
+        if cfg.keep == "best" and not math.isnan(val_acc) and (best is None or val_acc > best["val_acc"]):
+            best = {"epoch": epoch, "val_acc": val_acc,
+                    "model": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}}
         rng = _gather(_rng_states())
         if main:
             for key in ("train_loss", "train_acc", "val_loss", "val_acc", "lr"):
@@ -319,16 +385,20 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
             _write_metrics(out / "metrics.csv", metrics)
             _save_state(out / "last.pt", {"model": model.state_dict(), "optimizer": optimizer.state_dict(),
                                           "scheduler": scheduler.state_dict(), "rng": rng,
-                                          "epoch": epoch, "metrics": metrics})
-        bar.set_postfix(loss=f"{train_loss:.3f}", acc=f"{train_acc:.2f}")
+                                          "epoch": epoch, "metrics": metrics, "best": best})
+        bar.set_postfix(loss=f"{train_loss:.3f}", acc=f"{train_acc:.2f}", val=f"{val_acc:.2f}")
     if main:
         writer.close()
-        torch.save({"model": model.state_dict(), "model_name": model_name, "model_args": args,
+        kept = best if cfg.keep == "best" and best is not None else None
+        weights = kept["model"] if kept else model.state_dict()
+        torch.save({"model": weights, "model_name": model_name, "model_args": args,
                     "num_classes": NUM_CLASSES, "setting": setting, "variant": variant, "seed": seed,
                     "config": resolved}, out / "checkpoint.pt")
         final = metrics[-1] if metrics else {}
         summary = {k: final.get(k) for k in METRIC_COLUMNS[1:5]}
+        kept_epoch = kept["epoch"] if kept else (final.get("epoch") if metrics else None)
         mark_done(out, {"epochs": cfg.epochs, "seconds": sum(r["seconds"] for r in metrics),
+                        "kept_epoch": kept_epoch,
                         **{k: None if v is None or math.isnan(v) else v for k, v in summary.items()}})
     _barrier()  # no rank moves on (say, to base2 reading this checkpoint) before DONE exists
     return out

@@ -10,7 +10,8 @@ import torch
 
 from clothgap.config import StudyConfig
 from learn.config import TrainConfig
-from learn.dataset import SubsequenceDataset, build_cache, cache_path, read_frames, subsequence_starts
+from learn.dataset import build_cache, cache_path, read_frames, subsequence_starts
+from learn.windows import WindowSet
 from learn.synthetic import synthetic_run
 from sim.config import SimConfig
 from render.config import RenderConfig
@@ -42,11 +43,16 @@ def test_cache_holds_resized_frames_and_is_reused(run):
     build_cache(run, VARIANT, SETTING, 32, progress=False)
     assert cache_path(run, VARIANT, SETTING, 32).stat().st_mtime_ns == stamp
 
-    data = SubsequenceDataset(cache, ["c00000", "c00003", "c99999"], clip_len=5, clip_stride=3)
+    data = WindowSet(cache, ["c00000", "c00003", "c99999"], clip_len=5, clip_stride=3)
     assert len(data) == 2 * 3   # starts 0, 3, 6; an unknown clip id is skipped
-    frames, label = data[0]
-    assert frames.shape == (5, 3, 32, 32) and frames.dtype == torch.uint8 and label == 0
-    assert data.labels == [0, 0, 0, 53, 53, 53]
+    assert data.labels.tolist() == [0, 0, 0, 53, 53, 53] and data.starts.tolist() == [0, 3, 6] * 2
+    (x, labels, target), = list(data.batches(6))
+    assert x.shape == (6, 5, 3, 32, 32) and x.dtype == torch.float32 and target is None
+    assert labels.tolist() == [0, 0, 0, 53, 53, 53]
+    # Each window is its clip's frames start..start+4, scaled to [0, 1].
+    c3 = cache.clips["c00003"]
+    expected = torch.from_numpy(np.array(cache.frames[c3.offset + 3:c3.offset + 8])).permute(0, 3, 1, 2) / 255
+    assert torch.equal(x[4], expected)
 
 
 def test_corrupt_and_missing_frames_are_reported_and_skipped(run):
@@ -64,18 +70,43 @@ def test_corrupt_and_missing_frames_are_reported_and_skipped(run):
     assert {str(w.message).split(":")[0] for w in again} == {"clip c00001", "clip c00002"}
 
 
-def test_augmentation_is_fixed_by_seed_epoch_and_item(run):
+def test_augmentation_is_fixed_by_seed_and_epoch_whatever_the_batching(run):
     cache = build_cache(run, VARIANT, SETTING, 32, progress=False)
-    ids = sorted(cache.clips)
-    data = SubsequenceDataset(cache, ids, clip_len=4, clip_stride=4, augment=True, seed=7)
-    again = SubsequenceDataset(cache, ids, clip_len=4, clip_stride=4, augment=True, seed=7)
-    plain = SubsequenceDataset(cache, ids, clip_len=4, clip_stride=4)
-    assert torch.equal(data[1][0], again[1][0])
-    assert not torch.equal(data[1][0], plain[1][0])
-    before = data[1][0]
-    data.set_epoch(1)
-    assert not torch.equal(before, data[1][0])
-    assert data[1][0].shape == plain[1][0].shape and data[1][0].dtype == torch.uint8
+    data = WindowSet(cache, sorted(cache.clips), clip_len=4, clip_stride=4)
+
+    def epoch(seed, number, batch_size, ranks=1):
+        order = [data.order(seed, number, r, ranks) for r in range(ranks)]
+        table = data.augment_table(seed, number)
+        out = {}
+        for rank_order in order:
+            for lo in range(0, len(rank_order), batch_size):
+                idx = rank_order[lo:lo + batch_size]
+                (x, _, _), = list(data.batches(batch_size, order=idx, augment=table))
+                out.update({int(i): xi for i, xi in zip(idx, x)})
+        return out
+
+    whole = epoch(7, 0, batch_size=16)
+    assert sorted(whole) == list(range(len(data)))
+    split = epoch(7, 0, batch_size=3, ranks=2)          # other batches, two DDP ranks: same windows
+    assert all(torch.equal(whole[i], split[i]) for i in whole)
+    plain = {i: x for i, x in enumerate(next(data.batches(len(data)))[0])}
+    assert not torch.equal(whole[1], plain[1])
+    later = epoch(7, 1, batch_size=16)
+    assert not torch.equal(whole[1], later[1])
+    assert whole[1].shape == plain[1].shape and 0 <= float(whole[1].min()) and float(whole[1].max()) <= 1
+    assert torch.equal(data.order(7, 0), data.order(7, 0)) and not torch.equal(data.order(7, 0), data.order(7, 1))
+
+
+def test_identity_augmentation_leaves_frames_unchanged(run):
+    from learn.windows import augment_batch
+
+    cache = build_cache(run, VARIANT, SETTING, 32, progress=False)
+    x, _, _ = next(WindowSet(cache, sorted(cache.clips), clip_len=4, clip_stride=4).batches(4))
+    # side 1 (params[1] = 1), centred, no flip (params[4] >= 0.5), colour factors 1 (params 5-7 = 0.5).
+    params = torch.tensor([[0.0, 1.0, 0.5, 0.5, 0.9, 0.5, 0.5, 0.5]]).repeat(len(x), 1)
+    assert torch.allclose(augment_batch(x.clone(), params), x, atol=1e-5)
+    params[:, 4] = 0.1                                   # a flip mirrors every frame of the clip
+    assert torch.allclose(augment_batch(x.clone(), params), x.flip(-1), atol=1e-5)
 
 
 def test_config_fields_have_defaults():

@@ -90,3 +90,13 @@ def test_cnn_weights_load_from_files_and_mismatches_are_named(tmp_path):
         load_cnn_weights(build_model("lrcn", image_size=64, **TINY), path)
     with pytest.raises(FileNotFoundError, match="nothing is ever downloaded"):
         load_cnn_weights(target, tmp_path / "absent.pt")
+
+
+def test_motion_input_adds_frame_differences():
+    model = build_model("lrcn", image_size=32, width=8, fc6=16, hidden=8, motion=True).eval()
+    assert model.cnn.features[0].in_channels == 6
+    still = torch.rand(1, 1, 3, 32, 32).expand(2, 5, 3, 32, 32)
+    seen = {}
+    model.cnn.register_forward_pre_hook(lambda _m, inp: seen.update(x=inp[0]))
+    assert model(still)["logits"].shape == (2, 5, 54)
+    assert seen["x"].shape == (10, 6, 32, 32) and float(seen["x"][:, 3:].abs().max()) == 0   # nothing moves

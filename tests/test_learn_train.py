@@ -132,3 +132,108 @@ def test_split_by_subsequence_trains_on_exactly_the_train_windows(tmp_path):
     train, test = part_windows(split, "train"), part_windows(split, "test")
     assert set(train) & set(test)       # one simulation on both sides, as the protocol intends
     assert all(not set(train[c]) & set(test[c]) for c in set(train) & set(test))
+
+
+def _sim_clips_for(run: Run, frames: int) -> None:
+    """Simulated clips beside the synthetic renders: a 6 x 6 sheet that sinks by its clip index and frame."""
+    import numpy as np
+
+    from clothgap.runs import mark_done
+    from sim.clip import SimClip
+
+    u, v = np.meshgrid(np.linspace(0, 1, 6), np.linspace(0, 1, 6), indexing="ij")
+    uv = np.stack([u.ravel(), v.ravel()], -1).astype(np.float32)
+    rest = np.concatenate([uv, np.zeros((36, 1), np.float32)], 1)
+    for cid in run.done_clips(run.render_dir(VARIANT, SETTING)):
+        index = int(cid[1:])
+        positions = rest[None] - np.array([0, 0, 0.01 * index])[None, None] \
+            - 0.002 * np.arange(frames)[:, None, None] * np.array([0, 0, 1.0])
+        folder = run.sim_dir(SETTING) / cid
+        SimClip.from_fixed({"class_index": 0}, positions.astype(np.float32), np.array([[0, 1, 6]], np.int32),
+                           uv).save(folder)
+        mark_done(folder)
+
+
+def test_geometry_targets_follow_the_frame_cache_and_train_an_auxiliary_head(tmp_path):
+    import numpy as np
+
+    from clothgap.errors import MissingInputError
+    from learn.dataset import build_cache
+    from learn.geometry import geometry_targets
+
+    cfg = tiny_config(aux_geometry=1.0, epochs=1)
+    run = synthetic_run(tmp_path / "run", cfg)
+    with pytest.raises(MissingInputError, match="c00000"):
+        train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)   # the target needs the simulation
+    _sim_clips_for(run, cfg.sim.frames)
+    cache = build_cache(run, VARIANT, SETTING, 32, progress=False)
+    targets = geometry_targets(run, SETTING, cache, progress=False)
+    assert targets.shape == (cache.frames.shape[0], 192)
+    assert abs(float(targets.mean())) < 1e-4
+    # Every z of clip c at frame t is -(0.01 c + 0.002 t), standardised: rows follow clips and frames.
+    z = targets.reshape(len(targets), 64, 3)[:, 0, 2]
+    for cid, clip in cache.clips.items():
+        rows = z[clip.offset:clip.offset + clip.num_frames]
+        assert np.all(np.diff(rows) < 0)                                          # sinks frame by frame
+        step = rows[0] - rows[1]
+        assert np.isclose(z[cache.clips["c00000"].offset] - rows[0], 5 * step * int(cid[1:]), rtol=1e-3)
+    out = train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
+    state = torch.load(out / "checkpoint.pt", weights_only=True)
+    assert state["model"]["head_geometry.weight"].shape == (192, 32)
+    assert state["model_args"]["geometry_dim"] == 192
+    assert load_model(out)(torch.rand(1, 6, 3, 32, 32))["geometry"].shape == (1, 6, 192)
+
+
+def test_diverged_training_is_not_marked_done(tmp_path):
+    from learn.train import TrainingDiverged
+
+    run = synthetic_run(tmp_path / "run", tiny_config(lr=1e6, epochs=3))
+    with pytest.raises(TrainingDiverged, match=r"train\.lr=1e\+06"):
+        train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
+    folder = run.train_dir(SETTING, VARIANT, "lrcn", 0)
+    assert not is_done(folder) and not (folder / "checkpoint.pt").exists()
+
+
+class _Payload:
+    """Unpickling this runs code: it creates the file it names."""
+
+    def __init__(self, path):
+        self.path = str(path)
+
+    def __reduce__(self):
+        return (open, (self.path, "w"))
+
+
+def test_a_pickle_payload_in_last_pt_does_not_run(tmp_path, monkeypatch):
+    run = synthetic_run(tmp_path / "run", tiny_config(epochs=2))
+    save_state = learn.train._save_state
+
+    def save_then_die(path, state):
+        save_state(path, state)
+        raise SimulatedKill
+
+    monkeypatch.setattr(learn.train, "_save_state", save_then_die)
+    with pytest.raises(SimulatedKill):
+        train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
+    monkeypatch.setattr(learn.train, "_save_state", save_state)
+    folder = run.train_dir(SETTING, VARIANT, "lrcn", 0)
+    marker = tmp_path / "payload-ran"
+    torch.save({"model": _Payload(marker)}, folder / "last.pt")
+    with pytest.warns(UserWarning, match="cannot be resumed from"):
+        train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
+    assert not marker.exists() and is_done(folder)
+    assert pd.read_csv(folder / "metrics.csv").epoch.tolist() == [0, 1]   # started over
+
+
+def test_keep_best_checkpoints_the_best_validation_epoch(tmp_path):
+    run = synthetic_run(tmp_path / "run", tiny_config(keep="best", epochs=4))
+    out = train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
+    metrics = pd.read_csv(out / "metrics.csv")
+    best_epoch = int(metrics.val_acc.idxmax())                 # the first epoch with the highest accuracy
+    assert json.loads((out / "DONE").read_text())["kept_epoch"] == best_epoch
+    kept = torch.load(out / "checkpoint.pt", weights_only=True)["model"]
+    state = torch.load(out / "last.pt", weights_only=True)
+    assert state["best"]["epoch"] == best_epoch
+    assert all(torch.equal(kept[k], v) for k, v in state["best"]["model"].items())
+    with pytest.raises(ConfigError, match="train.keep=best needs validation clips"):
+        synthetic_run(tmp_path / "noval", tiny_config(keep="best", val_fraction=0.0))

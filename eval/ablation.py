@@ -1,0 +1,188 @@
+"""Training recipes compared on the same data and the same test clips: one lever at a time.
+
+A *recipe* is the run's train settings changed by levers joined with ``+``:
+each lever is a name from ``LEVERS`` (``augment``, ``geometry``, ``best``, ...)
+or a ``key=value`` train setting, e.g. ``augment+geometry+aux_geometry=0.3``.
+Every recipe trains into ``RUN/ablation/<recipe>/<setting>/<variant>/<model>/s<seed>/``
+(the train stage's own folders: resumable epoch by epoch, DONE last), is scored
+on the setting's test windows (split by sequence unless the run says otherwise)
+and compared with the first recipe by a paired bootstrap over test sequences.
+
+Writes ``RUN/eval/ablation-<setting>-<variant>.{json,md}``: per recipe and
+model, top-1, within one bin, stretching, bending, top-3 with intervals, the
+paired difference in top-1 to the first recipe, training time and windows/s,
+the kept epoch, and the learning curves (``metrics.csv`` rows).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from clothgap.config import ConfigError, StudyConfig, apply_overrides, validate
+from clothgap.runs import Run, atomic_write_json, atomic_write_text
+from eval import metrics
+from eval import predictions as preds
+from learn.config import TrainConfig
+
+# name -> train settings it changes. Adding a lever is one entry here.
+LEVERS: dict[str, dict] = {
+    "baseline": {},
+    "augment": {"augment": True},              # temporal shift, resized crop, flip, colour jitter (on the GPU)
+    "best": {"keep": "best"},                  # early stopping: the epoch of best validation accuracy
+    "motion": {"motion": True},                # frame differences beside the frames
+    "geometry": {"aux_geometry": 1.0},         # regress the simulated 8 x 8 lattice per frame (training only)
+    "factored": {"factored": True},            # extra stretching and bending heads
+    "smooth": {"label_smoothing": 0.1},
+    "last": {"readout": "last"},               # loss and answer from the last step only
+    "narrow": {"width": 32, "fc6": 256, "hidden": 128},
+    "decay": {"weight_decay": 0.05},
+}
+
+
+def recipe_config(study: StudyConfig, recipe: str) -> TrainConfig:
+    """The run's train settings changed by the recipe's levers, checked like any setting of the run."""
+    sets: list[str] = []
+    for part in filter(None, recipe.split("+")):
+        if "=" in part:
+            sets.append(f"train.{part}")
+        elif part in LEVERS:
+            sets += [f"train.{k}={v}" for k, v in LEVERS[part].items()]
+        else:
+            raise ConfigError(f"recipe {recipe!r}: unknown lever {part!r}; levers are {', '.join(LEVERS)} "
+                              "or a train setting as key=value")
+    return validate(apply_overrides(study, sets), where=f"recipe {recipe!r}: ").train
+
+
+def recipe_root(run: Run, recipe: str) -> Path:
+    return run.root / "ablation" / recipe
+
+
+def predict_windows(train_dir: Path, cache, windows, device, batch_size: int = 256) -> pd.DataFrame:
+    """One row per test window (``clip_id, start, class_index, pred, probs``), frames from the cache."""
+    import torch
+
+    from learn.predict import load_checkpoint, load_model
+    from learn.windows import WindowSet
+
+    ckpt = load_checkpoint(train_dir)
+    tcfg = ckpt["config"]["train"]
+    model = load_model(train_dir, str(device))
+    data = WindowSet(cache, windows, tcfg["clip_len"], tcfg["clip_stride"], device)
+    probs = []
+    with torch.no_grad(), torch.autocast(data.device.type, dtype=torch.bfloat16, enabled=data.device.type == "cuda"):
+        for x, _, _ in data.batches(batch_size):
+            probs.append(model.probs(model(x)).float().cpu().numpy())
+    p = np.concatenate(probs) if probs else np.zeros((0, 54), np.float32)
+    return pd.DataFrame({"clip_id": data.clip_ids, "start": data.starts.numpy(),
+                         "class_index": data.labels.numpy(), "pred": p.argmax(1) if len(p) else [],
+                         "probs": list(p.astype(np.float32))})
+
+
+def _curves(folder: Path) -> list[dict]:
+    path = folder / "metrics.csv"
+    return json.loads(pd.read_csv(path).to_json(orient="records")) if path.is_file() else []
+
+
+def _speed(folder: Path) -> dict:
+    """Training seconds and windows/s (epochs after the first, which includes compilation)."""
+    curves = _curves(folder)
+    config = json.loads((folder / "config.json").read_text())
+    windows = config["train_subsequences"]
+    steady = [r["seconds"] for r in curves[1:]] or [r["seconds"] for r in curves]
+    done = json.loads((folder / "DONE").read_text())
+    return {"train_seconds": round(sum(r["seconds"] for r in curves), 2),
+            "first_epoch_seconds": round(curves[0]["seconds"], 2) if curves else None,
+            "windows_per_s": round(windows / (sum(steady) / len(steady)), 1) if steady else None,
+            "train_windows": windows, "kept_epoch": done.get("kept_epoch"),
+            "frames_on_device": config.get("frames_on_device")}
+
+
+def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], models: list[str] | None = None,
+                 seeds: list[int] | None = None, progress: bool = True) -> dict:
+    """Train and score every recipe x model x seed; write and return the comparison."""
+    from learn.dataset import build_cache
+    from learn.split import get_or_make_split, part_windows
+    from learn.train import resolve_device, train_one
+
+    if not recipes:
+        raise ConfigError("no recipes given")
+    base = run.config.train
+    configs = {r: recipe_config(run.config, r) for r in recipes}
+    models = models or list(base.models)
+    seeds = seeds if seeds is not None else list(base.seeds)
+    test = part_windows(get_or_make_split(run, setting), "test")
+    bootstrap = dict(resamples=run.config.eval.bootstrap, confidence=run.config.eval.confidence)
+    rows, reference = [], {}
+    out_dir = run.eval_dir
+    for recipe in recipes:
+        cfg = configs[recipe]
+        for model in models:
+            frames = []
+            for seed in seeds:
+                t0 = time.perf_counter()
+                folder = train_one(run, setting, variant, model, seed, progress, config=cfg,
+                                   root=recipe_root(run, recipe))
+                path = folder / "test_predictions.csv"
+                if not path.is_file():
+                    cache = build_cache(run, variant, setting, cfg.image_size, progress=False)
+                    preds.save(predict_windows(folder, cache, test, resolve_device(cfg.device)), path)
+                frames.append(preds.load(path).assign(seed=seed))
+                if progress:
+                    print(f"[ablation] {recipe} {model} s{seed}: {time.perf_counter() - t0:.1f} s", flush=True)
+            frame = pd.concat(frames, ignore_index=True)
+            truth, pred = frame["class_index"].to_numpy(), frame["pred"].to_numpy()
+            groups = frame["clip_id"].to_numpy()
+            rng = np.random.default_rng([run.config.seed, len(rows)])
+            row = {"recipe": recipe, "model": model, "seeds": seeds,
+                   "changes": {k: v for k, v in dataclasses.asdict(cfg).items() if getattr(base, k) != v},
+                   **metrics.summarize(truth, pred, preds.probs_of(frame), groups, rng=rng, **bootstrap)}
+            correct = metrics.correct(truth, pred)
+            if model in reference:
+                ref_correct, ref_groups = reference[model]
+                diff = metrics.bootstrap_mean_difference(correct, groups, ref_correct, ref_groups, rng=rng,
+                                                         **bootstrap)
+                row.update(diff.as_dict("acc_minus_first"))
+            else:
+                reference[model] = (correct, groups)
+            folders = [recipe_root(run, recipe) / setting / variant / model / f"s{s}" for s in seeds]
+            row["speed"] = [_speed(f) for f in folders]
+            row["curves"] = {f"s{s}": _curves(f) for s, f in zip(seeds, folders)}
+            rows.append(row)
+    report = {"run": str(run.root), "setting": setting, "variant": variant, "split_by": base.split_by,
+              "test_sequences": len(test), "base_train": dataclasses.asdict(base), "recipes": rows}
+    stem = f"ablation-{setting}-{variant}"
+    atomic_write_json(out_dir / f"{stem}.json", report)
+    atomic_write_text(out_dir / f"{stem}.md", markdown(report))
+    return {"json": str(out_dir / f"{stem}.json"),
+            "top1": {f"{r['recipe']}/{r['model']}": round(r["acc"], 4) for r in rows}}
+
+
+def _pct(row: dict, key: str) -> str:
+    if key not in row or row[key] is None or math.isnan(row[key]):
+        return "-"
+    return f"{100 * row[key]:.1f} [{100 * row[key + '_lo']:.1f}, {100 * row[key + '_hi']:.1f}]"
+
+
+def markdown(report: dict) -> str:
+    lines = [f"# Training recipes on {report['setting']} / {report['variant']}",
+             "",
+             f"Run `{report['run']}`, split by {report['split_by']}, {report['test_sequences']} test sequences; "
+             "intervals: 95 % bootstrap over test sequences; the difference is paired with the first recipe.",
+             "",
+             "| recipe | model | top-1 % | within one bin % | stretching % | bending % | top-3 % | "
+             "top-1 minus first (points) | windows/s | kept epoch |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in report["recipes"]:
+        speed = r["speed"][0] if r["speed"] else {}
+        lines.append(f"| {r['recipe']} | {r['model']} | {_pct(r, 'acc')} | {_pct(r, 'within1')} | "
+                     f"{_pct(r, 'stretch_acc')} | {_pct(r, 'bend_acc')} | {_pct(r, 'top3')} | "
+                     f"{_pct(r, 'acc_minus_first')} | {speed.get('windows_per_s', '-')} | "
+                     f"{speed.get('kept_epoch', '-')} |")
+    return "\n".join(lines) + "\n"

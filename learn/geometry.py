@@ -1,0 +1,72 @@
+"""The simulator's geometry as a training-time target: the cloth's lattice per rendered frame.
+
+A model on renders sees the cloth only through pixels; the simulation that made
+them knows where every point of the cloth was. With ``train.aux_geometry`` > 0
+the CNN also regresses, from each frame, the 8 x 8 lattice of cloth points
+(``sim.lattice``) that the learnability probe reads, so its features must carry
+the shape the material class shows in. The target exists at training time
+only: prediction and evaluation read pixels alone.
+
+Targets are standardised per setting (each coordinate of each point minus its
+mean over all frames, divided by one global spread), so the loss weight means
+the same on every setting. They are cached per setting in
+``cache/geometry/<setting>/lattice-8.npz`` (one array per clip).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from clothgap.errors import MissingInputError
+from clothgap.runs import Run
+from learn.dataset import FrameCache
+from learn.models import GEOMETRY_DIM
+from sim.lattice import LATTICE, clip_lattice
+
+
+def lattice_cache_path(run: Run, setting: str) -> Path:
+    return run.root / "cache" / "geometry" / setting / f"lattice-{LATTICE}.npz"
+
+
+def clip_lattices(run: Run, setting: str, clip_ids: list[str], progress: bool = True) -> dict[str, np.ndarray]:
+    """{clip_id: (T, 64, 3) float32} for the given clips of ``setting``, from the cache or the sim clips."""
+    path = lattice_cache_path(run, setting)
+    stored: dict[str, np.ndarray] = {}
+    if path.is_file():
+        with np.load(path) as data:
+            stored = {k: data[k] for k in data.files}
+    missing = [c for c in clip_ids if c not in stored]
+    sim_dir = run.sim_dir(setting)
+    for cid in tqdm(missing, desc=f"lattice {setting}", unit="clip", disable=not progress, leave=False):
+        folder = sim_dir / cid
+        if not (folder / "DONE").is_file():
+            raise MissingInputError(f"train.aux_geometry needs the simulated clip {folder} (the lattice target "
+                                    f"comes from the simulation), but it is missing or unfinished")
+        stored[cid] = clip_lattice(folder)
+    if missing:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.npz")
+        np.savez(tmp, **stored)
+        tmp.replace(path)
+    return {c: stored[c] for c in clip_ids}
+
+
+def geometry_targets(run: Run, setting: str, cache: FrameCache, progress: bool = True) -> np.ndarray:
+    """(cache rows, 192) standardised lattice of the frame in each row of the frame cache."""
+    lattices = clip_lattices(run, setting, sorted(cache.clips), progress)
+    rows = cache.frames.shape[0]
+    out = np.zeros((rows, GEOMETRY_DIM), np.float32)
+    for cid, clip in cache.clips.items():
+        lat = lattices[cid]
+        if len(lat) != clip.num_frames:
+            raise MissingInputError(f"clip {cid} of {setting}: {len(lat)} simulated frames but "
+                                    f"{clip.num_frames} rendered ones; re-render it")
+        out[clip.offset:clip.offset + clip.num_frames] = lat.reshape(len(lat), -1)
+    used = np.concatenate([np.arange(c.offset, c.offset + c.num_frames) for c in cache.clips.values()])
+    mean = out[used].mean(axis=0, keepdims=True)
+    spread = float((out[used] - mean).std()) or 1.0
+    return (out - mean) / spread

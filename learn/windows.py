@@ -1,0 +1,177 @@
+"""Training batches cut straight out of a resident frame array, augmented on the device.
+
+The frame cache of a (variant, setting) is one uint8 array (frames, H, W, 3);
+``WindowSet`` holds it as a tensor on the training device when it fits (a
+paper-scale setting at 112 px is ~3.9 GB) and builds every batch by index
+arithmetic: row ``offset + start + t`` for t < clip_len. No worker processes,
+no per-item Python, no host-to-device copy per step; augmentation is one
+batched affine resample and a colour transform on the device.
+
+Reproducible and resumable: the order of an epoch is a permutation drawn from
+(seed, epoch), and the augmentation parameters of every window from (seed,
+epoch) as one table, so a batch's content does not depend on the batch size,
+the number of DDP ranks, or whether the run was resumed.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Iterator
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from clothgap import seeding
+from learn.dataset import FrameCache, subsequence_starts
+
+AUG_PARAMS = 8        # shift, crop side, crop x, crop y, flip, brightness, contrast, saturation
+# Keep at least this share of free device memory for the model's activations.
+_DEVICE_SHARE = 0.5
+
+
+def _fits_on_device(nbytes: int, device: torch.device) -> bool:
+    if device.type != "cuda":
+        return True
+    free, _total = torch.cuda.mem_get_info(device)
+    return nbytes <= _DEVICE_SHARE * free
+
+
+class WindowSet:
+    """The ``clip_len``-frame windows of some clips of a frame cache, as batches on ``device``.
+
+    ``clips``: clip ids (every window of each), or ``{clip_id: window starts or
+    None}`` (``learn.split.part_windows``). Clips the cache left out are skipped
+    (the cache warned about them when it was built). ``targets``, when given,
+    is a per-frame array aligned with the cache rows (e.g. the cloth's lattice,
+    ``learn.geometry``) sliced like the frames.
+    """
+
+    def __init__(self, cache: FrameCache, clips, clip_len: int, clip_stride: int,
+                 device: torch.device | str = "cpu", targets: np.ndarray | None = None):
+        self.device = torch.device(device)
+        self.clip_len, self.clip_stride = clip_len, clip_stride
+        windows = clips if isinstance(clips, dict) else dict.fromkeys(clips)
+        ids, offsets, lengths, starts, labels = [], [], [], [], []
+        for cid, chosen in windows.items():
+            clip = cache.clips.get(cid)
+            if clip is None:
+                continue
+            found = subsequence_starts(clip.num_frames, clip_len, clip_stride)
+            if chosen is not None:
+                keep = set(chosen)
+                found = [s for s in found if s in keep]
+            if not found:
+                warnings.warn(f"clip {cid} has {clip.num_frames} frames, fewer than clip_len={clip_len}; left out",
+                              stacklevel=2)
+            for s in found:
+                ids.append(cid)
+                offsets.append(clip.offset)
+                lengths.append(clip.num_frames)
+                starts.append(s)
+                labels.append(clip.class_index)
+        self.clip_ids = ids
+        self.starts = torch.tensor(starts, dtype=torch.long)
+        self._offsets = torch.tensor(offsets, dtype=torch.long)
+        self._lengths = torch.tensor(lengths, dtype=torch.long)
+        self.labels = torch.tensor(labels, dtype=torch.long)
+        # Only the rows some window reads travel to the device; the row map re-bases them.
+        frames = cache.frames
+        if len(ids):
+            used = np.unique(np.concatenate([np.arange(o, o + n) for o, n in
+                                             dict(zip(offsets, lengths)).items()]))
+        else:
+            used = np.zeros(0, np.int64)
+        row_of = np.full(frames.shape[0] if frames.shape[0] else 1, -1, np.int64)
+        row_of[used] = np.arange(len(used))
+        self._row_of = torch.from_numpy(row_of)
+        host = torch.from_numpy(np.ascontiguousarray(frames[used]))
+        self.resident = _fits_on_device(host.numel(), self.device)
+        self.frames = host.to(self.device) if self.resident else (host.pin_memory() if self.device.type == "cuda"
+                                                                   else host)
+        self.targets = None
+        if targets is not None:
+            self.targets = torch.from_numpy(np.ascontiguousarray(targets[used], dtype=np.float32)).to(self.device)
+        self._to_device = {}
+
+    def __len__(self) -> int:
+        return len(self.clip_ids)
+
+    def _on(self, t: torch.Tensor) -> torch.Tensor:
+        return t.to(self.device, non_blocking=True)
+
+    # ---------------------------------------------------------------- batches
+
+    def augment_table(self, seed: int, epoch: int) -> torch.Tensor:
+        """(windows, 8) uniform draws in [0, 1) of one epoch: the same for every rank and batch size."""
+        gen = torch.Generator().manual_seed(seeding.derive_int(seed, 0, seeding.TRAIN, "augment", epoch))
+        return torch.rand(len(self), AUG_PARAMS, generator=gen)
+
+    def order(self, seed: int, epoch: int, rank: int = 0, world: int = 1) -> torch.Tensor:
+        """This rank's share of the epoch's shuffled window order (padded so every rank gets as many)."""
+        gen = torch.Generator().manual_seed(seeding.derive_int(seed, 0, seeding.TRAIN, "order", epoch))
+        perm = torch.randperm(len(self), generator=gen)
+        if world > 1:
+            pad = (-len(perm)) % world
+            perm = torch.cat([perm, perm[:pad]])
+            perm = perm[rank::world]
+        return perm
+
+    def batches(self, batch_size: int, *, order: torch.Tensor | None = None, augment: torch.Tensor | None = None,
+                drop_last: bool = False) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]]:
+        """(frames float (B, T, 3, H, W) in [0, 1], labels (B,), targets (B, T, ...) or None) on the device.
+
+        ``order``: window indices in the order to visit (default: as listed);
+        ``augment``: ``augment_table(seed, epoch)`` to augment, else None.
+        """
+        order = torch.arange(len(self)) if order is None else order
+        stop = len(order) - (len(order) % batch_size if drop_last and len(order) >= batch_size else 0)
+        steps = torch.arange(self.clip_len)
+        for lo in range(0, stop, batch_size):
+            idx = order[lo:lo + batch_size]
+            starts = self.starts[idx]
+            params = augment[idx] if augment is not None else None
+            if params is not None:
+                # Temporal shift of up to half a stride either way, kept inside the clip.
+                half = self.clip_stride // 2
+                shift = (params[:, 0] * (2 * half + 1)).long() - half
+                starts = torch.minimum(torch.clamp(starts + shift, min=0), self._lengths[idx] - self.clip_len)
+            rows = self._row_of[self._offsets[idx, None] + starts[:, None] + steps]      # (B, T)
+            if self.resident:
+                raw = self.frames[self._on(rows)]
+            else:
+                raw = self._on(self.frames[rows])
+            x = raw.permute(0, 1, 4, 2, 3).float().div_(255)                                # (B, T, 3, H, W)
+            if params is not None:
+                x = augment_batch(x, self._on(params))
+            target = self.targets[self._on(rows)] if self.targets is not None else None
+            yield x, self._on(self.labels[idx]), target
+
+
+def augment_batch(x: torch.Tensor, params: torch.Tensor) -> torch.Tensor:
+    """Per clip, the same for all its frames: a random resized crop (70-100 % of the side), a
+    horizontal flip and a brightness/contrast/saturation jitter of +-20 %, of float (B, T, 3, H, W).
+
+    ``params``: (B, 8) uniform draws; columns 1-7 are read here (column 0 is the temporal shift).
+    """
+    b, t, c, h, w = x.shape
+    side = 0.7 + 0.3 * params[:, 1]
+    # Crop centre in normalised coordinates, so that the crop stays inside the frame.
+    cx = (2 * params[:, 2] - 1) * (1 - side)
+    cy = (2 * params[:, 3] - 1) * (1 - side)
+    flip = torch.where(params[:, 4] < 0.5, -1.0, 1.0)
+    theta = torch.zeros(b, 2, 3, device=x.device, dtype=x.dtype)
+    theta[:, 0, 0], theta[:, 0, 2] = side * flip, cx
+    theta[:, 1, 1], theta[:, 1, 2] = side, cy
+    theta = theta.repeat_interleave(t, dim=0)
+    flat = x.reshape(b * t, c, h, w)
+    grid = F.affine_grid(theta, list(flat.shape), align_corners=False)
+    flat = F.grid_sample(flat, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    x = flat.reshape(b, t, c, h, w)
+    brightness, contrast, saturation = (0.8 + 0.4 * params[:, i].view(b, 1, 1, 1, 1) for i in (5, 6, 7))
+    x = x * brightness
+    mean = x.mean(dim=(1, 2, 3, 4), keepdim=True)
+    x = (x - mean) * contrast + mean
+    grey = x.mean(dim=2, keepdim=True)
+    x = (x - grey) * saturation + grey
+    return x.clamp_(0, 1)

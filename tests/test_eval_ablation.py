@@ -1,0 +1,67 @@
+"""Training recipes compared on the same test clips: recipes, folders, scores, the CLI."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from clothgap.config import ConfigError, StudyConfig
+from eval.ablation import recipe_config, run_ablation
+from learn.config import TrainConfig
+from learn.split import get_or_make_split, part_windows
+from learn.synthetic import synthetic_run
+from render.config import RenderConfig
+from sim.config import SimConfig
+from tests.test_cli import assert_user_error, clothgap
+
+SETTING, VARIANT = "wind-uniform1", "paper"
+
+
+def tiny() -> StudyConfig:
+    return StudyConfig(sim=SimConfig(classes=(0, 8, 45, 53), sequences_per_class=4, frames=16),
+                       render=RenderConfig(resolution=32),
+                       train=TrainConfig(image_size=32, clip_len=6, clip_stride=5, epochs=2, batch_size=8, width=8,
+                                         fc6=32, hidden=16, val_fraction=0.25, test_fraction=0.25, lr=3e-3,
+                                         num_threads=2),
+                       )
+
+
+def test_recipes_compose_levers_and_settings():
+    cfg = recipe_config(tiny(), "augment+best+lr=0.01")
+    assert cfg.augment and cfg.keep == "best" and cfg.lr == 0.01 and cfg.epochs == 2
+    assert recipe_config(tiny(), "baseline") == tiny().train
+    with pytest.raises(ConfigError, match="unknown lever 'sharpen'"):
+        recipe_config(tiny(), "augment+sharpen")
+    with pytest.raises(ConfigError, match="train.keep"):
+        recipe_config(tiny(), "keep=always")
+
+
+def test_ablation_scores_every_recipe_on_the_same_test_windows(tmp_path):
+    run = synthetic_run(tmp_path / "run", tiny())
+    summary = run_ablation(run, SETTING, VARIANT, ["baseline", "augment+best"], progress=False)
+    report = json.loads((run.eval_dir / f"ablation-{SETTING}-{VARIANT}.json").read_text())
+    assert summary["json"].endswith(f"ablation-{SETTING}-{VARIANT}.json")
+    first, second = report["recipes"]
+    test = part_windows(get_or_make_split(run, SETTING), "test")
+    assert first["sequences"] == second["sequences"] == len(test) == report["test_sequences"]
+    assert first["rows"] == second["rows"] == len(test) * 3          # windows at 0, 5, 10 of 16 frames
+    assert "acc_minus_first" not in first and second["acc_minus_first_lo"] <= second["acc_minus_first_hi"]
+    assert second["changes"] == {"augment": True, "keep": "best"}
+    assert 0 <= first["within1"] <= 1 and first["within1"] >= first["acc"]
+    assert len(second["curves"]["s0"]) == 2 and second["speed"][0]["train_windows"] > 0
+    folder = run.root / "ablation" / "augment+best" / SETTING / VARIANT / "lrcn" / "s0"
+    assert (folder / "DONE").is_file() and (folder / "test_predictions.csv").is_file()
+    stamp = (folder / "DONE").stat().st_mtime_ns
+    run_ablation(run, SETTING, VARIANT, ["baseline", "augment+best"], progress=False)   # all reused
+    assert (folder / "DONE").stat().st_mtime_ns == stamp
+    md = (run.eval_dir / f"ablation-{SETTING}-{VARIANT}.md").read_text()
+    assert "| augment+best | lrcn |" in md
+
+
+def test_ablation_cli_checks_recipes_and_pairs_first(tmp_path):
+    run = synthetic_run(tmp_path / "run", tiny())
+    result = clothgap("eval", "ablation", str(run.root), "--recipe", "baseline", "--recipe", "nonsense")
+    assert_user_error(result, "unknown lever 'nonsense'")
+    assert not (run.root / "ablation").exists()
+    result = clothgap("eval", "ablation", str(run.root), "--recipe", "baseline", "--setting", "arm-uniform1")
+    assert_user_error(result, "not a pair this run renders")
