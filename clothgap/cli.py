@@ -329,8 +329,9 @@ def eval_learnability(run_dir: Path, settings: tuple[str, ...], clip_len: int, s
 @click.option("--variant", help="The render variant trained and tested on (default: the run's first).")
 @click.option("--model", "models", multiple=True, metavar="NAME", help="Models to train (default: train.models).")
 @click.option("--seed", "seeds", multiple=True, type=int, help="Training seeds (default: train.seeds).")
+@click.option("--name", metavar="NAME", help="Write RUN_DIR/eval/NAME.{json,md} (default: ablation-<setting>-<variant>).")
 def eval_ablation(run_dir: Path, recipes: tuple[str, ...], setting: str | None, variant: str | None,
-                  models: tuple[str, ...], seeds: tuple[int, ...]) -> None:
+                  models: tuple[str, ...], seeds: tuple[int, ...], name: str | None) -> None:
     """Train several recipes on the same data and score them on the same test clips, with intervals and
     paired differences (trains into RUN_DIR/ablation/<recipe>/, writes RUN_DIR/eval/ablation-*.{json,md})."""
     run = Run.open(run_dir)
@@ -346,8 +347,10 @@ def eval_ablation(run_dir: Path, recipes: tuple[str, ...], setting: str | None, 
     for recipe in recipes:
         recipe_config(run.config, recipe)   # every recipe is checked before any training
     t0 = time.perf_counter()
+    if name is not None and (not name or "/" in name):
+        raise ConfigError(f"--name {name!r}: must be a plain file name")
     _echo_summary("eval ablation", run_ablation(run, setting, variant, list(recipes), list(models) or None,
-                                                list(seeds) or None), time.perf_counter() - t0)
+                                                list(seeds) or None, name=name), time.perf_counter() - t0)
 
 
 # ---- clone

@@ -66,7 +66,7 @@ def _paper() -> StudyConfig:
                       sequences_per_class=48, frames=40, device="cuda", wind_nuisance="speed"),
         render=RenderConfig(variants=("paper",), resolution=112, spp=16, backend="cuda_ad_rgb"),
         train=TrainConfig(models=("lrcn", "base1", "base2", "base3"), image_size=112, epochs=30,
-                          batch_size=64, width=64, fc6=512, hidden=256, device="cuda"),
+                          batch_size=64, width=64, fc6=512, hidden=256, device="cuda", compile=True),
         eval=EvalConfig(measured_sequences=4, sim_analysis=("table2", "sensitivity")),
     )
 

@@ -8,7 +8,7 @@ Every recipe trains into ``RUN/ablation/<recipe>/<setting>/<variant>/<model>/s<s
 on the setting's test windows (split by sequence unless the run says otherwise)
 and compared with the first recipe by a paired bootstrap over test sequences.
 
-Writes ``RUN/eval/ablation-<setting>-<variant>.{json,md}``: per recipe and
+Writes ``RUN/eval/ablation-<setting>-<variant>.{json,md}`` (or another name): per recipe and
 model, top-1, within one bin, stretching, bending, top-3 with intervals, the
 paired difference in top-1 to the first recipe, training time and windows/s,
 the kept epoch, and the learning curves (``metrics.csv`` rows).
@@ -105,8 +105,9 @@ def _speed(folder: Path) -> dict:
 
 
 def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], models: list[str] | None = None,
-                 seeds: list[int] | None = None, progress: bool = True) -> dict:
-    """Train and score every recipe x model x seed; write and return the comparison."""
+                 seeds: list[int] | None = None, progress: bool = True, name: str | None = None) -> dict:
+    """Train and score every recipe x model x seed; write and return the comparison
+    (``RUN/eval/<name>.{json,md}``, by default ``ablation-<setting>-<variant>``)."""
     from learn.dataset import build_cache
     from learn.split import get_or_make_split, part_windows
     from learn.train import resolve_device, train_one
@@ -157,7 +158,7 @@ def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], model
             rows.append(row)
     report = {"run": str(run.root), "setting": setting, "variant": variant, "split_by": base.split_by,
               "test_sequences": len(test), "base_train": dataclasses.asdict(base), "recipes": rows}
-    stem = f"ablation-{setting}-{variant}"
+    stem = name or f"ablation-{setting}-{variant}"
     atomic_write_json(out_dir / f"{stem}.json", report)
     atomic_write_text(out_dir / f"{stem}.md", markdown(report))
     return {"json": str(out_dir / f"{stem}.json"),

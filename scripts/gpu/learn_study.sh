@@ -1,0 +1,54 @@
+#!/usr/bin/env bash
+# GPU: training recipes compared on one rendered setting (clothgap eval ablation), one recipe per
+# process so that a failure costs one row, stopping before the device's 10-minute limit.
+#   RECIPES="baseline best augment+best" MODELS=lrcn bash scripts/gpu/learn_study.sh
+#   RECIPES=auto MODELS="base1 base2 base3" ...   the recipe with the best lrcn validation accuracy so far
+# The data comes first: STAGES="sim render" SPP=16 RUN=/tmp/paper_study bash scripts/gpu/paper_study.sh
+# Every recipe resumes epoch by epoch, so a call cut short loses at most one epoch: call again.
+# Writes $OUT/ablation-<setting>-<variant>.{json,md} (every finished recipe) and $OUT/learn_study.log.
+set -uo pipefail
+source scripts/gpu/env.sh
+RUN=${RUN:-/tmp/paper_study}; SETTING=${SETTING:-wind-uniform1}; VARIANT=${VARIANT:-paper}
+MODELS=${MODELS:-lrcn}; DEADLINE=${DEADLINE:-520}; FIRST=${FIRST:-baseline}
+NAME=${NAME:-ablation-$SETTING-$VARIANT}    # the combined table of this call's models
+ABL=(python3 -m clothgap eval ablation "$RUN" --setting "$SETTING" --variant "$VARIANT")
+t0=$(date +%s)
+finished() {  # recipes whose every model is DONE, FIRST first
+  python3 - "$RUN" "$SETTING" "$VARIANT" "$FIRST" "$@" <<'PY'
+import sys, pathlib
+run, setting, variant, first, *models = sys.argv[1:]
+root = pathlib.Path(run) / "ablation"
+names = sorted(p.name for p in root.iterdir()) if root.is_dir() else []
+done = [n for n in names if all((root / n / setting / variant / m / "s0" / "DONE").is_file() for m in models)]
+print(" ".join(([first] if first in done else []) + [n for n in done if n != first]))
+PY
+}
+if [ "$RECIPES" = auto ]; then
+  RECIPES=$(python3 - "$RUN/eval/ablation-$SETTING-$VARIANT.json" <<'PY'
+import json, sys
+rows = [r for r in json.load(open(sys.argv[1]))["recipes"] if r["model"] == "lrcn" and "epochs=" not in r["recipe"]]
+def val(r):   # validation accuracy of the kept epoch: recipes are chosen on validation clips, never test
+    kept = r["speed"][0]["kept_epoch"]
+    return r["curves"]["s0"][kept]["val_acc"]
+print(max(rows, key=val)["recipe"])
+PY
+)
+  echo "recipe chosen on validation accuracy: $RECIPES"
+fi
+for r in $RECIPES; do
+  left=$(( DEADLINE - ($(date +%s) - t0) ))
+  [ $left -lt 30 ] && { echo "deadline: recipe $r and later not started"; break; }
+  margs=(); for m in $MODELS; do margs+=(--model "$m"); done
+  echo "== $r ($MODELS), $left s left"
+  timeout $(( left + 40 )) "${ABL[@]}" --recipe "$r" "${margs[@]}" --name "last-recipe" 2>&1 | tr '\r' '\n' \
+    | grep -vE "it/s\]|s/it\]|clip/s\]" | tail -5
+done
+done_recipes=$(finished $MODELS)
+if [ -n "$done_recipes" ]; then
+  rargs=(); for r in $done_recipes; do rargs+=(--recipe "$r"); done
+  margs=(); for m in $MODELS; do margs+=(--model "$m"); done
+  "${ABL[@]}" "${rargs[@]}" "${margs[@]}" --name "$NAME" 2>&1 | tail -2
+  cp "$RUN/eval/$NAME.json" "$RUN/eval/$NAME.md" "$OUT"/ 2>/dev/null
+  cat "$RUN/eval/$NAME.md"
+fi
+nvidia-smi --query-gpu=memory.used --format=csv,noheader
