@@ -186,7 +186,7 @@ class BatchSolver:
         self._build(specs)
         self._graph = None
         self._steps = 0
-        self._program = self._record_step()
+        self._program = self._record_step()     # (before, [one list per CG iteration], after)
 
     # ---------------------------------------------------------------- set-up
     def _build(self, specs: list[ClothSpec]) -> None:
@@ -327,8 +327,9 @@ class BatchSolver:
             a.max_angle, a.t0 = float(arm.max_angle), float(arm.t0)
         return a
 
-    def _record_step(self) -> list:
-        """One time step as a fixed list of recorded launches (and memsets)."""
+    def _record_step(self) -> tuple[list, list[list], list]:
+        """One time step as fixed lists of recorded launches (and memsets): before the CG iterations,
+        one list per iteration, after them."""
         P = self.params
         dt, h2 = float(P.dt), float(P.dt) ** 2
         dev = self.device
@@ -376,7 +377,10 @@ class BatchSolver:
                                           float(P.damping), self.diag, self.dv, self.r, self.z, self.p, self.ap,
                                           self.rz, self.pap, self.rr])
         check(0)
+        before, iterations = cmds, []
         for it in range(P.cg_iterations):
+            cmds = []
+            iterations.append(cmds)
             hessian_product(self.p, self.ap, h2, self.pap, it)
             if self.has_arm:
                 launch(kernels.cg_update_contact, nv, [self.mass, self.free, self.vertex_cloth, self.diag, self.p,
@@ -394,6 +398,7 @@ class BatchSolver:
             elif it + 1 < P.cg_iterations:
                 launch(kernels.cg_direction, nv, [self.mass, self.vertex_cloth, dt, float(P.damping), self.z, it,
                                                   self.cg_active, self.p, self.ap, self.rz, self.pap])
+        cmds = []
         launch(kernels.cg_finish, nc, [self.rr, self.cg_iterations, self.cg_residual, self.cg_iteration_sum,
                                        self.cg_iteration_max, self.cg_residual_max])
         if self.has_arm:
@@ -410,22 +415,33 @@ class BatchSolver:
                         float(P.friction), self.x, self.v, self.contact_dx, self.contact_dv, self.contact_count])
                 launch(kernels.apply_corrections, nv, [self.contact_dx, self.contact_dv, self.contact_count,
                                                        self.x, self.v])
-        return cmds
+        return before, iterations, cmds
 
     # ---------------------------------------------------------------- stepping and state
     def step(self, n: int = 1) -> None:
         """Advance every cloth by ``n`` time steps."""
+        before, iterations, after = self._program
         if wp.get_device(self.device).is_cuda:
             if self._graph is None:
                 with wp.ScopedCapture(device=self.device) as capture:
-                    for cmd in self._program:
+                    for cmd in before + [c for it in iterations for c in it] + after:
                         cmd()
                 self._graph = capture.graph
             for _ in range(n):
                 wp.capture_launch(self._graph)
         else:
+            # On the CPU the device memory is the host's: once no cloth's CG runs, the remaining
+            # (all masked) iterations are skipped, the same result without their launch overhead.
+            running = self.cg_active.numpy()
             for _ in range(n):
-                for cmd in self._program:
+                for cmd in before:
+                    cmd()
+                for it in iterations:
+                    if not running.any():
+                        break
+                    for cmd in it:
+                        cmd()
+                for cmd in after:
                     cmd()
         self._steps += n
 
