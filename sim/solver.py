@@ -59,7 +59,8 @@ by a p.A p or r.z so small that float32 has nothing left of it (past
 convergence both underflow to subnormals, and iterating on makes NaN). A
 stopped cloth is masked out of the remaining launches rather than the loop
 broken on the host, so a step stays a fixed list of launches (CUDA-graph
-captured on GPUs) with no device-to-host sync. ``cg_stats()`` reports per cloth
+captured on GPUs) with no device-to-host sync; on the CPU, whose device memory
+is the host's, a step leaves the loop once no cloth runs. ``cg_stats()`` reports per cloth
 the iterations taken per step (mean, max) and the largest final relative
 residual.
 
@@ -308,7 +309,7 @@ class BatchSolver:
         self.scratch = wp.zeros((1, self.num_cloths), dtype=float, device=dev)
         nc = self.num_cloths
         self.cg_active = wp.zeros(nc, dtype=int, device=dev)
-        self.cg_iterations = wp.zeros(nc, dtype=int, device=dev)
+        self.cg_taken = wp.zeros(nc, dtype=int, device=dev)          # this step's iterations
         self.cg_residual = wp.zeros(nc, dtype=float, device=dev)       # the current r.r per cloth
         self.cg_iteration_sum = wp.zeros(nc, dtype=float, device=dev)  # statistics over all steps so far
         self.cg_iteration_max = wp.zeros(nc, dtype=int, device=dev)
@@ -349,9 +350,9 @@ class BatchSolver:
 
         def check(slot):
             launch(kernels.cg_check, nc, [slot, tol2, self.rz, self.pap, self.rr, self.cg_active,
-                                          self.cg_iterations, self.cg_residual])
+                                          self.cg_taken, self.cg_residual])
 
-        launch(kernels.cg_reset, nc, [self.cg_active, self.cg_iterations, self.cg_residual])
+        launch(kernels.cg_reset, nc, [self.cg_active, self.cg_taken, self.cg_residual])
 
         launch(kernels.begin_step, nv, [self.mass, wp.vec3(*P.gravity), self.force, self.diag, self.kv])
         launch(kernels.face_prepare, nf, [self.x, self.v, self.tri, self.dm_inv, self.area, self.face_cloth,
@@ -399,7 +400,7 @@ class BatchSolver:
                 launch(kernels.cg_direction, nv, [self.mass, self.vertex_cloth, dt, float(P.damping), self.z, it,
                                                   self.cg_active, self.p, self.ap, self.rz, self.pap])
         cmds = []
-        launch(kernels.cg_finish, nc, [self.rr, self.cg_iterations, self.cg_residual, self.cg_iteration_sum,
+        launch(kernels.cg_finish, nc, [self.rr, self.cg_taken, self.cg_residual, self.cg_iteration_sum,
                                        self.cg_iteration_max, self.cg_residual_max])
         if self.has_arm:
             launch(kernels.contact_release, nv, [self.contact_n, self.contact_rn, self.released, self.contact_jn])
