@@ -121,7 +121,8 @@ def cli() -> None:
 @cli.group(cls=DefaultGroup)
 def sim() -> None:
     """Simulate cloth sequences with Warp (`clothgap sim RUN_DIR`), or run the
-    paper's material analyses (`sensitivity`, `table2`)."""
+    paper's material analyses (`sensitivity`, `table2`) or the cantilever
+    bending test (`cantilever`)."""
 
 
 @sim.command("run")
@@ -166,6 +167,25 @@ def sim_table2(out: Path, device: str, refine: int) -> None:
     click.echo(f"wrote {path} and {path.with_suffix('.png')}")
     click.echo("classes matching the paper: simulated p {p_match}, k {k_match}; "
                "table ratio p {p_table_match}, k {k_table_match}".format(**counts))
+
+
+@sim.command("cantilever")
+@click.argument("fabric")
+@click.option("--level", default=1, show_default=True, type=click.IntRange(1, 7),
+              help="Mesh level: the edge length of the sim stage's uniform<LEVEL> mesh (33 mm at 1, halved per level).")
+@click.option("--overhang", "overhangs", multiple=True, type=click.FloatRange(0, min_open=True), metavar="CM",
+              help="Overhang in cm, rounded to whole edges (repeatable). Default: whole edges around the ASTM "
+                   "overhang (twice the model's bending length).")
+@click.option("--axis", type=click.Choice(["u", "v"]), default="u", show_default=True,
+              help="Material axis along the strip's length.")
+@click.option("--device", default="cpu", show_default=True, help="Warp device: cpu, cuda, cuda:N.")
+def sim_cantilever(fabric: str, level: int, overhangs: tuple[float, ...], axis: str, device: str) -> None:
+    """The cantilever bending test (ASTM D1388 / Peirce) on the solver: FABRIC is a measured fabric's
+    name or a class index 0..53. Prints each overhang's chord angle, bending length and flexural
+    rigidity, the ASTM 41.5 deg reading, and the model's own value beside them."""
+    from sim.cantilever import run_test
+
+    click.echo(run_test(fabric, level, overhangs, axis, device))
 
 
 # ---- render

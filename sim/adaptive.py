@@ -21,7 +21,7 @@ import numpy as np
 from sim import remesh
 from sim.mesh import ClothMesh, hinges_of
 from sim.motions import ClipScene
-from sim.solver import BatchSolver, ClothSpec, SolverParams
+from sim.solver import BatchSolver, CGStats, ClothSpec, SolverParams
 
 
 def cloth_mesh(q: remesh.QuadMesh) -> ClothMesh:
@@ -34,6 +34,7 @@ class AdaptiveResult:
     frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]] | None   # (positions, faces, uv) per frame
     reason: str | None
     vertex_counts: list[int] = dataclasses.field(default_factory=list)
+    cg: CGStats | None = None
 
 
 @dataclasses.dataclass
@@ -74,12 +75,14 @@ def _solver(cloths: list[_Cloth], params: SolverParams, device: str, elapsed: fl
 
 
 def simulate_adaptive(scenes: list[ClipScene], base: remesh.QuadMesh, *, fps: float, frames: int,
-                      substeps: int, settle_s: float, cg_iterations: int = 30, device: str = "cpu",
+                      substeps: int, settle_s: float, cg_iterations: int = 30,
+                      cg_tolerance: float = SolverParams.cg_tolerance, device: str = "cpu",
                       refine_angle: float = 0.3, health=None, on_frame=None) -> list[AdaptiveResult]:
     """Settle without wind on the base mesh, then record ``frames`` frames with the wind on,
     remeshing every cloth after each frame. ``scenes`` must be built on ``cloth_mesh(base)``."""
     dt = 1.0 / (fps * substeps)
-    params = SolverParams(dt=dt, cg_iterations=cg_iterations)
+    params = SolverParams(dt=dt, cg_iterations=cg_iterations, cg_tolerance=cg_tolerance)
+    cg = [CGStats() for _ in scenes]        # summed over the solvers a remeshing run rebuilds
     cloths = [_start(s, base) for s in scenes]
     winds = np.stack([s.wind for s in scenes])
     solver = _solver(cloths, params, device, 0.0, None)
@@ -114,8 +117,11 @@ def simulate_adaptive(scenes: list[ClipScene], base: remesh.QuadMesh, *, fps: fl
             else:
                 cloth.spec = dataclasses.replace(cloth.spec, positions=pos[c], velocities=vel[c])
         if changed and t + 1 < frames:
+            cg = [a.merged(b) for a, b in zip(cg, solver.cg_stats())]
             solver = _solver(cloths, params, device, elapsed, winds)
         prev = pos
         if on_frame is not None:
             on_frame()
-    return [AdaptiveResult(None if r else rec, r, [len(f[0]) for f in rec]) for r, rec in zip(reasons, recorded)]
+    cg = [a.merged(b) for a, b in zip(cg, solver.cg_stats())]
+    return [AdaptiveResult(None if r else rec, r, [len(f[0]) for f in rec], c)
+            for r, rec, c in zip(reasons, recorded, cg)]

@@ -32,7 +32,8 @@ class SimConfig:
     fps: float = 25.0
     substeps: int = 8                               # solver steps per frame
     settle_s: float = 0.4                           # simulated seconds before the first recorded frame
-    cg_iterations: int = 30                         # conjugate-gradient iterations per solver step
+    cg_iterations: int = 30                         # the most conjugate-gradient iterations per solver step
+    cg_tolerance: float = 1.0e-3                    # a cloth's CG stops at |r| <= tol |r0|; 0: run to float32's limit
     device: str = "auto"                            # "auto", "cpu", "cuda", "cuda:N"
     batch_size: int = 512                           # cloths advanced together in one launch
     wind_nuisance: str = "full"                     # "full": pose, gathering, wind speed and direction drawn
@@ -61,6 +62,7 @@ class SimConfig:
         out += checks.number("sim.substeps", self.substeps, 1)
         out += checks.number("sim.settle_s", self.settle_s, 0)
         out += checks.number("sim.cg_iterations", self.cg_iterations, 1)
+        out += checks.number("sim.cg_tolerance", self.cg_tolerance, 0, 1, hi_open=True)
         out += checks.number("sim.batch_size", self.batch_size, 1)
         out += checks.choice("sim.wind_nuisance", self.wind_nuisance, WIND_NUISANCE)
         out += checks.device("sim.device", self.device)

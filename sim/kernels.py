@@ -8,6 +8,9 @@ array set, each element carrying its cloth id, and per-cloth quantities
 Conventions: ``free`` is 1 for a simulated vertex and 0 for a pinned one (pinned
 rows of the linear system are filtered out); dot products of the conjugate
 gradient are accumulated per cloth with atomic adds into ``acc[iteration, cloth]``.
+A cloth whose CG has stopped (``active[cloth] == 0``: converged, or a step would
+divide by a vanishing number) is skipped by every CG kernel, so the step stays a
+fixed list of launches (CUDA-graph capture) while each cloth stops on its own.
 """
 
 from __future__ import annotations
@@ -234,9 +237,11 @@ def hinge_prepare(x: wp.array(dtype=wp.vec3), hinge: wp.array2d(dtype=int), rest
 def face_hessian_product(p: wp.array(dtype=wp.vec3), tri: wp.array2d(dtype=int), dm_inv: wp.array(dtype=wp.mat22),
                          cloth: wp.array(dtype=int), f0_in: wp.array(dtype=wp.vec3), f1_in: wp.array(dtype=wp.vec3),
                          kmat: wp.array(dtype=wp.vec4), smat: wp.array(dtype=wp.vec3), scale: float, slot: int,
-                         out: wp.array(dtype=wp.vec3), acc: wp.array2d(dtype=float)):
-    """out += scale * K_stretch p, and acc[slot, cloth] += scale * p.K p (per face)."""
+                         active: wp.array(dtype=int), out: wp.array(dtype=wp.vec3), acc: wp.array2d(dtype=float)):
+    """out += scale * K_stretch p, and acc[slot, cloth] += scale * p.K p (per face); stopped cloths skipped."""
     f = wp.tid()
+    if active[cloth[f]] == 0:
+        return
     i = tri[f, 0]
     j = tri[f, 1]
     k = tri[f, 2]
@@ -276,11 +281,11 @@ def face_hessian_product(p: wp.array(dtype=wp.vec3), tri: wp.array2d(dtype=int),
 @wp.kernel
 def hinge_hessian_product(p: wp.array(dtype=wp.vec3), hinge: wp.array2d(dtype=int), cloth: wp.array(dtype=int),
                           stiffness: wp.array(dtype=float), grad: wp.array2d(dtype=wp.vec3), scale: float, slot: int,
-                          out: wp.array(dtype=wp.vec3), acc: wp.array2d(dtype=float)):
+                          active: wp.array(dtype=int), out: wp.array(dtype=wp.vec3), acc: wp.array2d(dtype=float)):
     """out += scale * kb g g^T p (Gauss-Newton bending stiffness), acc[slot, cloth] += scale * p.K p."""
     h = wp.tid()
     kb = stiffness[h]
-    if kb > 0.0:
+    if kb > 0.0 and active[cloth[h]] != 0:
         s = float(0.0)
         for q in range(4):
             s += wp.dot(grad[h, q], p[hinge[h, q]])
@@ -292,15 +297,29 @@ def hinge_hessian_product(p: wp.array(dtype=wp.vec3), hinge: wp.array2d(dtype=in
 
 # ---------------------------------------------------------------- conjugate gradient on (M (1 + h a) + h^2 K) dv = b
 
+# Float32 floors of the CG scalars. Past convergence r.z and p.A p shrink into the subnormal range
+# (below 1.2e-38), where their quotients alpha and beta are noise and the positions go to NaN; a cloth
+# stops before a division by anything under CG_FLOOR, or once r.z has fallen by CG_ROUNDOFF (a relative
+# residual of about 1e-7, float32's resolution: further iterations only add rounding noise).
+CG_FLOOR = wp.constant(1.0e-30)
+CG_ROUNDOFF = wp.constant(1.0e-14)
+
+
+@wp.func
+def cg_step_ok(pap: float):
+    """Whether alpha = r.z / p.A p may be taken (False for NaN too)."""
+    return pap > CG_FLOOR
+
+
 @wp.kernel
 def cg_start(force: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), kv: wp.array(dtype=wp.vec3),
              mass: wp.array(dtype=float), free: wp.array(dtype=float), cloth: wp.array(dtype=int),
              dt: float, damping: float, diag: wp.array(dtype=wp.vec3),
              dv: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.vec3),
              p: wp.array(dtype=wp.vec3), ap: wp.array(dtype=wp.vec3),
-             rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float)):
+             rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float), rr: wp.array2d(dtype=float)):
     """Right-hand side b = h (f - a M v) - h^2 K v, Jacobi preconditioner (diag becomes its inverse),
-    first search direction, and the first dot products."""
+    first search direction, and the first dot products (r.z, p.M p, r.r)."""
     i = wp.tid()
     c = cloth[i]
     m_eff = mass[i] * (1.0 + dt * damping)
@@ -316,44 +335,94 @@ def cg_start(force: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), kv: wp.
     ap[i] = m_eff * zi
     wp.atomic_add(rz, 0, c, wp.dot(ri, zi))
     wp.atomic_add(pap, 0, c, m_eff * wp.dot(zi, zi))
+    wp.atomic_add(rr, 0, c, wp.dot(ri, ri))
 
 
 @wp.kernel
 def cg_update(mass: wp.array(dtype=float), free: wp.array(dtype=float), cloth: wp.array(dtype=int),
               dinv: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3), ap: wp.array(dtype=wp.vec3),
-              slot: int, dv: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.vec3),
-              rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float)):
-    """dv += alpha p, r -= alpha A p, z = P r, accumulating the next r.z."""
+              slot: int, active: wp.array(dtype=int), dv: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec3),
+              z: wp.array(dtype=wp.vec3), rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float),
+              rr: wp.array2d(dtype=float)):
+    """dv += alpha p, r -= alpha A p, z = P r, accumulating the next r.z and r.r (running cloths only)."""
     i = wp.tid()
     c = cloth[i]
     den = pap[slot, c]
-    alpha = float(0.0)
-    if den > 0.0:
-        alpha = rz[slot, c] / den
+    if active[c] == 0 or not cg_step_ok(den):
+        return
+    alpha = rz[slot, c] / den
     dv[i] = dv[i] + alpha * p[i]
     ri = r[i] - alpha * free[i] * ap[i]
     zi = wp.cw_mul(ri, dinv[i])
     r[i] = ri
     z[i] = zi
     wp.atomic_add(rz, slot + 1, c, wp.dot(ri, zi))
+    wp.atomic_add(rr, slot + 1, c, wp.dot(ri, ri))
 
 
 @wp.kernel
 def cg_direction(mass: wp.array(dtype=float), cloth: wp.array(dtype=int), dt: float, damping: float,
-                 z: wp.array(dtype=wp.vec3), slot: int, p: wp.array(dtype=wp.vec3), ap: wp.array(dtype=wp.vec3),
-                 rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float)):
-    """p = z + beta p; starts A p with its mass part and accumulates that part of p.A p."""
+                 z: wp.array(dtype=wp.vec3), slot: int, active: wp.array(dtype=int), p: wp.array(dtype=wp.vec3),
+                 ap: wp.array(dtype=wp.vec3), rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float)):
+    """p = z + beta p; starts A p with its mass part and accumulates that part of p.A p (running cloths:
+    ``cg_check`` has made sure their r.z is well above underflow)."""
     i = wp.tid()
     c = cloth[i]
-    den = rz[slot, c]
-    beta = float(0.0)
-    if den > 0.0:
-        beta = rz[slot + 1, c] / den
+    if active[c] == 0:
+        return
+    beta = rz[slot + 1, c] / rz[slot, c]
     m_eff = mass[i] * (1.0 + dt * damping)
     pi = z[i] + beta * p[i]
     p[i] = pi
     ap[i] = m_eff * pi
     wp.atomic_add(pap, slot + 1, c, m_eff * wp.dot(pi, pi))
+
+@wp.kernel
+def cg_reset(active: wp.array(dtype=int), iterations: wp.array(dtype=int), residual: wp.array(dtype=float)):
+    """Per cloth, at the start of a step: every cloth's CG runs."""
+    c = wp.tid()
+    active[c] = 1
+    iterations[c] = 0
+    residual[c] = 0.0
+
+
+@wp.kernel
+def cg_check(slot: int, tol2: float, rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float),
+             rr: wp.array2d(dtype=float), active: wp.array(dtype=int), iterations: wp.array(dtype=int),
+             residual: wp.array(dtype=float)):
+    """Per cloth, after ``slot`` CG updates: count the update if it was taken, keep r.r as the cloth's
+    residual, and stop the cloth once r.r <= tol2 * r0.r0 or r.z is too small to divide by."""
+    c = wp.tid()
+    if active[c] == 0:
+        return
+    if slot > 0:
+        if not cg_step_ok(pap[slot - 1, c]):       # cg_update skipped it: p.A p vanished
+            active[c] = 0
+            return
+        iterations[c] = slot
+    r2 = rr[slot, c]
+    residual[c] = r2
+    rzc = rz[slot, c]
+    if not (r2 > tol2 * rr[0, c] and rzc > CG_FLOOR and rzc > CG_ROUNDOFF * rz[0, c]):
+        active[c] = 0
+
+
+@wp.kernel
+def cg_finish(rr: wp.array2d(dtype=float), iterations: wp.array(dtype=int), residual: wp.array(dtype=float),
+              iteration_sum: wp.array(dtype=float), iteration_max: wp.array(dtype=int),
+              residual_max: wp.array(dtype=float)):
+    """Per cloth, after the solve: accumulate the step's iteration count and its final relative residual
+    |r| / |r0| into the cloth's running statistics (a NaN residual is kept, not hidden by max)."""
+    c = wp.tid()
+    n = iterations[c]
+    iteration_sum[c] = iteration_sum[c] + float(n)
+    iteration_max[c] = wp.max(iteration_max[c], n)
+    r0 = rr[0, c]
+    rel = float(0.0)
+    if r0 > 0.0:
+        rel = wp.sqrt(residual[c] / r0)
+    if not (rel <= residual_max[c]):
+        residual_max[c] = rel
 
 
 @wp.kernel
@@ -672,7 +741,8 @@ def cg_start_contact(force: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
                      fb: wp.array(dtype=wp.vec3), rn: wp.array(dtype=float),
                      dv: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.vec3),
                      p: wp.array(dtype=wp.vec3), ap: wp.array(dtype=wp.vec3),
-                     rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float)):
+                     rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float),
+                     rr: wp.array2d(dtype=float)):
     """``cg_start`` for the modified PCG of Baraff & Witkin: dv starts at the prescribed y, the residual is
     b - A y (``kv`` holds K (v + y)), filtered; ``rn`` keeps the unfiltered residual along the contact normal
     (minus the contact impulse), to release adhesive contacts after the solve. The friction term of
@@ -695,21 +765,23 @@ def cg_start_contact(force: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
     ap[i] = m_eff * zi
     wp.atomic_add(rz, 0, c, wp.dot(ri, zi))
     wp.atomic_add(pap, 0, c, m_eff * wp.dot(zi, zi))
+    wp.atomic_add(rr, 0, c, wp.dot(ri, ri))
 
 
 @wp.kernel
 def cg_update_contact(mass: wp.array(dtype=float), free: wp.array(dtype=float), cloth: wp.array(dtype=int),
                       dinv: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3), ap: wp.array(dtype=wp.vec3),
                       cn: wp.array(dtype=wp.vec3), rn: wp.array(dtype=float),
-                      slot: int, dv: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.vec3),
-                      rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float)):
+                      slot: int, active: wp.array(dtype=int), dv: wp.array(dtype=wp.vec3),
+                      r: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.vec3),
+                      rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float), rr: wp.array2d(dtype=float)):
     """``cg_update`` with the contact filter."""
     i = wp.tid()
     c = cloth[i]
     den = pap[slot, c]
-    alpha = float(0.0)
-    if den > 0.0:
-        alpha = rz[slot, c] / den
+    if active[c] == 0 or not cg_step_ok(den):
+        return
+    alpha = rz[slot, c] / den
     n = cn[i]
     api = ap[i]
     dv[i] = dv[i] + alpha * p[i]
@@ -719,20 +791,20 @@ def cg_update_contact(mass: wp.array(dtype=float), free: wp.array(dtype=float), 
     r[i] = ri
     z[i] = zi
     wp.atomic_add(rz, slot + 1, c, wp.dot(ri, zi))
+    wp.atomic_add(rr, slot + 1, c, wp.dot(ri, ri))
 
 
 @wp.kernel
 def cg_direction_contact(mass: wp.array(dtype=float), cloth: wp.array(dtype=int), dt: float, damping: float,
                          fc: wp.array(dtype=float), z: wp.array(dtype=wp.vec3), slot: int,
-                         p: wp.array(dtype=wp.vec3), ap: wp.array(dtype=wp.vec3),
+                         active: wp.array(dtype=int), p: wp.array(dtype=wp.vec3), ap: wp.array(dtype=wp.vec3),
                          rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float)):
     """``cg_direction`` with the contacts' friction term ``fc`` on the mass (p has no normal part there)."""
     i = wp.tid()
     c = cloth[i]
-    den = rz[slot, c]
-    beta = float(0.0)
-    if den > 0.0:
-        beta = rz[slot + 1, c] / den
+    if active[c] == 0:
+        return
+    beta = rz[slot + 1, c] / rz[slot, c]
     m_eff = mass[i] * (1.0 + dt * damping) + fc[i]
     pi = z[i] + beta * p[i]
     p[i] = pi

@@ -51,9 +51,18 @@ handled in two places:
   both with non-penetrating velocity relative to the surface and Coulomb friction.
 
 The system is solved per cloth with a Jacobi-preconditioned conjugate gradient
-run for a fixed number of iterations (so a step is a fixed list of launches,
-CUDA-graph captured on GPUs); per-cloth dot products are atomic adds into
-per-cloth slots. Pinned vertices are filtered out of the system.
+of at most ``cg_iterations`` iterations; per-cloth dot products are atomic adds
+into per-cloth slots. Pinned vertices are filtered out of the system. Each
+cloth stops on its own once its residual has fallen to ``cg_tolerance`` times
+its initial residual (|r| <= tol |r0|, unpreconditioned), or before a division
+by a p.A p or r.z so small that float32 has nothing left of it (past
+convergence both underflow to subnormals, and iterating on makes NaN). A
+stopped cloth is masked out of the remaining launches rather than the loop
+broken on the host, so a step stays a fixed list of launches (CUDA-graph
+captured on GPUs) with no device-to-host sync; on the CPU, whose device memory
+is the host's, a step leaves the loop once no cloth runs. ``cg_stats()`` reports per cloth
+the iterations taken per step (mean, max) and the largest final relative
+residual.
 
 Batching: ``BatchSolver(specs)`` concatenates the cloths; every face, hinge and
 vertex knows its cloth id, so per-cloth materials, densities and winds are just
@@ -108,7 +117,8 @@ class ClothSpec:
 @dataclass(frozen=True)
 class SolverParams:
     dt: float = 1.0 / 200.0               # seconds per step
-    cg_iterations: int = 30               # fixed, so a step can be graph-captured
+    cg_iterations: int = 30               # the most CG iterations per step (the launches are fixed: graph capture)
+    cg_tolerance: float = 1.0e-3          # a cloth's CG stops at |r| <= tol |r0|; 0: only at float32's limit
     gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
     air_density: float = 1.225            # kg/m^3, the wind pressure coefficient
     air_drag: float = 0.1                 # kg/(m^2 s), tangential drag coefficient
@@ -118,6 +128,30 @@ class SolverParams:
     slip_velocity: float = 1.0e-3         # m/s, below it friction is a stiff damping (static friction's creep)
     contact_tolerance: float = 0.005      # m, beyond the contact surface a vertex still counts as touching
     contact_iterations: int = 1           # Jacobi passes of the edge-capsule contact after each step
+
+
+@dataclass(frozen=True)
+class CGStats:
+    """One cloth's conjugate-gradient work over ``steps`` solver steps (``BatchSolver.cg_stats``)."""
+
+    steps: int = 0
+    iterations: float = 0.0               # summed over the steps
+    max_iterations: int = 0               # the most one step took
+    max_residual: float = 0.0             # the largest final |r| / |r0| of a step
+
+    def merged(self, other: "CGStats") -> "CGStats":
+        """The statistics of both runs together (a cloth simulated by successive solvers)."""
+        a, b = self.max_residual, other.max_residual
+        worst = b if (math.isnan(b) or b > a) else a          # a NaN residual is kept
+        return CGStats(self.steps + other.steps, self.iterations + other.iterations,
+                       max(self.max_iterations, other.max_iterations), worst)
+
+    def health(self) -> dict:
+        """The clip's health entries: mean and max iterations per step, max final relative residual."""
+        return {"cg_steps": self.steps,
+                "cg_iterations_mean": round(self.iterations / self.steps, 3) if self.steps else 0.0,
+                "cg_iterations_max": self.max_iterations,
+                "cg_residual_max": float(f"{self.max_residual:.4g}")}
 
 
 def resolve_device(device: str) -> str:
@@ -152,7 +186,8 @@ class BatchSolver:
         self.vertex_offsets = np.concatenate([[0], np.cumsum(vcount)]).astype(np.int64)
         self._build(specs)
         self._graph = None
-        self._program = self._record_step()
+        self._steps = 0
+        self._program = self._record_step()     # (before, [one list per CG iteration], after)
 
     # ---------------------------------------------------------------- set-up
     def _build(self, specs: list[ClothSpec]) -> None:
@@ -270,7 +305,15 @@ class BatchSolver:
         slots = self.params.cg_iterations + 1
         self.rz = wp.zeros((slots, self.num_cloths), dtype=float, device=dev)
         self.pap = wp.zeros((slots, self.num_cloths), dtype=float, device=dev)
+        self.rr = wp.zeros((slots, self.num_cloths), dtype=float, device=dev)
         self.scratch = wp.zeros((1, self.num_cloths), dtype=float, device=dev)
+        nc = self.num_cloths
+        self.cg_active = wp.zeros(nc, dtype=int, device=dev)
+        self.cg_taken = wp.zeros(nc, dtype=int, device=dev)          # this step's iterations
+        self.cg_residual = wp.zeros(nc, dtype=float, device=dev)       # the current r.r per cloth
+        self.cg_iteration_sum = wp.zeros(nc, dtype=float, device=dev)  # statistics over all steps so far
+        self.cg_iteration_max = wp.zeros(nc, dtype=int, device=dev)
+        self.cg_residual_max = wp.zeros(nc, dtype=float, device=dev)
 
     @staticmethod
     def _arm_struct(arm: ArmSpec | None) -> kernels.Arm:
@@ -285,13 +328,15 @@ class BatchSolver:
             a.max_angle, a.t0 = float(arm.max_angle), float(arm.t0)
         return a
 
-    def _record_step(self) -> list:
-        """One time step as a fixed list of recorded launches (and memsets)."""
+    def _record_step(self) -> tuple[list, list[list], list]:
+        """One time step as fixed lists of recorded launches (and memsets): before the CG iterations,
+        one list per iteration, after them."""
         P = self.params
         dt, h2 = float(P.dt), float(P.dt) ** 2
         dev = self.device
-        nv, nf, nh = self.num_vertices, self.num_faces, self.num_hinges
-        cmds: list = [self.rz.zero_, self.pap.zero_]
+        nv, nf, nh, nc = self.num_vertices, self.num_faces, self.num_hinges, self.num_cloths
+        tol2 = float(P.cg_tolerance) ** 2
+        cmds: list = [self.rz.zero_, self.pap.zero_, self.rr.zero_]
 
         def launch(kernel, dim, inputs):
             if dim > 0:
@@ -299,9 +344,15 @@ class BatchSolver:
 
         def hessian_product(vec, out, scale, acc, slot):
             launch(kernels.face_hessian_product, nf, [vec, self.tri, self.dm_inv, self.face_cloth, self.f0, self.f1,
-                                                      self.kmat, self.smat, scale, slot, out, acc])
+                                                      self.kmat, self.smat, scale, slot, self.cg_active, out, acc])
             launch(kernels.hinge_hessian_product, nh, [vec, self.hinge, self.hinge_cloth, self.hinge_k,
-                                                       self.hinge_grad, scale, slot, out, acc])
+                                                       self.hinge_grad, scale, slot, self.cg_active, out, acc])
+
+        def check(slot):
+            launch(kernels.cg_check, nc, [slot, tol2, self.rz, self.pap, self.rr, self.cg_active,
+                                          self.cg_taken, self.cg_residual])
+
+        launch(kernels.cg_reset, nc, [self.cg_active, self.cg_taken, self.cg_residual])
 
         launch(kernels.begin_step, nv, [self.mass, wp.vec3(*P.gravity), self.force, self.diag, self.kv])
         launch(kernels.face_prepare, nf, [self.x, self.v, self.tri, self.dm_inv, self.area, self.face_cloth,
@@ -320,28 +371,37 @@ class BatchSolver:
             launch(kernels.cg_start_contact, nv, [self.force, self.v, self.kv, self.mass, self.free, self.vertex_cloth,
                                                   dt, float(P.damping), self.diag, self.contact_n, self.contact_y,
                                                   self.friction_c, self.friction_b, self.contact_rn, self.dv, self.r,
-                                                  self.z, self.p, self.ap, self.rz, self.pap])
+                                                  self.z, self.p, self.ap, self.rz, self.pap, self.rr])
         else:
             hessian_product(self.v, self.kv, 1.0, self.scratch, 0)
             launch(kernels.cg_start, nv, [self.force, self.v, self.kv, self.mass, self.free, self.vertex_cloth, dt,
                                           float(P.damping), self.diag, self.dv, self.r, self.z, self.p, self.ap,
-                                          self.rz, self.pap])
+                                          self.rz, self.pap, self.rr])
+        check(0)
+        before, iterations = cmds, []
         for it in range(P.cg_iterations):
+            cmds = []
+            iterations.append(cmds)
             hessian_product(self.p, self.ap, h2, self.pap, it)
             if self.has_arm:
                 launch(kernels.cg_update_contact, nv, [self.mass, self.free, self.vertex_cloth, self.diag, self.p,
-                                                       self.ap, self.contact_n, self.contact_rn, it, self.dv, self.r,
-                                                       self.z, self.rz, self.pap])
+                                                       self.ap, self.contact_n, self.contact_rn, it, self.cg_active,
+                                                       self.dv, self.r, self.z, self.rz, self.pap, self.rr])
             else:
                 launch(kernels.cg_update, nv, [self.mass, self.free, self.vertex_cloth, self.diag, self.p, self.ap,
-                                               it, self.dv, self.r, self.z, self.rz, self.pap])
+                                               it, self.cg_active, self.dv, self.r, self.z, self.rz, self.pap,
+                                               self.rr])
+            check(it + 1)
             if it + 1 < P.cg_iterations and self.has_arm:
                 launch(kernels.cg_direction_contact, nv, [self.mass, self.vertex_cloth, dt, float(P.damping),
-                                                          self.friction_c, self.z, it, self.p, self.ap, self.rz,
-                                                          self.pap])
+                                                          self.friction_c, self.z, it, self.cg_active, self.p,
+                                                          self.ap, self.rz, self.pap])
             elif it + 1 < P.cg_iterations:
                 launch(kernels.cg_direction, nv, [self.mass, self.vertex_cloth, dt, float(P.damping), self.z, it,
-                                                  self.p, self.ap, self.rz, self.pap])
+                                                  self.cg_active, self.p, self.ap, self.rz, self.pap])
+        cmds = []
+        launch(kernels.cg_finish, nc, [self.rr, self.cg_taken, self.cg_residual, self.cg_iteration_sum,
+                                       self.cg_iteration_max, self.cg_residual_max])
         if self.has_arm:
             launch(kernels.contact_release, nv, [self.contact_n, self.contact_rn, self.released, self.contact_jn])
         launch(kernels.integrate, nv, [self.dv, self.free, dt, self.x, self.v])
@@ -356,23 +416,41 @@ class BatchSolver:
                         float(P.friction), self.x, self.v, self.contact_dx, self.contact_dv, self.contact_count])
                 launch(kernels.apply_corrections, nv, [self.contact_dx, self.contact_dv, self.contact_count,
                                                        self.x, self.v])
-        return cmds
+        return before, iterations, cmds
 
     # ---------------------------------------------------------------- stepping and state
     def step(self, n: int = 1) -> None:
         """Advance every cloth by ``n`` time steps."""
+        before, iterations, after = self._program
         if wp.get_device(self.device).is_cuda:
             if self._graph is None:
                 with wp.ScopedCapture(device=self.device) as capture:
-                    for cmd in self._program:
+                    for cmd in before + [c for it in iterations for c in it] + after:
                         cmd()
                 self._graph = capture.graph
             for _ in range(n):
                 wp.capture_launch(self._graph)
         else:
+            # On the CPU the device memory is the host's: once no cloth's CG runs, the remaining
+            # (all masked) iterations are skipped, the same result without their launch overhead.
+            running = self.cg_active.numpy()
             for _ in range(n):
-                for cmd in self._program:
+                for cmd in before:
                     cmd()
+                for it in iterations:
+                    if not running.any():
+                        break
+                    for cmd in it:
+                        cmd()
+                for cmd in after:
+                    cmd()
+        self._steps += n
+
+    def cg_stats(self) -> list[CGStats]:
+        """Per cloth: the CG iterations and final relative residuals of every step so far."""
+        sums, maxes = self.cg_iteration_sum.numpy(), self.cg_iteration_max.numpy()
+        res = self.cg_residual_max.numpy()
+        return [CGStats(self._steps, float(sums[c]), int(maxes[c]), float(res[c])) for c in range(self.num_cloths)]
 
     def set_wind(self, winds: np.ndarray) -> None:
         """Per-cloth wind velocities, (num_cloths, 3) m/s."""

@@ -40,7 +40,7 @@ from sim.config import REMESHING, SimConfig
 from sim.materials import load_material
 from sim.mesh import ClothMesh, square_cloth, vertices_per_side
 from sim.motions import MOTIONS, ClipScene, arm_scene, view_box, wind_scene
-from sim.solver import BatchSolver, SolverParams, resolve_device
+from sim.solver import BatchSolver, CGStats, SolverParams, resolve_device
 
 # Health check of every recorded frame: beyond these a cloth has exploded.
 MAX_SPEED_MPS = 30.0
@@ -73,6 +73,7 @@ class ClipResult:
     positions: np.ndarray | None      # (T, V, 3) float32 when ok (fixed topology)
     reason: str | None                # why it failed, else None
     frames: list | None = None        # adaptive: (positions, faces, uv) per frame when ok
+    cg: CGStats | None = None         # the solver's CG work on this cloth (meta "health")
 
 
 def _edges(mesh: ClothMesh) -> np.ndarray:
@@ -107,12 +108,13 @@ def _batch_health(cur: np.ndarray, prev: np.ndarray, frame_dt: float, edges: np.
 
 
 def simulate_scenes(scenes: list[ClipScene], *, fps: float, frames: int, substeps: int, settle_s: float,
-                    cg_iterations: int = 30, device: str = "cpu",
+                    cg_iterations: int = 30, cg_tolerance: float = SolverParams.cg_tolerance, device: str = "cpu",
                     on_frame: Callable[[], None] | None = None) -> list[ClipResult]:
     """Simulate a batch: settle without wind for ``settle_s``, then record ``frames`` frames with the wind on.
     ``on_frame`` is called after each recorded frame (progress)."""
     dt = 1.0 / (fps * substeps)
-    solver = BatchSolver([s.spec for s in scenes], SolverParams(dt=dt, cg_iterations=cg_iterations), device)
+    params = SolverParams(dt=dt, cg_iterations=cg_iterations, cg_tolerance=cg_tolerance)
+    solver = BatchSolver([s.spec for s in scenes], params, device)
     solver.step(int(round(settle_s / dt)))
     solver.set_wind(np.stack([s.wind for s in scenes]))
     # The stage simulates a batch on one mesh: check it in one vectorised pass (else cloth by cloth).
@@ -139,12 +141,14 @@ def simulate_scenes(scenes: list[ClipScene], *, fps: float, frames: int, substep
         prev = cur
         if on_frame is not None:
             on_frame()
-    return [ClipResult(None, r) if r else ClipResult(np.stack([f[c] for f in recorded]), None)
+    cg = solver.cg_stats()
+    return [ClipResult(None, r, cg=cg[c]) if r else ClipResult(np.stack([f[c] for f in recorded]), None, cg=cg[c])
             for c, r in enumerate(reasons)]
 
 
 def simulate_adaptive_scenes(scenes: list[ClipScene], base, *, fps: float, frames: int, substeps: int,
-                             settle_s: float, cg_iterations: int = 30, device: str = "cpu",
+                             settle_s: float, cg_iterations: int = 30,
+                             cg_tolerance: float = SolverParams.cg_tolerance, device: str = "cpu",
                              on_frame: Callable[[], None] | None = None) -> list[ClipResult]:
     """``simulate_scenes`` with adaptive remeshing after every frame; same health check per frame."""
     def check(cloth, x, x_prev, frame_dt):
@@ -152,8 +156,9 @@ def simulate_adaptive_scenes(scenes: list[ClipScene], base, *, fps: float, frame
         return health(x, x_prev, frame_dt, e, np.linalg.norm(cloth.quad.uv[e[:, 1]] - cloth.quad.uv[e[:, 0]], axis=1))
 
     out = simulate_adaptive(scenes, base, fps=fps, frames=frames, substeps=substeps, settle_s=settle_s,
-                            cg_iterations=cg_iterations, device=device, health=check, on_frame=on_frame)
-    return [ClipResult(None, r.reason, r.frames) for r in out]
+                            cg_iterations=cg_iterations, cg_tolerance=cg_tolerance, device=device, health=check,
+                            on_frame=on_frame)
+    return [ClipResult(None, r.reason, r.frames, r.cg) for r in out]
 
 
 def clip_material(cfg: SimConfig, seed: int, index: int) -> tuple[int, float, float]:
@@ -251,7 +256,8 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
             built = [build_scene(cfg, run.config.seed, j.index, setting, mesh, j.fabric) for j in batch]
             scenes = [s for s, _ in built]
             results = simulate(scenes, fps=cfg.fps, frames=cfg.frames, substeps=cfg.substeps,
-                               settle_s=cfg.settle_s, cg_iterations=cfg.cg_iterations, device=device,
+                               settle_s=cfg.settle_s, cg_iterations=cfg.cg_iterations,
+                               cg_tolerance=cfg.cg_tolerance, device=device,
                                on_frame=lambda n=len(batch): bar.update(n))
             substeps = [cfg.substeps] * len(batch)
             failed = [j for j, r in enumerate(results) if r.reason]
@@ -259,7 +265,7 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
                 summary["retried"] += len(failed)
                 retry = simulate([scenes[j] for j in failed], fps=cfg.fps, frames=cfg.frames,
                                  substeps=2 * cfg.substeps, settle_s=cfg.settle_s,
-                                 cg_iterations=cfg.cg_iterations, device=device)
+                                 cg_iterations=cfg.cg_iterations, cg_tolerance=cfg.cg_tolerance, device=device)
                 for j, r in zip(failed, retry):
                     if r.reason:
                         r.reason = f"{results[j].reason}; retry with {2 * cfg.substeps} substeps: {r.reason}"
@@ -274,6 +280,8 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
                         "dt": 1.0 / (cfg.fps * sub), "settle_s": cfg.settle_s, "cloth_size_m": cfg.cloth_size_m,
                         "vertices_per_side": n, "motion_params": scene.motion_params,
                         "view_box": view_box(setting.motion, cfg.cloth_size_m)}
+                if result.cg is not None:
+                    meta["health"] = result.cg.health()
                 if result.reason:
                     atomic_write_json(folder / "FAILED", {**meta, "status": "failed", "reason": result.reason})
                     return False

@@ -31,6 +31,7 @@ def assert_user_error(r: subprocess.CompletedProcess, *names: str) -> None:
 
 
 @pytest.mark.parametrize("sub", [[], ["sim"], ["sim", "run"], ["sim", "sensitivity"], ["sim", "table2"],
+                                 ["sim", "cantilever"],
                                  ["render"], ["train"], ["eval"], ["eval", "real"], ["eval", "measured"],
                                  ["eval", "learnability"], ["report"], ["pipeline"]])
 def test_every_subcommand_has_help(sub):

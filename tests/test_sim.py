@@ -289,6 +289,9 @@ def test_run_sim_writes_skips_and_redoes(tmp_path):
         for key in ("clip_id", "index", "motion", "remeshing", "p_class", "k_class", "basis", "density", "seed",
                     "fps", "frames", "substeps", "dt", "motion_params", "view_box"):
             assert key in m
+        h = m["health"]                           # the solver's CG work on this clip
+        assert h["cg_steps"] > 0 and 0 < h["cg_iterations_mean"] <= h["cg_iterations_max"] <= 30
+        assert 0 <= h["cg_residual_max"] < 1
         lo, hi = map(np.asarray, m["view_box"])  # one camera box for the whole setting, holding every frame
         assert m["view_box"] == SimClip.load(folder / clip_id(0)).meta["view_box"]
         assert np.all(clip.positions.min(0) >= lo) and np.all(clip.positions.max(0) <= hi)
@@ -412,6 +415,8 @@ def test_adaptive_setting_changes_topology_and_is_reproducible(tmp_path):
             assert faces.max() < len(pos) and uv.shape == (len(pos), 2)
         np.testing.assert_array_equal(clips[0].positions, clips[1].positions)
         assert clip.meta["remeshing"] == "adaptive" and "vertex_counts" in clip.meta
+        steps = round(0.04 * 25 * 8) + 5 * 8          # settle + frames, summed over the rebuilt solvers
+        assert clip.meta["health"]["cg_steps"] == steps
     soft_wind = SimClip.load(runs[0].sim_dir("wind-adaptive") / "c00000")
     assert not soft_wind.fixed_topology, "a soft cloth in wind should be refined somewhere"
 
