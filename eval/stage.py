@@ -402,6 +402,24 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
     return short
 
 
+def stale_checkpoints(run: Run) -> list[str]:
+    """Checkpoints named in ``eval/summary.json`` whose bytes changed (or vanished) since that eval."""
+    path = run.eval_dir / "summary.json"
+    try:
+        summary = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return []
+    stale = []
+    for m in summary.get("models", []) if isinstance(summary, dict) else []:
+        sha = m.get("checkpoint_sha256")
+        if not sha:
+            continue            # an eval from before checkpoints were hashed: nothing to compare
+        ckpt = run.root / m["checkpoint"]
+        if not ckpt.is_file() or file_sha256(ckpt) != sha:
+            stale.append(m["checkpoint"])
+    return stale
+
+
 SIM_ANALYSES = ("table2", "sensitivity")
 
 
