@@ -92,16 +92,16 @@ def predict_clips(train_dir: Path | str, clip_dirs: Iterable[Path | str], device
         pending.clear()
 
     for clip_dir in map(Path, clip_dirs):
-        try:
-            frames = torch.from_numpy(read_frames(clip_dir, size)).permute(0, 3, 1, 2)
-        except FrameError as err:
-            warnings.warn(f"{err}; clip left out of the predictions", stacklevel=2)
-            continue
-        try:
+        try:        # the meta first: reading frames needs it too
             meta = read_meta(clip_dir, "render")
             class_index = int(meta["class_index"])
         except (UserError, KeyError, TypeError, ValueError) as err:
             warnings.warn(f"clip {clip_dir.name}: {err}; clip left out of the predictions", stacklevel=2)
+            continue
+        try:
+            frames = torch.from_numpy(read_frames(clip_dir, size)).permute(0, 3, 1, 2)
+        except FrameError as err:
+            warnings.warn(f"{err}; clip left out of the predictions", stacklevel=2)
             continue
         for start in subsequence_starts(len(frames), clip_len, stride):
             pending.append(({"clip_id": meta.get("clip_id", clip_dir.name), "start": start,
