@@ -36,6 +36,22 @@ def clothgap(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess
                           cwd=cwd, env=env)
 
 
+def clothgap_here(capsys, monkeypatch, *args: str) -> subprocess.CompletedProcess:
+    """The ``clothgap`` entry point in this process (torch and the rest are imported once for the module);
+    a traceback would escape as an exception and fail the test."""
+    from clothgap.cli import main
+
+    monkeypatch.setattr(sys, "argv", ["clothgap", *map(str, args)])
+    capsys.readouterr()
+    try:
+        main()
+        code = 0
+    except SystemExit as e:
+        code = e.code if isinstance(e.code, int) else 1
+    out = capsys.readouterr()
+    return subprocess.CompletedProcess(args, code, out.out, out.err)
+
+
 def assert_error(r: subprocess.CompletedProcess, code: int, *phrases: str) -> None:
     """Exit ``code``, an ``error:`` line naming each phrase on stderr, and no traceback."""
     out = r.stdout + r.stderr
@@ -171,24 +187,24 @@ def test_predictions_are_recomputed_when_the_checkpoint_changes(tmp_path):
     assert stale_checkpoints(run) == []
 
 
-def test_garbage_checkpoint_is_an_error_not_the_old_accuracy(tmp_path):
+def test_garbage_checkpoint_is_an_error_not_the_old_accuracy(tmp_path, capsys, monkeypatch):
     from eval.stage import run_eval
 
     run = make_fake_run(tmp_path / "run", variants=("paper",))
     run_eval(run, progress=False, predictor=stub_predictor)          # old, good numbers
     ckpt = run.train_dir(SETTING, "paper", "lrcn", 0) / "checkpoint.pt"
     ckpt.write_bytes(b"\x80\x04garbage, not a checkpoint" * 10)
-    r = clothgap("eval", run.root)
+    r = clothgap_here(capsys, monkeypatch, "eval", run.root)
     assert_error(r, 2, "checkpoint", str(ckpt), "clothgap train")
     assert "weights_only" not in r.stderr
     assert not list(run.eval_dir.glob("predictions/**/*.csv"))    # the old predictions are not left to reuse
-    assert_error(clothgap("report", run.root), 2, "stale", "clothgap eval")
+    assert_error(clothgap_here(capsys, monkeypatch, "report", run.root), 2, "stale", "clothgap eval")
     assert not (run.report_dir / "report.html").exists()
 
 
 # ------------------------------------------------------------------ dropped test clips (item 4)
 
-def test_dropped_test_clips_are_counted_reported_and_fail_the_stage(tmp_path):
+def test_dropped_test_clips_are_counted_reported_and_fail_the_stage(tmp_path, capsys, monkeypatch):
     run = make_fake_run(tmp_path / "run", variants=("paper",), frames=10)
     real_checkpoints(run)
     test = json.loads(run.split_path(SETTING).read_text())["test"]
@@ -197,7 +213,7 @@ def test_dropped_test_clips_are_counted_reported_and_fail_the_stage(tmp_path):
     (folder / test[2] / "meta.json").unlink()
     (folder / test[3] / "DONE").unlink()
 
-    r = clothgap("eval", run.root)
+    r = clothgap_here(capsys, monkeypatch, "eval", run.root)
     assert_error(r, 1, "3 test clip(s) left out", test[1], test[2], test[3], "--allow-failures")
     assert f"5 of {len(test)} test clips" in r.stdout, r.stdout
     summary = json.loads((run.eval_dir / "summary.json").read_text())
@@ -208,14 +224,14 @@ def test_dropped_test_clips_are_counted_reported_and_fail_the_stage(tmp_path):
     predicted = pd.read_csv(next(run.eval_dir.glob("predictions/**/paper.csv")), dtype={"clip_id": str})
     assert set(predicted["clip_id"]) == set(test) - set(reasons)
 
-    r = clothgap("eval", run.root, "--allow-failures")
+    r = clothgap_here(capsys, monkeypatch, "eval", run.root, "--allow-failures")
     assert r.returncode == 0 and "warning: eval: 3 test clip(s) left out" in r.stderr, r.stdout + r.stderr
     assert "Traceback" not in r.stderr
 
 
 # ------------------------------------------------------------------ eval real (item 5, 10)
 
-def test_eval_real_refuses_colliding_inputs_and_duplicate_or_inf_truth(tmp_path):
+def test_eval_real_refuses_colliding_inputs_and_duplicate_or_inf_truth(tmp_path, capsys, monkeypatch):
     from eval.real import read_truth
     from tests.test_eval_real import fresh_model, write_video
 
@@ -228,7 +244,7 @@ def test_eval_real_refuses_colliding_inputs_and_duplicate_or_inf_truth(tmp_path)
     pd.DataFrame({"video": ["x.mp4", "x"], "bending_N_m2": [1e-5, 2e-5],
                   "area_weight_kg_m2": [0.1, 0.2]}).to_csv(truth, index=False)
     model = fresh_model(tmp_path / "run")
-    r = clothgap("eval", "real", videos, "--truth", truth, "--model", model, "--out", tmp_path / "out")
+    r = clothgap_here(capsys, monkeypatch, "eval", "real", videos, "--truth", truth, "--model", model, "--out", tmp_path / "out")
     assert_error(r, 2, "x and x.mp4 would both be clips/x")
     assert not (tmp_path / "out" / "clips").exists() and not (tmp_path / "out" / "table4.csv").exists()
 
@@ -255,9 +271,9 @@ def fake_sim_run(root: Path, clips: int = 2) -> Run:
     return run
 
 
-def test_render_with_failed_clips_exits_1_naming_them(tmp_path):
+def test_render_with_failed_clips_exits_1_naming_them(tmp_path, capsys, monkeypatch):
     run = fake_sim_run(tmp_path / "r")
-    r = clothgap("render", run.root)
+    r = clothgap_here(capsys, monkeypatch, "render", run.root)
     assert_error(r, 1, "render: 2 clip(s) failed", f"paper/{SETTING}/c00000", f"paper/{SETTING}/c00001",
                  "--allow-failures")
     assert '"rendered": 0' in r.stdout
