@@ -369,3 +369,16 @@ def test_sim_failed_clips_are_named_and_fail_the_command(tmp_path, monkeypatch):
     with pytest.raises(StageFailures, match=rf"sim: 1 clip\(s\) failed: {SETTING}/c00000: frame 3.*allow-failures"):
         check_failures("sim", summary, allow_failures=False)
     check_failures("sim", summary, allow_failures=True)
+
+
+def test_variant_file_named_dots_is_refused(tmp_path, monkeypatch):
+    from render.variants import USER_VARIANTS_ENV, VariantError, get_variant
+
+    (tmp_path / "...toml").write_text('description = "escapes the run folder as render/.."\n')
+    monkeypatch.setenv(USER_VARIANTS_ENV, str(tmp_path))
+    with pytest.raises(VariantError, match=r"\.\.\.toml: a variant file's name must be"):
+        get_variant("paper")
+    (tmp_path / "...toml").rename(tmp_path / "binary.toml")
+    (tmp_path / "binary.toml").write_bytes(b"\xff\xfe\x00garbled")
+    with pytest.raises(VariantError, match="binary.toml: not valid TOML"):
+        get_variant("binary")
