@@ -36,6 +36,7 @@ def tiny_run(root: Path, classes=(0, 53, 20, 8), render: bool = False) -> Run:
         classes=classes, sequences_per_class=1, grid_vertices=6, frames=3, settle_s=0.04, device="cpu",
         batch_size=4), render=RenderConfig(variants=("paper",), resolution=12, spp=1, backend="scalar_rgb",
                                              write_hdr=False))
+    cfg = replace(cfg, train=replace(cfg.train, clip_len=3))     # sim.frames must hold one sub-sequence
     return Run.create_or_resume(root, cfg)
 
 
