@@ -6,6 +6,8 @@ names the setting, the bad value and what is allowed.
 
 from __future__ import annotations
 
+import math
+import numbers
 import re
 from collections.abc import Sequence
 
@@ -34,7 +36,15 @@ def choice(where: str, value: str, allowed: Sequence[str]) -> list[str]:
 
 def number(where: str, value: float, lo: float | None = None, hi: float | None = None, *,
            lo_open: bool = False, hi_open: bool = False) -> list[str]:
-    """A number that must lie in [lo, hi] (or open at either end, or unbounded where None)."""
+    """A finite number that must lie in [lo, hi] (or open at either end, or unbounded where None).
+
+    NaN compares false with every bound and inf passes an open upper end, so both are refused
+    here, before any stage spends minutes on a setting that ends in a traceback deep in Warp or torch.
+    """
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        return [f"{where}={value!r}: must be a number"]
+    if not math.isfinite(value):
+        return [f"{where}={value!r}: must be a finite number"]
     bad = ((lo is not None and (value <= lo if lo_open else value < lo))
            or (hi is not None and (value >= hi if hi_open else value > hi)))
     if not bad:

@@ -25,7 +25,7 @@ import click
 
 from clothgap.config import ConfigError, PRESETS, StudyConfig, apply_overrides, pairs, preset, with_name
 from clothgap.errors import UserError
-from clothgap.runs import Run, atomic_write_json
+from clothgap.runs import Run, atomic_write_json, storage_error
 
 
 class DefaultGroup(click.Group):
@@ -76,6 +76,45 @@ def _executor_options(fn):
     return fn
 
 
+def _allow_failures_option(fn):
+    """--allow-failures: exit 0 even when clips failed or were left out (they are listed all the same)."""
+    return click.option("--allow-failures", is_flag=True,
+                        help="Exit 0 even when clips failed or were left out (they are still listed in the "
+                             "summary). Without it the stage does all it can, then exits 1.")(fn)
+
+
+class StageFailures(Exception):
+    """A stage finished the rest of its work but some clips failed or were left out (exit 1)."""
+
+
+def failure_lines(stage: str, summary: object) -> list[str]:
+    """What a stage's summary says failed or was left out, one ``where: why`` line per clip."""
+    if not isinstance(summary, dict):
+        return []
+    if stage == "sim":
+        return [f"{f['setting']}/{f['clip_id']}: {f['error']}" for f in summary.get("failed_clips", [])]
+    if stage == "render":
+        return [f"{f['variant']}/{f['setting']}/{f['clip_id']}: {f['error']}" for f in summary.get("failed", [])]
+    if stage == "eval":
+        return sorted(set(summary.get("left_out_clips", [])))
+    return []
+
+
+def check_failures(stage: str, summary: object, allow_failures: bool) -> None:
+    """After a stage did everything else: its failures as one error (or a warning with --allow-failures)."""
+    lines = failure_lines(stage, summary)
+    if not lines:
+        return
+    what = "test clip(s) left out of the numbers" if stage == "eval" else "clip(s) failed"
+    shown = "; ".join(lines[:5]) + (f"; ... ({len(lines) - 5} more)" if len(lines) > 5 else "")
+    message = f"{stage}: {len(lines)} {what}: {shown}"
+    if allow_failures:
+        click.echo(f"warning: {message}", err=True)
+        return
+    raise StageFailures(f"{message}. Fix or redo them and run again (finished work is kept), "
+                        "or pass --allow-failures to accept the results without them")
+
+
 def executor_options(executor: str, workers: int | None, address: str | None, gpus_per_worker: float,
                      shard_size: int | None):
     from clothgap.executor import ExecutorOptions
@@ -87,12 +126,12 @@ def executor_options(executor: str, workers: int | None, address: str | None, gp
 def resolve_run(run_dir: Path | None, preset_name: str | None, out: Path | None,
                 overrides: tuple[str, ...]) -> Run:
     """Open an existing run, or create/resume one from a preset."""
+    if run_dir is not None and out is not None and run_dir != out:
+        raise ConfigError(f"give the run folder once: RUN_DIR {run_dir} and --out {out} differ")
     if preset_name is None and not overrides:
         if run_dir is None and out is None:
             raise ConfigError("name a run folder (RUN_DIR) or start one with --preset NAME [--out DIR]")
         return Run.open(run_dir or out)
-    if run_dir is not None and out is not None and run_dir != out:
-        raise ConfigError("give the run folder once: either RUN_DIR or --out")
     if preset_name is None:
         cfg = Run.open(run_dir or out).config
     else:
@@ -128,14 +167,17 @@ def sim() -> None:
 @sim.command("run")
 @_run_options
 @_executor_options
-def sim_run(run_dir, preset_name, out, overrides, **execution) -> None:
+@_allow_failures_option
+def sim_run(run_dir, preset_name, out, overrides, allow_failures, **execution) -> None:
     """Simulate every clip of the run that is not done yet."""
     opts = executor_options(**execution)
     run = resolve_run(run_dir, preset_name, out, overrides)
     from clothgap.executor import run_stage
 
     t0 = time.perf_counter()
-    _echo_summary("sim", run_stage(run, "sim", opts), time.perf_counter() - t0)
+    summary = run_stage(run, "sim", opts)
+    _echo_summary("sim", summary, time.perf_counter() - t0)
+    check_failures("sim", summary, allow_failures)
 
 
 @sim.command("sensitivity")
@@ -193,7 +235,8 @@ def sim_cantilever(fabric: str, level: int, overhangs: tuple[float, ...], axis: 
 @_run_options
 @click.option("--list-variants", is_flag=True, help="List the named render variants and exit.")
 @_executor_options
-def render(run_dir, preset_name, out, overrides, list_variants, **execution) -> None:
+@_allow_failures_option
+def render(run_dir, preset_name, out, overrides, list_variants, allow_failures, **execution) -> None:
     """Render the run's simulated clips under each render variant (Mitsuba 3)."""
     if list_variants:
         from render.variants import describe_variants
@@ -207,7 +250,9 @@ def render(run_dir, preset_name, out, overrides, list_variants, **execution) -> 
     from clothgap.executor import run_stage
 
     t0 = time.perf_counter()
-    _echo_summary("render", run_stage(run, "render", opts), time.perf_counter() - t0)
+    summary = run_stage(run, "render", opts)
+    _echo_summary("render", summary, time.perf_counter() - t0)
+    check_failures("render", summary, allow_failures)
 
 
 # ---- train
@@ -258,14 +303,20 @@ def eval() -> None:  # noqa: A001 - the subcommand is called eval
 
 @eval.command("run")
 @_run_options
-def eval_run(run_dir, preset_name, out, overrides) -> None:
-    """Accuracy tables (the paper's Table 3) and the domain-gap matrix for a run."""
+@_allow_failures_option
+def eval_run(run_dir, preset_name, out, overrides, allow_failures) -> None:
+    """Accuracy tables (the paper's Table 3) and the domain-gap matrix for a run.
+
+    Test clips of the split with no prediction (not rendered, unreadable) are listed in
+    eval/summary.json ("left_out") and make the command exit 1 unless --allow-failures."""
     run = resolve_run(run_dir, preset_name, out, overrides)
     run.require(run.root / "train", "train")
     from eval.stage import run_eval
 
     t0 = time.perf_counter()
-    _echo_summary("eval", run_eval(run), time.perf_counter() - t0)
+    summary = run_eval(run)
+    _echo_summary("eval", summary, time.perf_counter() - t0)
+    check_failures("eval", summary, allow_failures)
 
 
 @eval.command("real")
@@ -424,7 +475,8 @@ def report(run_dir: Path) -> None:
 @cli.command()
 @_run_options
 @_executor_options
-def pipeline(run_dir, preset_name, out, overrides, **execution) -> None:
+@_allow_failures_option
+def pipeline(run_dir, preset_name, out, overrides, allow_failures, **execution) -> None:
     """Run sim, render, train, eval and report in turn (each skips what is done).
 
     --executor/--workers/--address/--gpus-per-worker spread sim and render; training
@@ -457,6 +509,16 @@ def pipeline(run_dir, preset_name, out, overrides, **execution) -> None:
     stage("report", lambda r: str(write_report(r)))
     atomic_write_json(run.root / "pipeline.json", {"seconds": timings, "summaries": summaries})
     click.echo(f"report: {summaries['report']}")
+    # Every stage ran on what the one before produced; now say what failed or was left out on the way.
+    failures = []
+    for name in ("sim", "render", "eval"):
+        try:
+            check_failures(name, summaries[name], allow_failures)
+        except StageFailures as e:
+            failures.append(str(e).split(". Fix or redo")[0])
+    if failures:
+        raise StageFailures("; ".join(failures) + ". Fix or redo them and run again (finished work is kept), "
+                            "or pass --allow-failures to accept the results without them")
 
 
 def _shard_error() -> type[BaseException] | tuple[()]:
@@ -470,9 +532,11 @@ def main() -> None:
 
     User errors are the project's ``clothgap.errors.UserError`` types: ConfigError (settings, presets,
     overrides, run folders), render.variants.VariantError, render.backend.BackendError,
-    eval.real.VideoError, and InputError / MissingInputError (files and folders the user named). A failed
-    shard (clothgap.executor.ShardError, whose message carries the worker's error) exits 1. Anything else
-    is a bug and keeps its traceback.
+    eval.real.VideoError, InputError / MissingInputError (files and folders the user named) and
+    StorageError, as is any OSError of a full, read-only or forbidden disk (it names the path). A failed
+    shard (clothgap.executor.ShardError, whose message carries the worker's error) exits 1, as does a stage
+    whose clips failed or were left out (StageFailures; --allow-failures makes that exit 0). Anything
+    else is a bug and keeps its traceback.
     """
     try:
         cli(standalone_mode=False)
@@ -485,9 +549,19 @@ def main() -> None:
     except UserError as e:
         click.echo(f"error: {e}", err=True)
         sys.exit(2)
+    except StageFailures as e:
+        click.echo(f"error: {e}", err=True)
+        sys.exit(1)
     except _shard_error() as e:
         click.echo(f"error: {e}", err=True)
         sys.exit(1)
+    except OSError as e:
+        # A full, read-only or forbidden disk is the user's to fix: one line naming the path.
+        err = storage_error(e)
+        if err is None:
+            raise
+        click.echo(f"error: {err}", err=True)
+        sys.exit(2)
 
 
 if __name__ == "__main__":

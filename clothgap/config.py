@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import typing
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -123,10 +124,15 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
             raise ConfigError(f"{where}: expected true or false, got {value!r}")
         return bool(value)
     if tp in (int, float, str):
+        if tp is not str and isinstance(value, (dict, list, tuple, bool)):
+            raise ConfigError(f"{where}: expected {tp.__name__}, got {value!r}")
         try:
-            return tp(value)
-        except (TypeError, ValueError):
+            out = tp(value)
+        except (TypeError, ValueError, OverflowError):
             raise ConfigError(f"{where}: expected {tp.__name__}, got {value!r}") from None
+        if tp is float and not math.isfinite(out):
+            raise ConfigError(f"{where}: expected a finite number, got {value!r}")
+        return out
     return value
 
 
@@ -172,6 +178,10 @@ def problems(cfg: StudyConfig) -> list[str]:
         out.append(f"seed={cfg.seed}: must be >= 0")
     for stage in (cfg.sim, cfg.render, cfg.train, cfg.eval):
         out += stage.problems()
+    if cfg.sim.frames < cfg.train.clip_len:
+        # Found here, not after sim and render ran: a clip shorter than one window gives no training item.
+        out.append(f"sim.frames={cfg.sim.frames} is shorter than train.clip_len={cfg.train.clip_len}: "
+                   "every clip must hold at least one sub-sequence")
     settings = cfg.sim.settings()
     for pair in cfg.render.variant_settings:
         setting = pair.partition(":")[2]
@@ -204,8 +214,12 @@ def validate(cfg: StudyConfig, where: str = "") -> StudyConfig:
 def save_config(cfg: StudyConfig, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(to_dict(cfg), indent=2) + "\n")
-    tmp.replace(path)
+    try:
+        tmp.write_text(json.dumps(to_dict(cfg), indent=2) + "\n")
+        tmp.replace(path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)     # a full disk leaves no half-written config behind
+        raise
 
 
 def load_config(path: Path, check: bool = True) -> StudyConfig:
@@ -215,8 +229,10 @@ def load_config(path: Path, check: bool = True) -> StudyConfig:
                           "(start one with `clothgap sim --preset NAME --out DIR`)")
     try:
         data = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ConfigError(f"{path} is not valid JSON ({e})") from None
+    except OSError as e:
+        raise ConfigError(f"{path} cannot be read: {e.strerror or e}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a table of settings, got {type(data).__name__}")
     cfg = from_dict(StudyConfig, data)

@@ -24,3 +24,11 @@ class InputError(UserError, ValueError):
 
 class MissingInputError(UserError, FileNotFoundError):
     """A file or folder the user named (or a stage's input) does not exist; the message names it."""
+
+
+class StorageError(UserError, OSError):
+    """The disk refused a write (full, read-only, no permission); the message names the path.
+
+    What was finished is kept and nothing half-written is left to be trusted, so the same
+    command resumes once the user has made room or fixed the permissions.
+    """

@@ -166,6 +166,7 @@ def merge_summaries(stage: str, parts: list[dict]) -> dict:
     if stage == "sim":
         merged: dict[str, Any] = {k: sum(p.get(k, 0) for p in parts)
                                   for k in ("simulated", "skipped", "failed", "retried")}
+        merged["failed_clips"] = [f for p in parts for f in p.get("failed_clips", [])]
         merged["seconds"] = 0.0
         return merged
     merged = {"backend": next((p["backend"] for p in parts if "backend" in p), None),

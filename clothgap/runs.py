@@ -20,6 +20,8 @@ run loses nothing that was finished.
 
 from __future__ import annotations
 
+import errno
+import hashlib
 import json
 import os
 import shutil
@@ -29,15 +31,34 @@ from pathlib import Path
 from typing import Any
 
 from clothgap.config import ConfigError, StudyConfig, load_config, save_config, to_dict, validate
+from clothgap.errors import InputError, MissingInputError, StorageError
 
 DONE = "DONE"
+
+# Write failures the user fixes (free space, permissions), not bugs: reported as one line naming the path.
+STORAGE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EFBIG,
+                            errno.ENOTDIR, errno.EEXIST, errno.EISDIR})
+
+
+def storage_error(err: OSError, path: Path | str | None = None) -> StorageError | None:
+    """A StorageError naming the path for a full / read-only / forbidden write, else None (a bug)."""
+    if err.errno not in STORAGE_ERRNOS:
+        return None
+    where = err.filename or path
+    return StorageError(f"cannot write {where}: {err.strerror or err}; finished work is kept: "
+                        "run the same command again once this is fixed")
 
 
 def atomic_write_text(path: Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    tmp.write_text(text)
-    tmp.replace(path)
+    try:
+        tmp.write_text(text)
+        tmp.replace(path)
+    except BaseException:
+        # A full disk must not leave a half-written temporary file behind (nor replace the old file).
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def atomic_write_json(path: Path, data: Any) -> None:
@@ -63,6 +84,38 @@ def is_done(folder: Path) -> bool:
 def mark_done(folder: Path, info: dict | None = None) -> None:
     """Write the marker last: the folder is complete once this file exists."""
     atomic_write_json(folder / DONE, info or {})
+
+
+def read_meta(folder: Path, redo: str = "sim") -> dict:
+    """A clip folder's meta.json, or an InputError naming it and how to redo the clip."""
+    path = Path(folder) / "meta.json"
+    fix = f"delete {folder} and run `clothgap {redo}` on the run again to redo that clip"
+    try:
+        meta = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise MissingInputError(f"{path} is missing: {fix}") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise InputError(f"{path} is not valid JSON ({e}): {fix}") from None
+    if not isinstance(meta, dict):
+        raise InputError(f"{path} is not a table of settings: {fix}")
+    return meta
+
+
+_HASHES: dict[tuple, str] = {}
+
+
+def file_sha256(path: Path | str) -> str:
+    """sha256 of a file's bytes, cached per (path, size, mtime, inode) within this process."""
+    path = Path(path)
+    st = path.stat()
+    key = (str(path.resolve()), st.st_size, st.st_mtime_ns, st.st_ino)
+    if key not in _HASHES:
+        h = hashlib.sha256()
+        with path.open("rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+        _HASHES[key] = h.hexdigest()
+    return _HASHES[key]
 
 
 def fresh_dir(folder: Path) -> Path:
@@ -103,6 +156,8 @@ class Run:
         ``check=False`` (a generation worker, whose driver validated it: a remote node may lack the
         driver's $CLOTHGAP_VARIANTS_DIR, which only render work needs)."""
         root = Path(root)
+        if root.exists() and not root.is_dir():
+            raise ConfigError(f"run folder {root} is a file, not a folder")
         if not root.is_dir():
             raise ConfigError(f"run folder {root} does not exist")
         return cls(root, load_config(root / "config.json", check))
@@ -113,6 +168,8 @@ class Run:
         validate(config)
         root = Path(root)
         path = root / "config.json"
+        if root.exists() and not root.is_dir():
+            raise ConfigError(f"--out {root} is a file, not a folder: choose another --out folder")
         if path.is_file():
             existing = load_config(path)
             if to_dict(existing) != to_dict(config):
@@ -120,8 +177,15 @@ class Run:
                     f"{root} already holds a run with a different config; resume it without "
                     "--preset/--set, or choose another --out folder")
             return cls(root, existing)
-        root.mkdir(parents=True, exist_ok=True)
-        save_config(config, path)
+        try:
+            root.mkdir(parents=True, exist_ok=True)
+            save_config(config, path)
+        except OSError as e:
+            err = storage_error(e, path)
+            if err is None:
+                raise
+            raise ConfigError(f"cannot start a run in {root}: {e.strerror or e} ({e.filename or path}); "
+                              "choose another --out folder") from None
         return cls(root, config)
 
     # ---- where things live

@@ -109,10 +109,15 @@ def read_truth(path: Path) -> pd.DataFrame:
     for optional in ("wind", "label"):
         if optional in frame.columns:
             out[optional] = frame[optional].astype(str)
-    bad = out[out[["stiffness", "density"]].isna().any(axis=1)]
+    bad = out[~np.isfinite(out[["stiffness", "density"]].to_numpy(dtype=float)).all(axis=1)]
     if not bad.empty:
-        raise InputError(f"truth CSV {path}: non-numeric or missing stiffness/density for video(s) "
+        raise InputError(f"truth CSV {path}: non-numeric, infinite or missing stiffness/density for video(s) "
                          f"{', '.join(bad['video'].head(5))}")
+    twice = out[out.duplicated("video", keep=False)]
+    if not twice.empty:
+        # A video listed twice would be counted twice in every correlation.
+        raise InputError(f"truth CSV {path}: video(s) listed more than once: "
+                         f"{', '.join(sorted(set(twice['video']))[:5])}")
     return out
 
 
@@ -186,6 +191,23 @@ def _safe_name(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("._") or "video"
 
 
+def clip_folder_name(name: str, path: Path) -> str:
+    """The ``clips/`` folder of an input: its name without a video file's extension, made safe."""
+    return _safe_name(Path(name).stem if path.is_file() else name)
+
+
+def check_distinct(listed: dict[str, Path]) -> None:
+    """Refuse inputs that would share a clip folder (``x.mp4`` and a frame folder ``x/``, or ``a b`` and
+    ``a_b``): one would overwrite the other's frames and the survivor would be counted twice."""
+    by_folder: dict[str, list[str]] = {}
+    for name, path in listed.items():
+        by_folder.setdefault(clip_folder_name(name, Path(path)), []).append(name)
+    clashes = {k: v for k, v in by_folder.items() if len(v) > 1}
+    if clashes:
+        text = "; ".join(f"{' and '.join(sorted(v))} would both be clips/{k}" for k, v in sorted(clashes.items()))
+        raise InputError(f"inputs collide: {text}: rename one of each so every video has its own name")
+
+
 def write_clip(frames: list[np.ndarray], folder: Path, video: str) -> Path:
     """A clip folder in the render contract (``ldr/%04d.png`` + meta.json) so predict_clips reads it."""
     (folder / "ldr").mkdir(parents=True, exist_ok=True)
@@ -209,9 +231,9 @@ def model_geometry(train_dir: Path) -> dict:
     if not path.is_file():
         raise MissingInputError(f"no checkpoint.pt in model folder {train_dir}: pass a finished train folder "
                                 "(<run>/train/<setting>/<variant>/<model>/s<seed>)")
-    import torch
+    from learn.predict import load_checkpoint
 
-    ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    ckpt = load_checkpoint(train_dir)           # a corrupt file is an InputError naming it
     geometry = {"image_size": int(ckpt["model_args"]["image_size"]),
                 "clip_len": int(ckpt["config"]["train"]["clip_len"]), "fps": DEFAULT_SIM_FPS}
     run_config = train_dir.parents[4] / "config.json" if len(train_dir.parents) > 4 else None
@@ -224,6 +246,12 @@ def _default_predictor(train_dir: Path, clip_dirs: list[Path]) -> pd.DataFrame:
     from learn.predict import predict_clips
 
     return predict_clips(train_dir, clip_dirs)
+
+
+def match_truth(truth: pd.DataFrame, names) -> pd.Series:
+    """Each truth row's input name (or None): by exact name, then by name without extension."""
+    stem_of = {n: Path(n).stem for n in names}
+    return truth["video"].map(lambda v: v if v in stem_of else next((n for n, s in stem_of.items() if s == v), None))
 
 
 # ------------------------------------------------------------------ tables
@@ -309,6 +337,12 @@ def evaluate_real(video_dir: Path | str, truth_csv: Path | str, train_dir: Path 
     video_dir, truth_csv, train_dir, out_dir = map(Path, (video_dir, truth_csv, train_dir, out_dir))
     truth = read_truth(truth_csv)              # every input is checked before the model is loaded
     listed = inputs if inputs is not None else {p.name: p for p in list_inputs(video_dir)}
+    check_distinct(listed)
+    early = match_truth(truth, listed)
+    twice = early[early.notna() & early.duplicated(keep=False)]
+    if not twice.empty:
+        raise InputError(f"truth CSV {truth_csv}: rows {', '.join(truth.loc[twice.index, 'video'])} name the same "
+                         "video; give each video one row")
     geometry = model_geometry(train_dir)
     fps = fps or geometry["fps"]
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -326,7 +360,7 @@ def evaluate_real(video_dir: Path | str, truth_csv: Path | str, train_dir: Path 
             if progress:
                 print(f"[eval real] skipped {err}", flush=True)
             continue
-        folder = out_dir / "clips" / _safe_name(Path(name).stem if path.is_file() else name)
+        folder = out_dir / "clips" / clip_folder_name(name, path)
         if folder.exists():
             shutil.rmtree(folder)
         clip_dirs.append(write_clip(frames, folder, name))
@@ -341,9 +375,7 @@ def evaluate_real(video_dir: Path | str, truth_csv: Path | str, train_dir: Path 
     videos = per_video(frame)
     atomic_write_text(out_dir / "videos.csv", videos.to_csv(index=False, float_format="%.6g"))
 
-    # Match truth rows by exact name, then by name without extension.
-    stem_of = {n: Path(n).stem for n in names}
-    key = truth["video"].map(lambda v: v if v in names else next((n for n, s in stem_of.items() if s == v), None))
+    key = match_truth(truth, names)
     missing = truth.loc[key.isna(), "video"].tolist()
     joined = truth.assign(video=key).dropna(subset=["video"]).merge(videos, on="video", how="inner")
     if progress and missing:

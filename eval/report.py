@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 from PIL import Image
 
-from clothgap.config import pairs, to_dict
+from clothgap.config import ConfigError, pairs, to_dict
 from clothgap.runs import Run, atomic_write_text, is_done
 from eval import figures, tables
 from eval.metrics import Estimate
@@ -435,7 +435,16 @@ def _section_extra_tables(run: Run) -> str:
 
 
 def write_report(run: Run) -> Path:
-    """Write ``report/report.html`` for the run (sections for whatever stages have finished)."""
+    """Write ``report/report.html`` for the run (sections for whatever stages have finished).
+
+    Refuses (ConfigError) when a checkpoint changed since ``clothgap eval``: its tables would be old numbers.
+    """
+    from eval.stage import stale_checkpoints
+
+    stale = stale_checkpoints(run)
+    if stale:
+        raise ConfigError(f"the eval results are stale: {', '.join(stale[:3])}{' ...' if len(stale) > 3 else ''} "
+                          f"changed since they were computed; run `clothgap eval {run.root}` again first")
     sections = [("config", "Config", _section_config(run)), ("table3", "Table 3", _section_table3(run)),
                 ("confusion", "Confusion", _section_confusion(run)), ("learning", "Learning", _section_learning(run)),
                 ("frames", "Frames", _section_frames(run)), ("conv5", "conv5", _section_activations(run)),

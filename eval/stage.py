@@ -25,7 +25,9 @@ not only those in the config, so a held-out variant rendered later is picked up.
 from __future__ import annotations
 
 import json
+import sys
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -35,7 +37,8 @@ import pandas as pd
 
 from clothgap import seeding
 from clothgap.config import ConfigError, pairs, to_dict
-from clothgap.runs import Run, atomic_write_json, atomic_write_text, is_done
+from clothgap.errors import InputError, MissingInputError, UserError
+from clothgap.runs import Run, atomic_write_json, atomic_write_text, file_sha256, is_done, read_meta
 from eval import figures, metrics, tables
 from eval import predictions as preds
 
@@ -96,8 +99,12 @@ def test_windows(run: Run, setting: str) -> dict[str, list[int] | None]:
     path = run.split_path(setting)
     if not path.is_file():
         raise ConfigError(f"no split {path}: run `clothgap train {run.root}` first (it writes the splits)")
-    split = json.loads(path.read_text())
-    if "test" not in split:
+    try:
+        split = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise InputError(f"{path} is not valid JSON ({e}): delete it and run `clothgap train {run.root}` "
+                         "to have the split made again") from None
+    if not isinstance(split, dict) or "test" not in split:
         raise ConfigError(f"{path} has no 'test' list of clip ids")
     return part_windows(split, "test")
 
@@ -145,7 +152,10 @@ def variant_settings(run: Run, variant: str) -> dict:
     for setting in run.config.sim.settings():
         folder = run.render_dir(variant, setting)
         for clip in run.done_clips(folder):
-            meta = json.loads((folder / clip / "meta.json").read_text())
+            try:
+                meta = read_meta(folder / clip, "render")
+            except UserError:       # a damaged clip is reported as left out by predict_all; ask the next one
+                continue
             render = meta.get("render")
             if isinstance(render, dict):
                 if allowed is not None:
@@ -189,33 +199,97 @@ def _rel(run: Run, path: Path) -> str:
         return str(path)
 
 
+def record_path(prediction: Path) -> Path:
+    """The record beside a prediction CSV: what it was computed on (written after the CSV)."""
+    return prediction.with_suffix(".json")
+
+
+def _read_record(path: Path) -> dict | None:
+    try:
+        record = json.loads(record_path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    return record if isinstance(record, dict) else None
+
+
+def checkpoint_sha256(m: TrainedModel) -> str:
+    """sha256 of a finished model's checkpoint.pt (cached per file state), or a MissingInputError."""
+    if not m.checkpoint.is_file():
+        raise MissingInputError(f"{m.folder} is marked DONE but holds no checkpoint.pt: delete that folder and "
+                                f"run `clothgap train` again")
+    return file_sha256(m.checkpoint)
+
+
+def _left_out_reason(clip_dir: Path, caught: list[warnings.WarningMessage]) -> str:
+    for w in caught:
+        text = str(w.message)
+        if str(clip_dir) in text or f"clip {clip_dir.name}" in text or f"{clip_dir.name}:" in text:
+            return text.removesuffix("; clip left out of the predictions")
+    return "no sub-sequence predicted (fewer frames than one sub-sequence, or unreadable)"
+
+
 def predict_all(run: Run, models: list[TrainedModel], predictor: Predictor,
-                progress: bool) -> tuple[dict[tuple, tables.Cell], dict[str, int]]:
-    """Predictions of every model on every rendered test variant, gathered into cells."""
+                progress: bool) -> tuple[dict[tuple, tables.Cell], dict[str, int], list[dict]]:
+    """Predictions of every model on every rendered test variant, gathered into cells.
+
+    A prediction CSV is reused only when its record says it was computed from the same
+    checkpoint bytes (sha256) on the same test clips with none left out; otherwise it is
+    deleted first and computed again, so a changed or corrupt checkpoint can never stand
+    behind old numbers. Also returns every test clip that has no prediction (not rendered,
+    or unreadable), one row per (model, test variant, clip).
+    """
     cells: dict[tuple, tables.Cell] = {}
     counts = {"predicted": 0, "reused": 0, "no_test_clips": 0}
+    left_out: list[dict] = []
     for m in models:
         windows = test_windows(run, m.setting)
         test_ids = sorted(windows)
+        sha = checkpoint_sha256(m)
         for test_variant in rendered_variants(run, m.setting):
             path = prediction_path(run, m, test_variant)
-            if path.is_file():
+            folder = run.render_dir(test_variant, m.setting)
+            clip_dirs = [folder / c for c in test_ids if is_done(folder / c)]
+            wanted = [d.name for d in clip_dirs]
+            missing = [{"clip_id": c, "reason": f"not rendered ({folder / c} has no DONE)"}
+                       for c in test_ids if not is_done(folder / c)]
+            record = _read_record(path)
+            if (path.is_file() and record is not None and record.get("checkpoint_sha256") == sha
+                    and record.get("clips") == wanted and not record.get("left_out")):
                 frame = preds.load(path)
                 counts["reused"] += 1
+                dropped: list[dict] = []
             else:
-                folder = run.render_dir(test_variant, m.setting)
-                clip_dirs = [folder / c for c in test_ids if is_done(folder / c)]
+                # Stale or unverifiable: gone before predicting, so a failure cannot leave it to be reused.
+                path.unlink(missing_ok=True)
+                record_path(path).unlink(missing_ok=True)
                 if not clip_dirs:
                     counts["no_test_clips"] += 1
+                    left_out += [{"setting": m.setting, "train_variant": m.variant, "model": m.model,
+                                  "seed": m.seed, "test_variant": test_variant, **x} for x in missing]
                     continue
                 t0 = time.perf_counter()
-                raw = predictor(m.folder, clip_dirs)
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always")
+                    raw = predictor(m.folder, clip_dirs)
+                got = set(preds.to_flat(raw)["clip_id"])
+                dropped = [{"clip_id": d.name, "reason": _left_out_reason(d, caught)}
+                           for d in clip_dirs if d.name not in got]
                 preds.save(raw, path)
+                atomic_write_json(record_path(path), {"checkpoint": _rel(run, m.checkpoint),
+                                                      "checkpoint_sha256": sha, "clips": wanted,
+                                                      "left_out": dropped})
                 frame = preds.load(path)
                 counts["predicted"] += 1
                 if progress:
-                    print(f"[eval] {_rel(run, m.folder)} on {test_variant}: {len(clip_dirs)} clips, "
+                    n = len(wanted) - len(dropped)
+                    print(f"[eval] {_rel(run, m.folder)} on {test_variant}: {n} of {len(test_ids)} test clips, "
                           f"{len(frame)} sub-sequences, {time.perf_counter() - t0:.1f} s", flush=True)
+            for item in missing + dropped:
+                left_out.append({"setting": m.setting, "train_variant": m.variant, "model": m.model,
+                                 "seed": m.seed, "test_variant": test_variant, **item})
+                if progress:
+                    print(f"[eval] left out {test_variant}/{m.setting}/{item['clip_id']} for "
+                          f"{_rel(run, m.folder)}: {item['reason']}", file=sys.stderr, flush=True)
             frame = only_windows(frame, windows).assign(seed=m.seed)
             key = (m.setting, m.variant, m.model, test_variant)
             if key in cells:
@@ -223,7 +297,7 @@ def predict_all(run: Run, models: list[TrainedModel], predictor: Predictor,
                 cells[key].sources.append(_rel(run, m.checkpoint))
             else:
                 cells[key] = tables.Cell(*key, frame=frame, sources=[_rel(run, m.checkpoint)])
-    return cells, counts
+    return cells, counts, left_out
 
 
 def _confusion_figures(run: Run, cells: dict[tuple, tables.Cell]) -> list[str]:
@@ -262,7 +336,7 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
     if not models:
         raise ConfigError(f"no finished train folder under {run.root / 'train'} for the config's "
                           f"settings/variants/models/seeds: run `clothgap train {run.root}` first")
-    cells, counts = predict_all(run, models, predictor or _default_predictor, progress)
+    cells, counts, left_out = predict_all(run, models, predictor or _default_predictor, progress)
     if not cells:
         raise ConfigError(f"no rendered test clips found for any model under {run.root / 'render'}: "
                           f"run `clothgap render {run.root}` first")
@@ -292,7 +366,8 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
         "run": str(run.root), "config": "config.json", "name": cfg.name,
         "bootstrap": {"resamples": cfg.eval.bootstrap, "confidence": cfg.eval.confidence, "unit": "sequence"},
         "models": [{"setting": m.setting, "variant": m.variant, "model": m.model, "seed": m.seed,
-                    "checkpoint": _rel(run, m.checkpoint)} for m in models],
+                    "checkpoint": _rel(run, m.checkpoint), "checkpoint_sha256": checkpoint_sha256(m)}
+                   for m in models],
         "test_variants": variants, "texture_of": texture_of,
         "variant_axes": tables.differing_axes(settings_of),
         "in_domain_accuracy": headline,
@@ -302,10 +377,15 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
                   "domain_gap": "eval/domain_gap.csv", "axis_ranking": "eval/axis_ranking.csv",
                   "figures": figs},
         "predictions": counts,
+        # Test clips of the split with no prediction (not rendered, unreadable): the numbers above are on
+        # fewer clips than the split names, and the CLI exits non-zero unless --allow-failures.
+        "left_out": left_out,
         "config_snapshot": to_dict(cfg),
     }
     atomic_write_json(out / "summary.json", summary)
-    short = {"cells": len(cells), **counts, "in_domain_accuracy": headline}
+    short = {"cells": len(cells), **counts, "left_out": len(left_out), "in_domain_accuracy": headline}
+    if left_out:
+        short["left_out_clips"] = sorted({f"{x['test_variant']}/{x['setting']}/{x['clip_id']}" for x in left_out})
 
     # Optional parts, each resumable: the sim stage's material analyses and the measured-fabric set.
     if cfg.eval.sim_analysis:
@@ -320,6 +400,24 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
                                         "markdown": "eval/measured.md", "summary": "eval/measured.json"}
         atomic_write_json(out / "summary.json", summary)
     return short
+
+
+def stale_checkpoints(run: Run) -> list[str]:
+    """Checkpoints named in ``eval/summary.json`` whose bytes changed (or vanished) since that eval."""
+    path = run.eval_dir / "summary.json"
+    try:
+        summary = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return []
+    stale = []
+    for m in summary.get("models", []) if isinstance(summary, dict) else []:
+        sha = m.get("checkpoint_sha256")
+        if not sha:
+            continue            # an eval from before checkpoints were hashed: nothing to compare
+        ckpt = run.root / m["checkpoint"]
+        if not ckpt.is_file() or file_sha256(ckpt) != sha:
+            stale.append(m["checkpoint"])
+    return stale
 
 
 SIM_ANALYSES = ("table2", "sensitivity")

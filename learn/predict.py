@@ -7,7 +7,6 @@ model's image size, and cut into the sub-sequences the model was trained on
 
 from __future__ import annotations
 
-import json
 import warnings
 from pathlib import Path
 from typing import Iterable
@@ -16,25 +15,54 @@ import numpy as np
 import pandas as pd
 import torch
 
-from clothgap.errors import MissingInputError
+from clothgap.errors import InputError, MissingInputError, UserError
+from clothgap.runs import read_meta
 from learn.dataset import FrameError, read_frames, subsequence_starts, to_input
 from learn.models import ClipClassifier, build_model
 from learn.train import resolve_device
 
 
+CHECKPOINT_KEYS = ("model", "model_name", "model_args", "config")
+
+
+def _corrupt(path: Path, why: str) -> InputError:
+    return InputError(f"checkpoint {path} {why}: retrain it (delete {path.parent} and run `clothgap train` "
+                      "on its run again)")
+
+
 def load_checkpoint(train_dir: Path | str) -> dict:
-    """The ``checkpoint.pt`` of a finished training folder (contract format)."""
+    """The ``checkpoint.pt`` of a finished training folder (contract format).
+
+    A file that is not a weights-only torch checkpoint of that format is an InputError
+    naming it (torch's own message is left out: it suggests ``weights_only=False``, which
+    would run whatever a pickle in the run folder holds).
+    """
     path = Path(train_dir) / "checkpoint.pt"
     if not path.is_file():
         raise MissingInputError(f"no checkpoint.pt in {train_dir}: is that training run finished (DONE)?")
-    return torch.load(path, map_location="cpu", weights_only=True)
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:      # torch raises UnpicklingError, RuntimeError, EOFError, ... for a bad file
+        raise _corrupt(path, f"is not a readable weights-only torch checkpoint ({type(e).__name__})") from None
+    missing = [k for k in CHECKPOINT_KEYS if not isinstance(ckpt, dict) or k not in ckpt]
+    if missing:
+        raise _corrupt(path, f"lacks {', '.join(missing)}")
+    try:
+        ckpt["config"]["train"]["clip_len"], ckpt["model_args"]["image_size"]
+    except (KeyError, TypeError):
+        raise _corrupt(path, "lacks config.train.clip_len or model_args.image_size") from None
+    return ckpt
 
 
 def load_model(train_dir: Path | str, device: str = "cpu") -> ClipClassifier:
     """The trained model of a training folder, in eval mode on ``device``."""
     ckpt = load_checkpoint(train_dir)
-    model = build_model(ckpt["model_name"], **ckpt["model_args"])
-    model.load_state_dict(ckpt["model"])
+    path = Path(train_dir) / "checkpoint.pt"
+    try:
+        model = build_model(ckpt["model_name"], **ckpt["model_args"])
+        model.load_state_dict(ckpt["model"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as e:
+        raise _corrupt(path, f"does not fit its model ({type(e).__name__}: {str(e).splitlines()[0][:200]})") from None
     return model.to(resolve_device(device)).eval()
 
 
@@ -43,7 +71,7 @@ def predict_clips(train_dir: Path | str, clip_dirs: Iterable[Path | str], device
                   batch_size: int = 32) -> pd.DataFrame:
     """One row per sub-sequence: ``clip_id, start, class_index, pred, probs`` (probs: (54,) float32).
 
-    Clips with a missing or unreadable frame are reported by a warning and left out.
+    Clips with a missing or unreadable frame or meta.json are reported by a warning and left out.
     """
     ckpt = load_checkpoint(train_dir)
     train_cfg = ckpt["config"]["train"]
@@ -64,15 +92,20 @@ def predict_clips(train_dir: Path | str, clip_dirs: Iterable[Path | str], device
         pending.clear()
 
     for clip_dir in map(Path, clip_dirs):
+        try:        # the meta first: reading frames needs it too
+            meta = read_meta(clip_dir, "render")
+            class_index = int(meta["class_index"])
+        except (UserError, KeyError, TypeError, ValueError) as err:
+            warnings.warn(f"clip {clip_dir.name}: {err}; clip left out of the predictions", stacklevel=2)
+            continue
         try:
             frames = torch.from_numpy(read_frames(clip_dir, size)).permute(0, 3, 1, 2)
         except FrameError as err:
             warnings.warn(f"{err}; clip left out of the predictions", stacklevel=2)
             continue
-        meta = json.loads((clip_dir / "meta.json").read_text())
         for start in subsequence_starts(len(frames), clip_len, stride):
             pending.append(({"clip_id": meta.get("clip_id", clip_dir.name), "start": start,
-                             "class_index": int(meta["class_index"])}, frames[start:start + clip_len]))
+                             "class_index": class_index}, frames[start:start + clip_len]))
             if len(pending) == batch_size:
                 flush()
     flush()

@@ -25,7 +25,8 @@ from pathlib import Path
 
 from clothgap import seeding
 from clothgap.config import ConfigError
-from clothgap.runs import Run, atomic_write_json
+from clothgap.errors import InputError
+from clothgap.runs import Run, atomic_write_json, read_meta
 
 PARTS = ("train", "val", "test")
 
@@ -67,7 +68,14 @@ def clip_labels(run: Run, setting: str) -> dict[str, int]:
     for folder in folders:
         ids = run.done_clips(folder)
         if ids:
-            return {cid: int(json.loads((folder / cid / "meta.json").read_text())["class_index"]) for cid in ids}
+            labels = {}
+            for cid in ids:
+                meta = read_meta(folder / cid, "sim" if folder == folders[0] else "render")
+                if not isinstance(meta.get("class_index"), int):
+                    raise InputError(f"{folder / cid / 'meta.json'} has no integer class_index: delete "
+                                     f"{folder / cid} and run the stage that made it again")
+                labels[cid] = meta["class_index"]
+            return labels
     raise ConfigError(f"no finished clips for setting {setting!r} in {', '.join(map(str, folders))}: "
                       f"run `clothgap sim {run.root}` and `clothgap render {run.root}` first")
 
@@ -130,7 +138,12 @@ def get_or_make_split(run: Run, setting: str) -> dict:
 
 
 def load_split(path: Path, by: str = "sequence") -> dict:
-    split = json.loads(Path(path).read_text())
+    try:
+        split = json.loads(Path(path).read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise InputError(f"{path} is not valid JSON ({e}); delete it to have it remade") from None
+    if not isinstance(split, dict):
+        raise InputError(f"{path} is not a split; delete it to have it remade")
     missing = [k for k in ("by", *PARTS) if k not in split]
     if missing or split["by"] != by:
         raise ConfigError(f"{path} is not a split by {by} (missing {missing or 'by=' + by}; "

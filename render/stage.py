@@ -19,6 +19,7 @@ summary, so one bad clip does not cost a long run.
 
 from __future__ import annotations
 
+import shutil
 import time
 import traceback
 import warnings
@@ -30,7 +31,8 @@ import numpy as np
 from PIL import Image
 from tqdm import tqdm
 
-from clothgap.runs import Run, atomic_write_json, clip_id as clip_name, fresh_dir, is_done, mark_done, select_clips
+from clothgap.runs import (Run, atomic_write_json, clip_id as clip_name, fresh_dir, is_done, mark_done, select_clips,
+                           storage_error)
 from render.backend import load_mitsuba
 from render.backgrounds import Backgrounds
 from render.batch import BatchRenderer, batchable
@@ -156,8 +158,18 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
                                clip_index=clip_index_of(clip, clip_dir), backgrounds=backgrounds[variant.name],
                                writer=writer)
         except Exception as e:  # one bad clip must not stop the run; it is recorded and reported
+            storage = storage_error(e, out_dir) if isinstance(e, OSError) else None
+            if storage is not None:
+                # A full or read-only disk fails every clip alike: stop, leaving no half-written frames.
+                writer.shutdown(wait=True)
+                shutil.rmtree(out_dir, ignore_errors=True)
+                raise storage from None
             reason = f"{type(e).__name__}: {e}"
-            atomic_write_json(out_dir / FAILED, {"error": reason, "traceback": traceback.format_exc()})
+            try:
+                atomic_write_json(out_dir / FAILED, {"error": reason, "traceback": traceback.format_exc()})
+            except OSError as marker:
+                # The clip has no DONE either way, so it is redone on the next run; say why there is no marker.
+                reason += f" (its FAILED marker could not be written: {marker.strerror or marker})"
             summary["failed"].append({"variant": variant.name, "setting": setting, "clip_id": clip_dir.name,
                                       "error": reason})
             warnings.warn(f"{label} {variant.name}/{setting}/{clip_dir.name} failed: {reason}", stacklevel=2)

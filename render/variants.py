@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import tomllib
 import typing
 from dataclasses import dataclass
@@ -30,6 +31,7 @@ from clothgap.errors import UserError
 
 VARIANTS_DIR = Path(__file__).resolve().parent.parent / "assets" / "render_variants"
 USER_VARIANTS_ENV = "CLOTHGAP_VARIANTS_DIR"
+VARIANT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]*")
 PAPER = "paper"
 
 # Allowed values of the enumerated settings (the renderer dispatches on these).
@@ -136,6 +138,10 @@ def _variant_files() -> dict[str, Path]:
     files: dict[str, Path] = {}
     for folder in folders:
         for path in sorted(folder.glob("*.toml")):
+            if not VARIANT_NAME.fullmatch(path.stem):
+                # The name becomes a folder (render/<variant>/): "...toml" would be "..", outside the run.
+                raise VariantError(f"{path}: a variant file's name must be letters, digits, '_' or '-' "
+                                   f"(starting with a letter or digit) followed by .toml; rename it")
             if path.stem in files:
                 raise VariantError(f"variant {path.stem!r} is defined twice: {files[path.stem]} and {path}; "
                                    "rename one of the files")
@@ -147,7 +153,7 @@ def _read(path: Path) -> dict:
     try:
         with path.open("rb") as f:
             data = tomllib.load(f)
-    except tomllib.TOMLDecodeError as e:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise VariantError(f"{path}: not valid TOML ({e})") from None
     unknown = set(data) - set(_FIELDS) - {"base"} | ({"name"} & set(data))
     if unknown:

@@ -22,6 +22,7 @@ is retried once with twice the substeps; if it fails again its folder gets a
 from __future__ import annotations
 
 import functools
+import shutil
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -31,7 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from clothgap import seeding
-from clothgap.runs import Run, atomic_write_json, clip_id, fresh_dir, is_done, mark_done, select_clips
+from clothgap.runs import (Run, atomic_write_json, clip_id, fresh_dir, is_done, mark_done, select_clips,
+                           storage_error)
 from sim import classes
 from sim import remesh
 from sim.adaptive import cloth_mesh, simulate_adaptive
@@ -234,7 +236,7 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
     cfg = run.config.sim
     device = resolve_device(cfg.device)
     settings = [parse_setting(s) for s in jobs]
-    summary = {"simulated": 0, "skipped": 0, "failed": 0, "retried": 0, "seconds": 0.0}
+    summary = {"simulated": 0, "skipped": 0, "failed": 0, "retried": 0, "failed_clips": [], "seconds": 0.0}
     start = time.perf_counter()
     for setting in settings:
         out = folder_of(setting.name)
@@ -273,7 +275,19 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
                     substeps[j] = 2 * cfg.substeps
 
             def write(job: ClipJob, scene: ClipScene, labels: dict, result: ClipResult, sub: int) -> bool:
-                folder = fresh_dir(out / job.name)
+                folder = out / job.name
+                try:
+                    return write_clip(job, scene, labels, result, sub, folder)
+                except OSError as e:
+                    err = storage_error(e, folder)
+                    if err is None:
+                        raise
+                    shutil.rmtree(folder, ignore_errors=True)   # no half-written clip left on a full disk
+                    raise err from None
+
+            def write_clip(job: ClipJob, scene: ClipScene, labels: dict, result: ClipResult, sub: int,
+                           folder: Path) -> bool:
+                fresh_dir(folder)
                 meta = {"clip_id": job.name, "index": job.index, "sequence": job.sequence, "setting": setting.name,
                         "motion": setting.motion, "remeshing": setting.remeshing, **labels,
                         "seed": run.config.seed, "fps": cfg.fps, "frames": cfg.frames, "substeps": sub,
@@ -300,6 +314,8 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
                 ok = list(pool.map(write, batch, scenes, [lab for _, lab in built], results, substeps))
             summary["simulated"] += sum(ok)
             summary["failed"] += len(ok) - sum(ok)
+            summary["failed_clips"] += [{"setting": setting.name, "clip_id": j.name, "error": r.reason}
+                                        for j, r, good in zip(batch, results, ok) if not good]
         bar.close()
     summary["seconds"] = round(time.perf_counter() - start, 3)
     return summary

@@ -36,6 +36,7 @@ def tiny_run(root: Path, classes=(0, 53, 20, 8), render: bool = False) -> Run:
         classes=classes, sequences_per_class=1, grid_vertices=6, frames=3, settle_s=0.04, device="cpu",
         batch_size=4), render=RenderConfig(variants=("paper",), resolution=12, spp=1, backend="scalar_rgb",
                                              write_hdr=False))
+    cfg = replace(cfg, train=replace(cfg.train, clip_len=3))     # sim.frames must hold one sub-sequence
     return Run.create_or_resume(root, cfg)
 
 
@@ -125,7 +126,7 @@ def test_options_are_checked():
 def test_summaries_merge_counts_and_failures():
     sim = merge_summaries("sim", [{"simulated": 2, "skipped": 1, "failed": 0, "retried": 1, "seconds": 3.0},
                                   {"simulated": 1, "skipped": 0, "failed": 1, "retried": 1, "seconds": 2.0}])
-    assert sim == {"simulated": 3, "skipped": 1, "failed": 1, "retried": 2, "seconds": 0.0}
+    assert sim == {"simulated": 3, "skipped": 1, "failed": 1, "retried": 2, "failed_clips": [], "seconds": 0.0}
     parts = [{"backend": "scalar_rgb", "rendered": 2, "skipped": 0, "failed": [], "frames": 6,
               "skipped_backgrounds": {}, "seconds": 1.0, "seconds_per_clip": 0.5, "seconds_per_frame": 0.1},
              {"backend": "scalar_rgb", "rendered": 0, "skipped": 1, "failed": [{"clip_id": "c00003"}], "frames": 0,

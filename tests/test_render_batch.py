@@ -25,6 +25,7 @@ def make_run(root, variants=("paper",), clips=2, frames=3, **render):
     cfg = preset("smoke")
     cfg = replace(cfg, sim=replace(cfg.sim, frames=frames),
                   render=replace(cfg.render, variants=variants, resolution=16, spp=1, backend=BACKEND, **render))
+    cfg = replace(cfg, train=replace(cfg.train, clip_len=min(cfg.train.clip_len, frames)))
     run = Run.create_or_resume(root, cfg)
     for setting in cfg.sim.settings():
         for i in range(clips):

@@ -269,6 +269,7 @@ def _tiny_run(tmp_path, seed=0, **sim):
     cfg = StudyConfig(name="tiny", seed=seed, sim=SimConfig(**{
         "classes": (0, 53), "sequences_per_class": 1, "grid_vertices": 6, "frames": 3, "settle_s": 0.04,
         "device": "cpu", "batch_size": 4, **sim}))
+    cfg = replace(cfg, train=replace(cfg.train, clip_len=min(cfg.train.clip_len, cfg.sim.frames)))
     return Run.create_or_resume(tmp_path, cfg)
 
 
