@@ -156,8 +156,10 @@ def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], model
             row["speed"] = [_speed(f) for f in folders]
             row["curves"] = {f"s{s}": _curves(f) for s, f in zip(seeds, folders)}
             rows.append(row)
+    scored = max((r["sequences"] for r in rows), default=0)
     report = {"run": str(run.root), "setting": setting, "variant": variant, "split_by": base.split_by,
-              "test_sequences": len(test), "base_train": dataclasses.asdict(base), "recipes": rows}
+              "test_sequences_in_split": len(test), "test_sequences": scored,
+              "base_train": dataclasses.asdict(base), "recipes": rows}
     stem = name or f"ablation-{setting}-{variant}"
     atomic_write_json(out_dir / f"{stem}.json", report)
     atomic_write_text(out_dir / f"{stem}.md", markdown(report))
@@ -174,7 +176,8 @@ def _pct(row: dict, key: str) -> str:
 def markdown(report: dict) -> str:
     lines = [f"# Training recipes on {report['setting']} / {report['variant']}",
              "",
-             f"Run `{report['run']}`, split by {report['split_by']}, {report['test_sequences']} test sequences; "
+             f"Run `{report['run']}`, split by {report['split_by']}, {report['test_sequences']} test sequences scored "
+             f"(of {report['test_sequences_in_split']} in the split; the others were not rendered); "
              "intervals: 95 % bootstrap over test sequences; the difference is paired with the first recipe.",
              "",
              "| recipe | model | top-1 % | within one bin % | stretching % | bending % | top-3 % | "

@@ -259,6 +259,11 @@ def window_sets(run: Run, setting: str, variant: str, cfg: TrainConfig, device: 
         warnings.warn(f"{len(unassigned)} rendered clip(s) of {setting}/{variant} are in no part of "
                       f"{run.split_path(setting)} (rendered after the split was made?) and are not used: "
                       f"{', '.join(unassigned[:5])}{' ...' if len(unassigned) > 5 else ''}", stacklevel=2)
+    not_rendered = sorted(c for part in ("train", "val") for c in part_clips(split, part) if c not in cache.clips)
+    if not_rendered and main:
+        warnings.warn(f"{len(not_rendered)} clip(s) of the train/val split of {setting}/{variant} are not rendered "
+                      f"or were left out of the frame cache and are not used: {', '.join(not_rendered[:5])}"
+                      f"{' ...' if len(not_rendered) > 5 else ''}", stacklevel=2)
     train_set = WindowSet(cache, part_windows(split, "train"), cfg.clip_len, cfg.clip_stride, device, targets)
     val_set = WindowSet(cache, part_windows(split, "val"), cfg.clip_len, cfg.clip_stride, device)
     if not len(train_set):

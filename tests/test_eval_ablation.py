@@ -44,6 +44,7 @@ def test_ablation_scores_every_recipe_on_the_same_test_windows(tmp_path):
     first, second = report["recipes"]
     test = part_windows(get_or_make_split(run, SETTING), "test")
     assert first["sequences"] == second["sequences"] == len(test) == report["test_sequences"]
+    assert report["test_sequences_in_split"] == len(test)
     assert first["rows"] == second["rows"] == len(test) * 3          # windows at 0, 5, 10 of 16 frames
     assert "acc_minus_first" not in first and second["acc_minus_first_lo"] <= second["acc_minus_first_hi"]
     assert second["changes"] == {"augment": True, "keep": "best"}
