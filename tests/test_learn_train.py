@@ -35,6 +35,20 @@ class SimulatedKill(Exception):
     pass
 
 
+def kill_after_first_epoch(run: Run, monkeypatch) -> None:
+    """Train lrcn until its first last.pt is written, then stop as a kill would."""
+    save_state = learn.train._save_state
+
+    def save_then_die(path, state):
+        save_state(path, state)
+        raise SimulatedKill
+
+    monkeypatch.setattr(learn.train, "_save_state", save_then_die)
+    with pytest.raises(SimulatedKill):
+        train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
+    monkeypatch.setattr(learn.train, "_save_state", save_state)
+
+
 def test_train_one_writes_its_folder_and_a_killed_run_resumes_to_the_same_weights(tmp_path, monkeypatch):
     cfg = tiny_config(augment=True)
     whole = synthetic_run(tmp_path / "whole", cfg)
@@ -50,16 +64,7 @@ def test_train_one_writes_its_folder_and_a_killed_run_resumes_to_the_same_weight
     assert any((out / "tb").iterdir()) and (out / "last.pt").is_file() and is_done(out)
     assert json.loads((out / "config.json").read_text())["train"]["epochs"] == 3
 
-    save_state = learn.train._save_state
-
-    def save_then_die(path, state):
-        save_state(path, state)
-        raise SimulatedKill
-
-    monkeypatch.setattr(learn.train, "_save_state", save_then_die)
-    with pytest.raises(SimulatedKill):
-        train_one(killed, SETTING, VARIANT, "lrcn", 0, progress=False)
-    monkeypatch.setattr(learn.train, "_save_state", save_state)
+    kill_after_first_epoch(killed, monkeypatch)
     resumed_dir = killed.train_dir(SETTING, VARIANT, "lrcn", 0)
     before_kill = pd.read_csv(resumed_dir / "metrics.csv")
     assert not is_done(resumed_dir) and len(before_kill) == 1
@@ -206,16 +211,7 @@ class _Payload:
 
 def test_a_pickle_payload_in_last_pt_does_not_run(tmp_path, monkeypatch):
     run = synthetic_run(tmp_path / "run", tiny_config(epochs=2))
-    save_state = learn.train._save_state
-
-    def save_then_die(path, state):
-        save_state(path, state)
-        raise SimulatedKill
-
-    monkeypatch.setattr(learn.train, "_save_state", save_then_die)
-    with pytest.raises(SimulatedKill):
-        train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
-    monkeypatch.setattr(learn.train, "_save_state", save_state)
+    kill_after_first_epoch(run, monkeypatch)
     folder = run.train_dir(SETTING, VARIANT, "lrcn", 0)
     marker = tmp_path / "payload-ran"
     torch.save({"model": _Payload(marker)}, folder / "last.pt")
