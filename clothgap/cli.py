@@ -23,7 +23,7 @@ from pathlib import Path
 
 import click
 
-from clothgap.config import ConfigError, PRESETS, StudyConfig, apply_overrides, pairs, preset, with_name
+from clothgap.config import ConfigError, PRESETS, apply_overrides, pairs, preset, with_name
 from clothgap.errors import UserError
 from clothgap.runs import Run, atomic_write_json, storage_error
 
@@ -480,7 +480,7 @@ def pipeline(run_dir, preset_name, out, overrides, allow_failures, **execution) 
     """Run sim, render, train, eval and report in turn (each skips what is done).
 
     --executor/--workers/--address/--gpus-per-worker spread sim and render; training
-    spreads over GPUs with torchrun (`torchrun --nproc-per-node N -m learn.train RUN_DIR`)."""
+    spreads over GPUs with torchrun (`torchrun --nproc-per-node N -m learn RUN_DIR`)."""
     opts = executor_options(**execution)
     run = resolve_run(run_dir, preset_name, out, overrides)
     click.echo(f"run folder: {run.root}  (config: {run.root / 'config.json'})")

@@ -64,27 +64,6 @@ def recipe_root(run: Run, recipe: str) -> Path:
     return run.root / "ablation" / recipe
 
 
-def predict_windows(train_dir: Path, cache, windows, device, batch_size: int = 256) -> pd.DataFrame:
-    """One row per test window (``clip_id, start, class_index, pred, probs``), frames from the cache."""
-    import torch
-
-    from learn.predict import load_checkpoint, load_model
-    from learn.windows import WindowSet
-
-    ckpt = load_checkpoint(train_dir)
-    tcfg = ckpt["config"]["train"]
-    model = load_model(train_dir, str(device))
-    data = WindowSet(cache, windows, tcfg["clip_len"], tcfg["clip_stride"], device)
-    probs = []
-    with torch.no_grad(), torch.autocast(data.device.type, dtype=torch.bfloat16, enabled=data.device.type == "cuda"):
-        for x, _, _ in data.batches(batch_size):
-            probs.append(model.probs(model(x)).float().cpu().numpy())
-    p = np.concatenate(probs) if probs else np.zeros((0, 54), np.float32)
-    return pd.DataFrame({"clip_id": data.clip_ids, "start": data.starts.numpy(),
-                         "class_index": data.labels.numpy(), "pred": p.argmax(1) if len(p) else [],
-                         "probs": list(p.astype(np.float32))})
-
-
 def _curves(folder: Path) -> list[dict]:
     path = folder / "metrics.csv"
     return json.loads(pd.read_csv(path).to_json(orient="records")) if path.is_file() else []
@@ -109,6 +88,7 @@ def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], model
     """Train and score every recipe x model x seed; write and return the comparison
     (``RUN/eval/<name>.{json,md}``, by default ``ablation-<setting>-<variant>``)."""
     from learn.dataset import build_cache
+    from learn.predict import predict_windows
     from learn.split import get_or_make_split, part_windows
     from learn.train import resolve_device, train_one
 
@@ -120,7 +100,7 @@ def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], model
     seeds = seeds if seeds is not None else list(base.seeds)
     test = part_windows(get_or_make_split(run, setting), "test")
     bootstrap = dict(resamples=run.config.eval.bootstrap, confidence=run.config.eval.confidence)
-    rows, reference = [], {}
+    rows, reference, caches = [], {}, {}
     out_dir = run.eval_dir
     for recipe in recipes:
         cfg = configs[recipe]
@@ -132,15 +112,17 @@ def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], model
                                    root=recipe_root(run, recipe))
                 path = folder / "test_predictions.csv"
                 if not path.is_file():
-                    cache = build_cache(run, variant, setting, cfg.image_size, progress=False)
-                    preds.save(predict_windows(folder, cache, test, resolve_device(cfg.device)), path)
+                    if cfg.image_size not in caches:
+                        caches[cfg.image_size] = build_cache(run, variant, setting, cfg.image_size, progress=False)
+                    preds.save(predict_windows(folder, caches[cfg.image_size], test, resolve_device(cfg.device)),
+                               path)
                 frames.append(preds.load(path).assign(seed=seed))
                 if progress:
                     print(f"[ablation] {recipe} {model} s{seed}: {time.perf_counter() - t0:.1f} s", flush=True)
             frame = pd.concat(frames, ignore_index=True)
             truth, pred = frame["class_index"].to_numpy(), frame["pred"].to_numpy()
             groups = frame["clip_id"].to_numpy()
-            rng = np.random.default_rng([run.config.seed, len(rows)])
+            rng = np.random.default_rng([run.config.seed, len(rows)])   # bootstrap keyed by the row's place
             row = {"recipe": recipe, "model": model, "seeds": seeds,
                    "changes": {k: v for k, v in dataclasses.asdict(cfg).items() if getattr(base, k) != v},
                    **metrics.summarize(truth, pred, preds.probs_of(frame), groups, rng=rng, **bootstrap)}

@@ -38,7 +38,6 @@ trained model give a ``CloneError`` (a ``ConfigError``: the CLI prints one line)
 from __future__ import annotations
 
 import dataclasses
-import json
 import shutil
 import time
 from pathlib import Path

@@ -35,6 +35,7 @@ from tqdm import tqdm
 
 from clothgap.errors import ConfigError
 from clothgap.runs import Run, atomic_write_json, atomic_write_text
+from eval import metrics
 from sim.classes import class_indices
 from sim.lattice import LATTICE, clip_lattice
 
@@ -98,8 +99,7 @@ def _targets(labels: np.ndarray) -> dict[str, np.ndarray]:
 def within_one_bin(target: str, pred: np.ndarray, truth: np.ndarray) -> float:
     """Share of predictions at most one bin off (in both stretching and bending for the 54 classes)."""
     if target == "class":
-        p, t = np.array([class_indices(int(c)) for c in pred]), np.array([class_indices(int(c)) for c in truth])
-        return float((np.abs(p - t).max(axis=1) <= 1).mean())
+        return float(metrics.within_one_bin(truth, pred).mean())
     return float((np.abs(pred.astype(int) - truth.astype(int)) <= 1).mean())
 
 

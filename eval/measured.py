@@ -52,6 +52,7 @@ from clothgap.config import ConfigError
 from clothgap.runs import Run, atomic_write_json, atomic_write_text, fresh_dir, is_done, mark_done
 from eval import classes, metrics, real
 from eval import predictions as preds
+from eval.trained import TrainedModel, finished_models
 
 DEFAULT_SEQUENCES = 2       # `clothgap eval measured` when the run's eval.measured_sequences is 0
 MATCH_SCORES = ("exact", "p_match", "k_match", "class_dist")
@@ -103,8 +104,6 @@ def model_folder(run: Run, m, variant: str) -> Path:
 
 def model_from_dir(run: Run, train_dir: Path):
     """The run's TrainedModel for a train folder path (``RUN/train/<setting>/<variant>/<model>/s<seed>``)."""
-    from eval.stage import TrainedModel
-
     try:
         parts = Path(train_dir).resolve().relative_to((run.root / "train").resolve()).parts
     except ValueError:
@@ -120,7 +119,8 @@ def model_from_dir(run: Run, train_dir: Path):
 def make_clips(run: Run, sequences: int, fabrics: Sequence[str], variant: str, progress: bool = True) -> dict:
     """Simulate and render the measured clips that are not finished yet; returns both summaries."""
     from render.stage import render_measured
-    from sim.measured import clip_name, simulate_measured, wanted_clips
+    from sim.measured import clip_name, wanted_clips
+    from sim.stage import simulate_measured
 
     sim_summary = simulate_measured(run, fabrics, sequences, progress)
     names = [clip_name(f, n) for f, n in wanted_clips(fabrics, sequences)]
@@ -300,7 +300,6 @@ def run_measured(run: Run, *, models: list | None = None, sequences: int | None 
                  predictor: Predictor | None = None, activations: int = 2, progress: bool = True) -> dict:
     """Make (or reuse) the measured-fabric clips, predict them with every finished model (or ``models``),
     and write ``eval/measured.{csv,md,json}`` and ``eval/measured_correlations.csv``; returns a summary."""
-    from eval.stage import finished_models
     from sim.measured import basis_values, clip_name, wanted_clips
 
     sequences, fabrics, variant = resolve(run, sequences, fabrics, variant)

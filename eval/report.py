@@ -150,7 +150,7 @@ def _section_table3(run: Run) -> str:
         cells = "".join(f"<td>{_esc(r[c])}</td>" for c in ("motion", "remeshing", "texture", "variant"))
         cells += "".join(_est(r, f"{m}_acc") if pd.notna(r.get(f"{m}_acc")) else "<td></td>" for m in models)
         rows.append(f"<tr>{cells}</tr>")
-    out = [f'<h2 id="table3">Table 3: accuracy on simulated test sequences</h2>',
+    out = ['<h2 id="table3">Table 3: accuracy on simulated test sequences</h2>',
            "<p>Accuracy over 54 classes (% of 10-frame test sub-sequences) of each model trained and tested on the "
            "same render variant, with the 95% interval from resampling test <em>sequences</em>. "
            f"Source: {_link(run, run.eval_dir / 'table3.csv')}. Paper (wind, Unif-1, Rand): "

@@ -28,7 +28,6 @@ import json
 import sys
 import time
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -36,11 +35,12 @@ import numpy as np
 import pandas as pd
 
 from clothgap import seeding
-from clothgap.config import ConfigError, pairs, to_dict
+from clothgap.config import ConfigError, to_dict
 from clothgap.errors import InputError, MissingInputError, UserError
 from clothgap.runs import Run, atomic_write_json, atomic_write_text, file_sha256, is_done, read_meta
 from eval import figures, metrics, tables
 from eval import predictions as preds
+from eval.trained import TrainedModel, finished_models
 
 # (train_dir, clip_dirs) -> predict_clips-shaped frame; the default calls learn.predict.
 Predictor = Callable[[Path, list[Path]], pd.DataFrame]
@@ -51,36 +51,10 @@ _NOT_AXES = {"resolution", "spp", "backend", "write_hdr", "name", "description",
              "seed_streams", "sampler_seed", "run_seed", "seed", "seeds"}
 
 
-@dataclass(frozen=True)
-class TrainedModel:
-    setting: str
-    variant: str
-    model: str
-    seed: int
-    folder: Path
-
-    @property
-    def checkpoint(self) -> Path:
-        return self.folder / "checkpoint.pt"
-
-
 def _default_predictor(train_dir: Path, clip_dirs: list[Path]) -> pd.DataFrame:
     from learn.predict import predict_clips
 
     return predict_clips(train_dir, clip_dirs)
-
-
-def finished_models(run: Run) -> list[TrainedModel]:
-    """Every train folder of the config's grid that holds a DONE marker."""
-    cfg = run.config
-    found = []
-    for setting, variant in pairs(cfg):
-        for model in cfg.train.models:
-            for seed in cfg.train.seeds:
-                folder = run.train_dir(setting, variant, model, seed)
-                if is_done(folder):
-                    found.append(TrainedModel(setting, variant, model, seed, folder))
-    return found
 
 
 def rendered_variants(run: Run, setting: str) -> list[str]:
@@ -247,6 +221,8 @@ def predict_all(run: Run, models: list[TrainedModel], predictor: Predictor,
         sha = checkpoint_sha256(m)
         for test_variant in rendered_variants(run, m.setting):
             path = prediction_path(run, m, test_variant)
+            where = {"setting": m.setting, "train_variant": m.variant, "model": m.model, "seed": m.seed,
+                     "test_variant": test_variant}
             folder = run.render_dir(test_variant, m.setting)
             clip_dirs = [folder / c for c in test_ids if is_done(folder / c)]
             wanted = [d.name for d in clip_dirs]
@@ -264,8 +240,7 @@ def predict_all(run: Run, models: list[TrainedModel], predictor: Predictor,
                 record_path(path).unlink(missing_ok=True)
                 if not clip_dirs:
                     counts["no_test_clips"] += 1
-                    left_out += [{"setting": m.setting, "train_variant": m.variant, "model": m.model,
-                                  "seed": m.seed, "test_variant": test_variant, **x} for x in missing]
+                    left_out += [{**where, **x} for x in missing]
                     continue
                 t0 = time.perf_counter()
                 with warnings.catch_warnings(record=True) as caught:
@@ -285,8 +260,7 @@ def predict_all(run: Run, models: list[TrainedModel], predictor: Predictor,
                     print(f"[eval] {_rel(run, m.folder)} on {test_variant}: {n} of {len(test_ids)} test clips, "
                           f"{len(frame)} sub-sequences, {time.perf_counter() - t0:.1f} s", flush=True)
             for item in missing + dropped:
-                left_out.append({"setting": m.setting, "train_variant": m.variant, "model": m.model,
-                                 "seed": m.seed, "test_variant": test_variant, **item})
+                left_out.append({**where, **item})
                 if progress:
                     print(f"[eval] left out {test_variant}/{m.setting}/{item['clip_id']} for "
                           f"{_rel(run, m.folder)}: {item['reason']}", file=sys.stderr, flush=True)

@@ -26,7 +26,7 @@ from PIL import Image
 from tqdm import tqdm
 
 from clothgap.errors import MissingInputError
-from clothgap.runs import Run, atomic_write_json
+from clothgap.runs import Run, atomic_write_json, read_meta
 
 CACHE_VERSION = 1
 
@@ -45,21 +45,21 @@ class CachedClip:
 
 # ---------------------------------------------------------------- reading clips
 
-def frame_paths(clip_dir: Path) -> list[Path]:
-    """The expected ``ldr/%04d.png`` paths of a rendered clip (count from meta.json when it says)."""
-    meta = json.loads((clip_dir / "meta.json").read_text())
+def frame_paths(clip_dir: Path, meta: dict | None = None) -> list[Path]:
+    """The expected ``ldr/%04d.png`` paths of a rendered clip (count from its meta.json when it says)."""
+    meta = read_meta(clip_dir, "render") if meta is None else meta
     count = meta.get("num_frames")
     if count is None:
         count = len(list((clip_dir / "ldr").glob("*.png")))
     return [clip_dir / "ldr" / f"{t:04d}.png" for t in range(int(count))]
 
 
-def read_frames(clip_dir: Path, size: int) -> np.ndarray:
+def read_frames(clip_dir: Path, size: int, meta: dict | None = None) -> np.ndarray:
     """All frames of a clip as (T, size, size, 3) uint8, resized with antialiasing.
 
     Raises FrameError naming the clip and the first frame that is missing or corrupt.
     """
-    paths = frame_paths(clip_dir)
+    paths = frame_paths(clip_dir, meta)
     if not paths:
         raise FrameError(f"clip {clip_dir.name}: no frames in {clip_dir / 'ldr'}")
     out = np.empty((len(paths), size, size, 3), np.uint8)
@@ -130,21 +130,21 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
             return FrameCache(array_path, [CachedClip(**c) for c in index["clips"]])
         index_path.unlink(missing_ok=True)   # stale: rebuilt below
 
-    total = sum(len(frame_paths(render_dir / cid)) for cid in clip_ids)
+    metas = {cid: read_meta(render_dir / cid, "render") for cid in clip_ids}
+    total = sum(len(frame_paths(render_dir / cid, metas[cid])) for cid in clip_ids)
     array_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = array_path.with_name(f"{array_path.stem}.tmp{os.getpid()}.npy")
     array = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=(max(total, 1), size, size, 3))
     clips, skipped, offset = [], {}, 0
     for cid in tqdm(clip_ids, desc=f"cache {variant}/{setting} {size}px", disable=not progress, leave=False):
         try:
-            frames = read_frames(render_dir / cid, size)
+            frames = read_frames(render_dir / cid, size, metas[cid])
         except FrameError as err:
             warnings.warn(f"{err}; clip left out of {variant}/{setting}", stacklevel=2)
             skipped[cid] = str(err)
             continue
         array[offset:offset + len(frames)] = frames
-        meta = json.loads((render_dir / cid / "meta.json").read_text())
-        clips.append(CachedClip(cid, int(meta["class_index"]), offset, len(frames)))
+        clips.append(CachedClip(cid, int(metas[cid]["class_index"]), offset, len(frames)))
         offset += len(frames)
     array.flush()
     del array

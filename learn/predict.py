@@ -17,9 +17,10 @@ import torch
 
 from clothgap.errors import InputError, MissingInputError, UserError
 from clothgap.runs import read_meta
-from learn.dataset import FrameError, read_frames, subsequence_starts, to_input
+from learn.dataset import FrameCache, FrameError, read_frames, subsequence_starts, to_input
 from learn.models import ClipClassifier, build_model
 from learn.train import resolve_device
+from learn.windows import WindowSet
 
 
 CHECKPOINT_KEYS = ("model", "model_name", "model_args", "config")
@@ -110,3 +111,22 @@ def predict_clips(train_dir: Path | str, clip_dirs: Iterable[Path | str], device
                 flush()
     flush()
     return pd.DataFrame(rows, columns=["clip_id", "start", "class_index", "pred", "probs"])
+
+
+@torch.no_grad()
+def predict_windows(train_dir: Path | str, cache: FrameCache, windows, device: torch.device | str,
+                    batch_size: int = 256) -> pd.DataFrame:
+    """Like ``predict_clips``, on the given windows (``learn.split.part_windows``) of a frame cache held
+    on ``device``: the fast path for many models on the same clips."""
+    ckpt = load_checkpoint(train_dir)
+    tcfg = ckpt["config"]["train"]
+    model = load_model(train_dir, str(device))
+    data = WindowSet(cache, windows, tcfg["clip_len"], tcfg["clip_stride"], device)
+    probs = []
+    with torch.autocast(data.device.type, dtype=torch.bfloat16, enabled=data.device.type == "cuda"):
+        for x, _, _ in data.batches(batch_size):
+            probs.append(model.probs(model(x)).float().cpu().numpy())
+    p = np.concatenate(probs) if probs else np.zeros((0, 54), np.float32)
+    return pd.DataFrame({"clip_id": data.clip_ids, "start": data.starts.numpy(),
+                         "class_index": data.labels.numpy(), "pred": p.argmax(1) if len(p) else [],
+                         "probs": list(p.astype(np.float32))})

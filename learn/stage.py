@@ -1,6 +1,12 @@
-"""The learn stage's entry point: every (setting, variant, model, seed) of the run's grid."""
+"""The learn stage's entry point: every (setting, variant, model, seed) of the run's grid, in this
+process or under torchrun (``python -m learn``, ``torchrun --nproc-per-node N -m learn RUN_DIR``)."""
 
 from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
 
 from clothgap.config import pairs
 from clothgap.runs import Run, atomic_write_json, is_done
@@ -45,3 +51,47 @@ def run_train(run: Run, progress: bool = True) -> dict:
         train_one(run, setting, variant, model, seed, progress)
         write_index()
     return write_index()
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m learn RUN_DIR [--setting S --variant V --model M --seed N]``.
+
+    Trains the whole grid of the run, or the selected part of it. The same
+    command under ``torchrun --nproc-per-node N -m learn ...`` trains with
+    DDP over N processes (NCCL on GPUs, gloo on CPU), reading RANK, WORLD_SIZE
+    and LOCAL_RANK from the environment as torchrun sets them.
+    """
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m learn", description=main.__doc__.splitlines()[0])
+    parser.add_argument("run_dir", type=Path, help="an existing run folder (with rendered clips)")
+    parser.add_argument("--setting", action="append", help="train only this setting (repeatable)")
+    parser.add_argument("--variant", action="append", help="train only this render variant (repeatable)")
+    parser.add_argument("--model", action="append", choices=MODEL_NAMES, help="train only this model (repeatable)")
+    parser.add_argument("--seed", action="append", type=int, help="train only this seed (repeatable)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    opts = parser.parse_args(argv)
+
+    world = int(os.environ.get("WORLD_SIZE", 1))
+    if world > 1:
+        use_nccl = torch.cuda.is_available()
+        if use_nccl:
+            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", 0)))
+        torch.distributed.init_process_group("nccl" if use_nccl else "gloo")
+    try:
+        run = Run.open(opts.run_dir)
+        cfg = run.config
+        if not (opts.setting or opts.variant or opts.model or opts.seed is not None):
+            run_train(run, progress=not opts.no_progress)
+            return
+        for setting, variant in pairs(cfg):
+            if (opts.setting and setting not in opts.setting) or (opts.variant and variant not in opts.variant):
+                continue
+            for seed in opts.seed or cfg.train.seeds:
+                for model_name in opts.model or cfg.train.models:
+                    folder = train_one(run, setting, variant, model_name, seed, progress=not opts.no_progress)
+                    if is_main():
+                        print(folder)
+    finally:
+        if torch.distributed.is_initialized():
+            torch.distributed.destroy_process_group()

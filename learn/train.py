@@ -35,7 +35,7 @@ import torch
 from tqdm import tqdm
 
 from clothgap import seeding
-from clothgap.config import ConfigError, pairs
+from clothgap.config import ConfigError
 from clothgap.errors import UserError
 from clothgap.runs import Run, atomic_write_json, atomic_write_text, fresh_dir, is_done, mark_done
 from learn.config import SCHEDULES, TrainConfig
@@ -416,57 +416,3 @@ def _gather(obj) -> list:
     objs: list = [None] * _world_size()
     torch.distributed.all_gather_object(objs, obj)
     return objs
-
-
-# ---------------------------------------------------------------- command line
-
-def main(argv: list[str] | None = None) -> None:
-    """``python -m learn.train RUN_DIR [--setting S --variant V --model M --seed N]``.
-
-    Trains the whole grid of the run, or the selected part of it. The same
-    command under ``torchrun --nproc-per-node N -m learn.train ...`` trains with
-    DDP over N processes (NCCL on GPUs, gloo on CPU), reading RANK, WORLD_SIZE
-    and LOCAL_RANK from the environment as torchrun sets them.
-    """
-    import argparse
-
-    from learn.models import MODEL_NAMES
-
-    parser = argparse.ArgumentParser(prog="python -m learn.train", description=main.__doc__.splitlines()[0])
-    parser.add_argument("run_dir", type=Path, help="an existing run folder (with rendered clips)")
-    parser.add_argument("--setting", action="append", help="train only this setting (repeatable)")
-    parser.add_argument("--variant", action="append", help="train only this render variant (repeatable)")
-    parser.add_argument("--model", action="append", choices=MODEL_NAMES, help="train only this model (repeatable)")
-    parser.add_argument("--seed", action="append", type=int, help="train only this seed (repeatable)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
-    opts = parser.parse_args(argv)
-
-    world = int(os.environ.get("WORLD_SIZE", 1))
-    if world > 1:
-        use_nccl = torch.cuda.is_available()
-        if use_nccl:
-            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", 0)))
-        torch.distributed.init_process_group("nccl" if use_nccl else "gloo")
-    try:
-        run = Run.open(opts.run_dir)
-        cfg = run.config
-        if not (opts.setting or opts.variant or opts.model or opts.seed is not None):
-            from learn.stage import run_train
-
-            run_train(run, progress=not opts.no_progress)
-            return
-        for setting, variant in pairs(cfg):
-            if (opts.setting and setting not in opts.setting) or (opts.variant and variant not in opts.variant):
-                continue
-            for seed in opts.seed or cfg.train.seeds:
-                for model_name in opts.model or cfg.train.models:
-                    folder = train_one(run, setting, variant, model_name, seed, progress=not opts.no_progress)
-                    if is_main():
-                        print(folder)
-    finally:
-        if torch.distributed.is_initialized():
-            torch.distributed.destroy_process_group()
-
-
-if __name__ == "__main__":
-    main()

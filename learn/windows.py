@@ -92,7 +92,6 @@ class WindowSet:
         self.targets = None
         if targets is not None:
             self.targets = torch.from_numpy(np.ascontiguousarray(targets[used], dtype=np.float32)).to(self.device)
-        self._to_device = {}
 
     def __len__(self) -> int:
         return len(self.clip_ids)

@@ -38,7 +38,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from clothgap.config import ConfigError
-from clothgap.runs import Run
 from clothgap.seeding import stream_id
 from sim import classes
 from sim.analysis import BASIS, PAPER_TABLE2, estimate_ratios
@@ -107,16 +106,3 @@ def fabric_labels(fabric: str) -> dict:
 
 def wanted_clips(fabrics: Sequence[str], sequences: int) -> list[tuple[str, int]]:
     return [(f, n) for f in fabrics for n in range(sequences)]
-
-
-def simulate_measured(run: Run, fabrics: Sequence[str], sequences: int, progress: bool = True) -> dict:
-    """Simulate ``sequences`` clips of each fabric under every setting of the run (finished ones skipped)."""
-    from sim.stage import ClipJob, simulate_jobs
-
-    check_fabrics(fabrics)
-    if not 0 < sequences <= MAX_SEQUENCES:
-        raise ConfigError(f"measured sequences must be 1..{MAX_SEQUENCES}, got {sequences}")
-    jobs = [ClipJob(measured_index(f, n), clip_name(f, n), n, fabric=f) for f, n in wanted_clips(fabrics, sequences)]
-    return simulate_jobs(run, {s: jobs for s in run.config.sim.settings()}, run.measured_sim_dir, progress,
-                         label="sim measured")
-

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from clothgap import seeding
+from clothgap.errors import ConfigError
 from clothgap.runs import (Run, atomic_write_json, clip_id, fresh_dir, is_done, mark_done, select_clips,
                            storage_error)
 from sim import classes
@@ -319,3 +320,15 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
         bar.close()
     summary["seconds"] = round(time.perf_counter() - start, 3)
     return summary
+
+
+def simulate_measured(run: Run, fabrics: Sequence[str], sequences: int, progress: bool = True) -> dict:
+    """Simulate ``sequences`` clips of each fabric under every setting of the run (finished ones skipped)."""
+    from sim.measured import MAX_SEQUENCES, check_fabrics, clip_name, measured_index, wanted_clips
+
+    check_fabrics(fabrics)
+    if not 0 < sequences <= MAX_SEQUENCES:
+        raise ConfigError(f"measured sequences must be 1..{MAX_SEQUENCES}, got {sequences}")
+    jobs = [ClipJob(measured_index(f, n), clip_name(f, n), n, fabric=f) for f, n in wanted_clips(fabrics, sequences)]
+    return simulate_jobs(run, {s: jobs for s in run.config.sim.settings()}, run.measured_sim_dir, progress,
+                         label="sim measured")

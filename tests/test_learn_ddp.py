@@ -19,7 +19,7 @@ from tests.test_learn_train import SETTING, VARIANT, tiny_config
 def test_torchrun_two_processes_train_one_model(tmp_path):
     run = synthetic_run(tmp_path / "run", tiny_config(epochs=2, num_threads=1))
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
-           "-m", "learn.train", str(run.root), "--model", "lrcn", "--no-progress"]
+           "-m", "learn", str(run.root), "--model", "lrcn", "--no-progress"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=90, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-3000:]
     out = run.train_dir(SETTING, VARIANT, "lrcn", 0)
