@@ -24,10 +24,11 @@ import numpy as np
 import pandas as pd
 from PIL import Image
 
-from clothgap.config import ConfigError, pairs, to_dict
+from clothgap.config import ConfigError, to_dict
 from clothgap.runs import Run, atomic_write_text, is_done
 from eval import figures, tables
 from eval.metrics import Estimate
+from eval.trained import grid_models
 
 _CSS = """
 body{font-family:-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:0;color:#1d232a;background:#f6f7f9}
@@ -194,25 +195,21 @@ def _section_confusion(run: Run) -> str:
 
 
 def _section_learning(run: Run) -> str:
-    cfg = run.config
     figs = []
-    for setting, variant in pairs(cfg):
-        for model in cfg.train.models:
-            for seed in cfg.train.seeds:
-                folder = run.train_dir(setting, variant, model, seed)
-                path = folder / "metrics.csv"
-                if not path.is_file():
-                    continue
-                try:
-                    frame = pd.read_csv(path)
-                except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError):
-                    continue
-                if "epoch" not in frame or frame.empty:
-                    continue
-                rel = folder.relative_to(run.root)
-                state = "" if is_done(folder) else " (unfinished)"
-                fig = figures.learning_curves(frame, f"{rel}{state}")
-                figs.append(_img(figures.png_bytes(fig), f"{rel}/metrics.csv", 560))
+    for m in grid_models(run):
+        path = m.folder / "metrics.csv"
+        if not path.is_file():
+            continue
+        try:
+            frame = pd.read_csv(path)
+        except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError):
+            continue
+        if "epoch" not in frame or frame.empty:
+            continue
+        rel = m.folder.relative_to(run.root)
+        state = "" if is_done(m.folder) else " (unfinished)"
+        fig = figures.learning_curves(frame, f"{rel}{state}")
+        figs.append(_img(figures.png_bytes(fig), f"{rel}/metrics.csv", 560))
     if not figs:
         return ""
     return ('<h2 id="learning">Learning curves</h2><p>Per epoch, from each train folder\'s <code>metrics.csv</code>.</p>'

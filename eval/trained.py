@@ -22,14 +22,13 @@ class TrainedModel:
         return self.folder / "checkpoint.pt"
 
 
+def grid_models(run: Run) -> list[TrainedModel]:
+    """Every (setting, variant, model, seed) of the config's grid with its train folder, finished or not."""
+    cfg = run.config
+    return [TrainedModel(setting, variant, model, seed, run.train_dir(setting, variant, model, seed))
+            for setting, variant in pairs(cfg) for model in cfg.train.models for seed in cfg.train.seeds]
+
+
 def finished_models(run: Run) -> list[TrainedModel]:
     """Every train folder of the config's grid that holds a DONE marker."""
-    cfg = run.config
-    found = []
-    for setting, variant in pairs(cfg):
-        for model in cfg.train.models:
-            for seed in cfg.train.seeds:
-                folder = run.train_dir(setting, variant, model, seed)
-                if is_done(folder):
-                    found.append(TrainedModel(setting, variant, model, seed, folder))
-    return found
+    return [m for m in grid_models(run) if is_done(m.folder)]
