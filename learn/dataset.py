@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,7 +26,7 @@ import torch
 from PIL import Image
 from tqdm import tqdm
 
-from clothgap.errors import MissingInputError
+from clothgap.errors import MissingInputError, StorageError
 from clothgap.runs import Run, atomic_write_json, read_meta
 
 CACHE_VERSION = 1
@@ -133,22 +134,31 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
     metas = {cid: read_meta(render_dir / cid, "render") for cid in clip_ids}
     total = sum(len(frame_paths(render_dir / cid, metas[cid])) for cid in clip_ids)
     array_path.parent.mkdir(parents=True, exist_ok=True)
+    # A memmap written past a full disk dies of SIGBUS with no message: check the space first.
+    need, free = total * size * size * 3, shutil.disk_usage(array_path.parent).free
+    if need > free:
+        raise StorageError(f"the frame cache {array_path} needs {need / 2**30:.2f} GiB but {array_path.parent} "
+                           f"has {free / 2**30:.2f} GiB free: free some space and run the same command again")
     tmp = array_path.with_name(f"{array_path.stem}.tmp{os.getpid()}.npy")
     array = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=(max(total, 1), size, size, 3))
     clips, skipped, offset = [], {}, 0
-    for cid in tqdm(clip_ids, desc=f"cache {variant}/{setting} {size}px", disable=not progress, leave=False):
-        try:
-            frames = read_frames(render_dir / cid, size, metas[cid])
-        except FrameError as err:
-            warnings.warn(f"{err}; clip left out of {variant}/{setting}", stacklevel=2)
-            skipped[cid] = str(err)
-            continue
-        array[offset:offset + len(frames)] = frames
-        clips.append(CachedClip(cid, int(metas[cid]["class_index"]), offset, len(frames)))
-        offset += len(frames)
-    array.flush()
-    del array
-    tmp.replace(array_path)
+    try:
+        for cid in tqdm(clip_ids, desc=f"cache {variant}/{setting} {size}px", disable=not progress, leave=False):
+            try:
+                frames = read_frames(render_dir / cid, size, metas[cid])
+            except FrameError as err:
+                warnings.warn(f"{err}; clip left out of {variant}/{setting}", stacklevel=2)
+                skipped[cid] = str(err)
+                continue
+            array[offset:offset + len(frames)] = frames
+            clips.append(CachedClip(cid, int(metas[cid]["class_index"]), offset, len(frames)))
+            offset += len(frames)
+        array.flush()
+        del array
+        tmp.replace(array_path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)     # a killed or failed build leaves no multi-GB temporary behind
+        raise
     atomic_write_json(index_path, {"version": CACHE_VERSION, "size": size, "signature": signature,
                                    "clips": [c.__dict__ for c in clips], "skipped": skipped})
     return FrameCache(array_path, clips)

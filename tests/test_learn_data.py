@@ -112,3 +112,18 @@ def test_identity_augmentation_leaves_frames_unchanged(run):
 def test_config_fields_have_defaults():
     # TrainConfig may only grow with defaults: old run folders must still load.
     assert all(f.default is not dataclasses.MISSING for f in dataclasses.fields(TrainConfig))
+
+
+def test_a_cache_that_would_not_fit_on_disk_is_refused_by_name(run, monkeypatch):
+    import shutil
+
+    from clothgap.errors import StorageError
+
+    real = shutil.disk_usage
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: real(p)._replace(free=1000))
+    with pytest.raises(StorageError, match=r"32\.npy needs .* GiB free"):
+        build_cache(run, VARIANT, SETTING, 32, progress=False)
+    folder = cache_path(run, VARIANT, SETTING, 32).parent
+    assert not list(folder.iterdir())                      # no temporary array, no index
+    monkeypatch.setattr(shutil, "disk_usage", real)
+    assert build_cache(run, VARIANT, SETTING, 32, progress=False).frames.shape[0] == 4 * 12
