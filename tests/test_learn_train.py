@@ -187,6 +187,8 @@ def test_geometry_targets_follow_the_frame_cache_and_train_an_auxiliary_head(tmp
     assert state["model"]["head_geometry.weight"].shape == (192, 32)
     assert state["model_args"]["geometry_dim"] == 192
     assert load_model(out)(torch.rand(1, 6, 3, 32, 32))["geometry"].shape == (1, 6, 192)
+    shape = pd.read_csv(out / "metrics.csv")[["train_shape", "val_shape"]]
+    assert shape.notna().all().all() and (shape > 0).all().all()   # how well the lattice is read, per epoch
 
 
 def test_diverged_training_is_not_marked_done(tmp_path):
