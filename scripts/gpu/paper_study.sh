@@ -15,7 +15,8 @@ for stage in $STAGES; do
   t0=$(date +%s.%N)
   if [ -f "$RUN/config.json" ]; then args=("$RUN"); else args=(--preset paper --out "$RUN" "${SETS[@]}"); fi
   extra=(); [ "$stage" = render ] && extra=(${RENDER_ARGS:-})
-  python3 -m clothgap $stage "${args[@]}" "${extra[@]}" 2>&1 | tr '\r' '\n' | grep -vE "it/s\]|clip/s\]|shard/s\]|s/it\]" | tail -8
+  # LIMIT (seconds, optional) stops the stage in time for the call's 10 minutes; it resumes next call.
+  ${LIMIT:+timeout -k 10 "$LIMIT"} python3 -m clothgap $stage "${args[@]}" "${extra[@]}" 2>&1 | tr '\r' '\n' | grep -vE "it/s\]|clip/s\]|shard/s\]|s/it\]" | tail -8
   rc=${PIPESTATUS[0]}
   t1=$(date +%s.%N)
   python3 -c "import json,sys; print(json.dumps({'stage': '$stage', 'rc': $rc, 'seconds': round($t1-$t0, 1)}))" >> "$RUN/gpu_timings.jsonl"
