@@ -36,7 +36,7 @@ print(max(rows, key=val)["recipe"])
 PY
 )
   echo "recipe chosen on validation accuracy: $RECIPES"
-  echo "$RECIPES" > "$RUN/eval/chosen-recipe.txt"; cp "$RUN/eval/chosen-recipe.txt" "$OUT"/
+  echo "$RECIPES" > "$RUN/eval/chosen-recipe.txt"
 fi
 for r in $RECIPES; do
   left=$(( DEADLINE - ($(date +%s) - t0) ))
@@ -64,6 +64,6 @@ if [ "${MEASURED:-0}" = 1 ]; then
   echo "== measured fabrics on recipe $r"
   python3 -m clothgap eval measured "$RUN" --sequences ${SEQUENCES:-4} 2>&1 | tr '\r' '\n' \
     | grep -vE "it/s\]|s/it\]|clip/s\]" | tail -3
-  cp "$RUN"/eval/measured.{md,json,csv} "$OUT"/ 2>/dev/null; cat "$RUN/eval/measured.md" 2>/dev/null | head -40
+  cp "$RUN"/eval/measured.{md,json} "$OUT"/ 2>/dev/null; cat "$RUN/eval/measured.md" 2>/dev/null | head -40
 fi
 nvidia-smi --query-gpu=memory.used --format=csv,noheader
