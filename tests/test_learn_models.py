@@ -126,3 +126,14 @@ def test_bottleneck_classes_read_only_the_predicted_shape():
 def test_each_model_builds_with_the_bottleneck(name):
     model = build_model(name, image_size=32, geometry_dim=192, bottleneck=True, **TINY)
     assert model(torch.rand(2, 3, 3, 32, 32))["logits"].shape == (2, 3, 54)
+
+
+def test_conv5_maps_of_a_model_reading_frame_differences():
+    import numpy as np
+
+    from eval.activations import conv5_maps
+
+    model = build_model("lrcn", image_size=32, motion=True, **TINY).eval()
+    frames = np.random.default_rng(0).integers(0, 256, (5, 32, 32, 3), dtype=np.uint8)
+    maps = conv5_maps(model, frames)
+    assert maps.shape == (5, 32, 32) and 0 <= maps.min() and maps.max() <= 1
