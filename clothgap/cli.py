@@ -186,7 +186,7 @@ def sim_run(run_dir, preset_name, out, overrides, allow_failures, **execution) -
 @click.option("--refine", default=1, show_default=True, type=click.IntRange(1, 8),
               help="Subdivide the hanging cloth and the strip this many times per edge (finer, slower).")
 def sim_sensitivity(out: Path, device: str, refine: int) -> None:
-    """Sensitivity curves (the paper's Fig. 3): max stretch D(M) vs 1/p, max curvature C(M) vs 1/k."""
+    """Sensitivity curves (the paper's Figure 3): max stretch D(M) vs 1/p, max curvature C(M) vs 1/k."""
     from sim.analysis import Setup, sensitivity
 
     click.echo(f"wrote {sensitivity(out, device=device, setup=Setup(refine=refine))}")
@@ -447,7 +447,7 @@ def eval_ablation(run_dir: Path, recipes: tuple[str, ...], setting: str | None, 
 @click.option("--out", type=click.Path(path_type=Path), help="Output folder (default: RUN_DIR/clone/<video>).")
 def clone(video, run_dir, model_name, setting, variant, train_seed, garment, motion, frames, render_variant,
           resolution, spp, backend, no_compare, out) -> None:
-    """Material cloning (the paper's Fig. 9): predict VIDEO's cloth class with a model trained in the run,
+    """Material cloning (the paper's Figure 9): predict VIDEO's cloth class with a model trained in the run,
     simulate a skirt of that material (beside a softer and a stiffer one) and render it next to the input."""
     if not video.exists():
         raise ConfigError(f"input video {video} does not exist")
