@@ -27,7 +27,7 @@ from clothgap.config import (ConfigError, PRESETS, apply_overrides, apply_settin
                              read_config_file, shown, with_name)
 from clothgap.api import FIX_FAILURES, StageFailures, failure_message
 from clothgap.errors import UserError
-from clothgap.runs import Run, atomic_write_json, storage_error
+from clothgap.runs import Run, atomic_write_json, clip_id, is_done, storage_error
 
 
 class DefaultGroup(click.Group):
@@ -163,9 +163,9 @@ def cli() -> None:
 # ---- sim
 @cli.group(cls=DefaultGroup)
 def sim() -> None:
-    """Simulate cloth sequences with Warp (`clothgap sim RUN_DIR`), or run the
+    """Simulate cloth sequences with Warp (`clothgap sim RUN_DIR`), run the
     paper's material analyses (`sensitivity`, `table2`) or the cantilever
-    bending test (`cantilever`)."""
+    bending test (`cantilever`), or write a clip's frames as meshes (`export`)."""
 
 
 @sim.command("run")
@@ -232,6 +232,35 @@ def sim_cantilever(fabric: str, level: int, overhangs: tuple[float, ...], axis: 
     from sim.cantilever import run_test
 
     click.echo(run_test(fabric, level, overhangs, axis, device))
+
+
+@sim.command("export")
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.argument("clip")
+@click.option("--setting", help="The clip's setting, e.g. wind-uniform1 (default: the first that holds it).")
+@click.option("--frames", metavar="LIST", help="Frames to write, e.g. 0,5,10-19 (default: all).")
+@click.option("--format", "fmt", type=click.Choice(["ply", "obj", "glb"]), default="ply", show_default=True,
+              help="Mesh format (glb is turned to glTF's +Y up; ply and obj keep the simulation's z up).")
+@click.option("--out", type=click.Path(path_type=Path), help="Folder for the files (default: RUN_DIR/export/<setting>/<clip>).")
+def sim_export(run_dir: Path, clip: str, setting: str | None, frames: str | None, fmt: str, out: Path | None) -> None:
+    """Write a simulated clip's frames as mesh files (one per frame) for Blender or MeshLab. CLIP is a clip
+    id (c00003), a clip index (3) or a measured-fabric clip (<fabric>-<n>)."""
+    run = Run.open(run_dir)
+    name = clip_id(int(clip)) if clip.isdigit() else clip
+    known = run.config.sim.settings()
+    if setting is not None and setting not in known:
+        raise ConfigError(f"unknown setting {setting!r}; this run has {', '.join(known)}")
+    folders = [d / name for s in ([setting] if setting else known) for d in (run.sim_dir(s), run.measured_sim_dir(s))]
+    folder = next((f for f in folders if is_done(f)), None)
+    if folder is None:
+        raise ConfigError(f"no finished sim clip {name} in {run.root} ({', '.join(str(f) for f in folders[:2])}"
+                          f"{', ...' if len(folders) > 2 else ''}): run `clothgap sim {run.root}` first, or name "
+                          "another clip")
+    from sim.export import export_clip
+
+    out = out or run.root / "export" / folder.parent.name / name
+    files = export_clip(folder, out, fmt, frames)
+    click.echo(f"wrote {len(files)} {fmt} file(s) of {folder} to {out}")
 
 
 # ---- render
