@@ -75,8 +75,8 @@ def start(out: Path | str, preset: str | None = None, *, config_file: Path | str
 
     Args:
         out: The run folder; created when missing.
-        preset: The preset to start from (``smoke``, ``small``, ``paper``, ``study``); None: the one named in
-            ``config_file``, else the run's own config (``out`` must then hold a run).
+        preset: The preset to start from (``smoke``, ``small``, ``paper``, ``study``), over the one named in
+            ``config_file``; None: the file's, else the run's own config (``out`` must then hold a run).
         config_file: A TOML file of settings (tables ``[sim]``, ``[render]``, ... as in ``config.json``, and
             an optional ``preset = NAME``), laid over the preset.
         settings: Settings by dotted name, applied last, e.g. ``{"sim.frames": 30, "train.epochs": 3}``.
@@ -90,8 +90,6 @@ def start(out: Path | str, preset: str | None = None, *, config_file: Path | str
     """
     out = Path(out)
     file_preset, file_settings = read_config_file(config_file) if config_file is not None else (None, {})
-    if preset is not None and file_preset is not None and preset != file_preset:
-        raise ConfigError(f"preset {preset!r} and preset = {file_preset!r} in {config_file} differ: give one")
     preset = preset or file_preset
     if preset is None:
         cfg = Run.open(out).config

@@ -111,16 +111,14 @@ def resolve_run(run_dir: Path | None, preset_name: str | None, out: Path | None,
                 overrides: tuple[str, ...], config_file: Path | None = None) -> Run:
     """Open an existing run, or create/resume one from a preset, a config file and overrides.
 
-    Settings apply in order: the preset (``--preset``, or ``preset`` in the file; else the run's own config),
+    Settings apply in order: the preset (``--preset``, else ``preset`` in the file, else the run's own config),
     the file's settings, then each ``--set``. A resumed run may take a config that only adds work (see
     ``clothgap.runs.Run.create_or_resume``); what changed is said on stderr.
     """
     if run_dir is not None and out is not None and run_dir != out:
         raise ConfigError(f"give the run folder once: RUN_DIR {run_dir} and --out {out} differ")
     file_preset, file_settings = read_config_file(config_file) if config_file is not None else (None, {})
-    if preset_name is not None and file_preset is not None and preset_name != file_preset:
-        raise ConfigError(f"--preset {preset_name} and preset = {file_preset!r} in {config_file} differ: give one")
-    preset_name = preset_name or file_preset
+    preset_name = preset_name or file_preset        # the command line over the file
     if preset_name is None and not overrides and config_file is None:
         if run_dir is None and out is None:
             raise ConfigError("name a run folder (RUN_DIR) or start one with --preset NAME [--out DIR]")

@@ -14,12 +14,13 @@ import pytest
 
 from clothgap import api
 from clothgap.cli import resolve_run
-from clothgap.config import ConfigError, apply_overrides, preset
+from clothgap.config import ConfigError, apply_overrides, apply_settings, preset, read_config_file, validate
 from clothgap.runs import Run, mark_done
 
 ROOT = Path(__file__).resolve().parent.parent
-# The smallest study that still has a test clip of each class: 2 classes x 2 sequences, half of them held out.
-TINY = {"sim.classes": "0,53", "sim.sequences_per_class": 2, "sim.frames": 10, "train.epochs": 1,
+# The smallest study that still has a test clip of each class: 2 classes x 2 sequences, half of them held out,
+# rendered in the paper's variant only (the tests add others).
+TINY = {"render.variants": "paper", "sim.classes": "0,53", "sim.sequences_per_class": 2, "sim.frames": 10, "train.epochs": 1,
         "train.test_fraction": 0.5, "eval.bootstrap": 50}
 TINY_SET = [f"{k}={v}" for k, v in TINY.items()]
 
@@ -126,6 +127,18 @@ def test_config_file_then_set(tmp_path):
     assert json.loads((tmp_path / "r" / "config.json").read_text())["render"]["spp"] == 5
     # the API reads the same file
     assert api.start(tmp_path / "r", config_file=study, settings={"render.spp": 5}).config == cfg
+    # --preset on the command line goes over the file's preset, the file's settings over both
+    bigger = resolve_run(None, "small", tmp_path / "r2", (), study).config
+    assert bigger.sim.sequences_per_class == preset("small").sim.sequences_per_class and bigger.sim.frames == 30
+
+
+def test_example_config_files_are_valid_at_both_sizes():
+    files = sorted((ROOT / "examples").glob("*.toml"))
+    assert files
+    for path in files:
+        name, settings = read_config_file(path)
+        for base in (name, "paper"):
+            validate(apply_settings(preset(base), settings, str(path)))
 
 
 @pytest.mark.parametrize("text, names", [
