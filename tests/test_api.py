@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from clothgap import api
@@ -76,6 +77,18 @@ def test_example_sweep_adds_variants_to_a_finished_run(paper_run, tmp_path, caps
     assert set(study.axis_ranking()["axis"]) <= {"texture", "lighting"}
     assert (root / "report" / "report.html").is_file()
     assert "report:" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_a_test_only_variant_is_rendered_and_tested_but_not_trained_on(paper_run, tmp_path):
+    study = api.open(copy_of(paper_run, tmp_path))
+    summary = study.render(test_variants=["heldout"], progress=False)
+    assert summary["rendered"] == 0 and summary["test_variants"]["rendered"] == 4
+    study.evaluate(progress=False)
+    assert study.variants == ("paper",) and not (study.root / "train" / "wind-uniform1" / "heldout").exists()
+    gap = study.domain_gap().set_index("test_variant")
+    assert list(gap["train_variant"]) == ["paper", "paper"]
+    assert np.isfinite(gap.loc["heldout", "acc"]) and np.isnan(gap.loc["heldout", "gap"])   # no heldout model
 
 
 def test_cli_adds_a_variant_to_a_finished_run_and_refuses_what_invalidates_it(paper_run, tmp_path):
