@@ -89,18 +89,58 @@ def start(out: Path | str, preset: str | None = None, *, config_file: Path | str
             finished work in ``out`` (each setting named).
     """
     out = Path(out)
+    cfg = resolve_config(out, preset, config_file, _overrides(settings))
+    return Study(Run.create_or_resume(out, cfg).root)
+
+
+def resolve_config(root: Path | None, preset: str | None, config_file: Path | str | None,
+                   overrides: list[str]) -> StudyConfig:
+    """The config a run in ``root`` gets: the preset (``preset``, else the one ``config_file`` names, else the
+    run's own config), then the file's settings, then each ``section.key=value`` override; a run started
+    from a preset is named after its folder unless the file or an override names it (``root`` None: the
+    folder is not chosen yet, ``runs/<name>`` by the CLI's convention)."""
     file_preset, file_settings = read_config_file(config_file) if config_file is not None else (None, {})
     preset = preset or file_preset
-    if preset is None:
-        cfg = Run.open(out).config
-    else:
-        cfg = preset_config(preset)
+    if preset is None and root is None:
+        raise ConfigError("name a run folder (RUN_DIR or --out), or a preset to start from (--preset NAME, "
+                          "or preset = NAME in the --config file)")
+    cfg = preset_config(preset) if preset is not None else Run.open(root).config
     if config_file is not None:
         cfg = apply_settings(cfg, file_settings, str(config_file))
-    cfg = apply_overrides(cfg, _overrides(settings))
-    if preset is not None and "name" not in file_settings and "name" not in (settings or {}):
-        cfg = with_name(cfg, out.name)
-    return Study(Run.create_or_resume(out, cfg).root)
+    cfg = apply_overrides(cfg, overrides)
+    named = "name" in file_settings or any(o.partition("=")[0].strip() == "name" for o in overrides)
+    return with_name(cfg, root.name) if root is not None and preset is not None and not named else cfg
+
+
+def from_command_line(argv: list[str] | None = None, out: str = "runs/study", description: str = "") -> "Study":
+    """Start or resume a study from a script's command line: ``--out DIR``, ``--preset NAME`` (default ``smoke``),
+    ``--config FILE``, ``--set SECTION.KEY=VALUE`` (repeatable), as the ``clothgap`` commands take them.
+
+    Args:
+        argv: The arguments (default: ``sys.argv[1:]``).
+        out: The run folder when ``--out`` is not given.
+        description: The script's ``--help`` text (e.g. its ``__doc__``).
+
+    Returns:
+        The study (``start`` with those arguments).
+    """
+    import argparse
+
+    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", default=out, help=f"run folder, created or resumed (default: {out})")
+    parser.add_argument("--preset", default=None, help="preset a new run starts from (default: smoke, or the "
+                                                       "config file's)")
+    parser.add_argument("--config", dest="config_file", metavar="FILE", help="a TOML file of settings")
+    parser.add_argument("--set", dest="settings", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                        help="override a setting (repeatable; after --config)")
+    args = parser.parse_args(argv)
+    bad = [s for s in args.settings if "=" not in s]
+    if bad:
+        parser.error(f"--set {bad[0]!r} is not of the form section.key=value")
+    preset = args.preset
+    if preset is None and args.config_file is None and not (Path(args.out) / "config.json").is_file():
+        preset = "smoke"
+    return start(args.out, preset, config_file=args.config_file, settings=dict(s.split("=", 1) for s in args.settings))
 
 
 def open(path: Path | str) -> "Study":  # noqa: A001 - api.open, as gzip.open

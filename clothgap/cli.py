@@ -23,9 +23,8 @@ from pathlib import Path
 
 import click
 
-from clothgap.config import (ConfigError, PRESETS, apply_overrides, apply_settings, changed_settings, pairs, preset,
-                             read_config_file, shown, with_name)
-from clothgap.api import FIX_FAILURES, StageFailures, failure_message
+from clothgap.api import FIX_FAILURES, StageFailures, failure_message, resolve_config
+from clothgap.config import ConfigError, PRESETS, changed_settings, pairs, shown
 from clothgap.errors import UserError
 from clothgap.runs import Run, atomic_write_json, clip_id, is_done, storage_error
 
@@ -117,26 +116,12 @@ def resolve_run(run_dir: Path | None, preset_name: str | None, out: Path | None,
     """
     if run_dir is not None and out is not None and run_dir != out:
         raise ConfigError(f"give the run folder once: RUN_DIR {run_dir} and --out {out} differ")
-    file_preset, file_settings = read_config_file(config_file) if config_file is not None else (None, {})
-    preset_name = preset_name or file_preset        # the command line over the file
     if preset_name is None and not overrides and config_file is None:
         if run_dir is None and out is None:
             raise ConfigError("name a run folder (RUN_DIR) or start one with --preset NAME [--out DIR]")
         return Run.open(run_dir or out)
-    if preset_name is None:
-        if run_dir is None and out is None:
-            raise ConfigError(f"name a run folder (RUN_DIR or --out), or a preset to start from (--preset NAME or "
-                              f"preset = NAME in {config_file})" if config_file else
-                              "name a run folder (RUN_DIR) or start one with --preset NAME [--out DIR]")
-        cfg = Run.open(run_dir or out).config
-    else:
-        cfg = preset(preset_name)
-    if config_file is not None:
-        cfg = apply_settings(cfg, file_settings, str(config_file))
-    cfg = apply_overrides(cfg, list(overrides))
+    cfg = resolve_config(run_dir or out, preset_name, config_file, list(overrides))
     root = run_dir or out or Path("runs") / cfg.name
-    if preset_name is not None and root.name != cfg.name and "name" not in file_settings:
-        cfg = with_name(cfg, root.name)
     before = Run.open(root).config if (root / "config.json").is_file() else None
     run = Run.create_or_resume(root, cfg)
     if before is not None:

@@ -14,22 +14,13 @@ simulations and finished renders are reused).
 
 from __future__ import annotations
 
-import argparse
-
 from clothgap import api
 
 LIGHTING = ("paper", "lighting-random", "daylight")
 
 
 def main(argv: list[str] | None = None) -> api.Study:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default="runs/lighting", help="run folder (created or resumed)")
-    parser.add_argument("--preset", default="smoke", help="preset a new run starts from")
-    parser.add_argument("--set", dest="settings", action="append", default=[], metavar="SECTION.KEY=VALUE",
-                        help="override a setting (repeatable)")
-    args = parser.parse_args(argv)
-
-    study = api.start(args.out, preset=args.preset, settings=dict(s.split("=", 1) for s in args.settings))
+    study = api.from_command_line(argv, out="runs/lighting", description=__doc__)
     study.add_variants(*LIGHTING)
     study.run_all()
 

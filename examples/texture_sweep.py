@@ -11,22 +11,13 @@ scores beside exact accuracy, so the sweep says something while exact accuracy i
 
 from __future__ import annotations
 
-import argparse
-
 from clothgap import api
 
 TEXTURES = ("paper", "grid", "color")        # paper = the random procedural family
 
 
 def main(argv: list[str] | None = None) -> api.Study:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default="runs/texture", help="run folder (created or resumed)")
-    parser.add_argument("--preset", default="smoke", help="preset a new run starts from")
-    parser.add_argument("--set", dest="settings", action="append", default=[], metavar="SECTION.KEY=VALUE",
-                        help="override a setting (repeatable)")
-    args = parser.parse_args(argv)
-
-    study = api.start(args.out, preset=args.preset, settings=dict(s.split("=", 1) for s in args.settings))
+    study = api.from_command_line(argv, out="runs/texture", description=__doc__)
     study.add_variants(*TEXTURES)
     study.simulate()
     study.render()
