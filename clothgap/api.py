@@ -138,8 +138,8 @@ def from_command_line(argv: list[str] | None = None, out: str = "runs/study", de
     if bad:
         parser.error(f"--set {bad[0]!r} is not of the form section.key=value")
     preset = args.preset
-    if preset is None and args.config_file is None and not (Path(args.out) / "config.json").is_file():
-        preset = "smoke"
+    if preset is None and not (Path(args.out) / "config.json").is_file():     # a new run: the file's preset, or smoke
+        preset = (read_config_file(args.config_file)[0] if args.config_file else None) or "smoke"
     return start(args.out, preset, config_file=args.config_file, settings=dict(s.split("=", 1) for s in args.settings))
 
 
