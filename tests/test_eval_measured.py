@@ -94,6 +94,7 @@ def test_measured_set_end_to_end_through_the_command(tmp_path):
 
     doc = write_report(run).read_text()
     assert "Measured fabrics" in doc and "royal-target" in doc
+    assert 'alt="measured fabrics, all models"' in doc        # predicted vs measured, per training variant
     assert 'href="../train/wind-uniform1/paper/lrcn/s0/checkpoint.pt"' in doc
 
 
