@@ -84,8 +84,7 @@ def render_clip(clip: SimClip, variant: RenderVariant, out_dir: Path, *, config:
         hdr_frames, per_launch = ((t, renderer.render_hdr(t)) for t in range(clip.num_frames)), 1
     compress = variant.video_crf > 0
     png = config.write_png
-    if png:
-        (out_dir / LDR_DIR).mkdir(parents=True, exist_ok=True)
+    (out_dir / LDR_DIR if png else out_dir).mkdir(parents=True, exist_ok=True)
     res = config.resolution
     ldr = np.empty((clip.num_frames, res, res, 3), np.uint8)
 
