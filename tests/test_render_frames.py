@@ -112,3 +112,15 @@ def test_srgb_lookup_gives_the_reference_codes_at_every_step_and_between():
     linear = np.random.default_rng(1).uniform(-0.1, 6.0, (4, 16, 16, 3)).astype(np.float32)
     for name, op in OPERATORS.items():   # float32 frames, as the renderer hands them over
         assert np.array_equal(tonemap(linear, name), srgb8_reference(op(linear.astype(np.float64)))), name
+
+
+def test_srgb_to_linear_is_colour_sciences_curve():
+    import colour
+
+    from render.textures import srgb_to_linear
+
+    for dtype in (np.float32, np.float64):
+        values = np.random.default_rng(2).uniform(-0.2, 1.2, 100_000).astype(dtype)
+        values[:4] = [0.0, 1.0, 0.04045, float(colour.models.eotf_inverse_sRGB(0.0031308))]
+        expected = np.asarray(colour.models.eotf_sRGB(np.clip(values, 0.0, 1.0)), np.float32)
+        assert np.array_equal(srgb_to_linear(values), expected), dtype
