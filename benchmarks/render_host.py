@@ -25,21 +25,17 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
-import shlex
 import sys
 import tempfile
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from benchmarks.render_throughput import run_record, save_report  # noqa: E402
 from render.backend import load_mitsuba  # noqa: E402
-
-RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def best_ms(fn, repeats: int = 5, number: int = 20) -> float:
@@ -99,17 +95,11 @@ def main(argv: list[str] | None = None) -> dict:
     per_frame["png"] = per_frame["npy"] + ms["png"]
     per_frame["png+exr"] = per_frame["png"] + ms["exr"]
     report = {
-        "command": shlex.join([Path(sys.executable).name, *sys.argv]) if argv is None else shlex.join(argv),
-        "time": datetime.now(timezone.utc).isoformat(timespec="seconds"), "machine": platform.node(),
-        "settings": {"resolution": args.resolution, "frames": args.frames, "variant": args.variant},
+        **run_record(argv), "settings": {"resolution": args.resolution, "frames": args.frames, "variant": args.variant},
         "ms": ms, "per_frame_ms": {k: round(v, 3) for k, v in per_frame.items()},
     }
     print(json.dumps(report, indent=2))
-    out = args.out or RESULTS / f"render_host-{args.resolution}-{datetime.now(timezone.utc):%Y%m%dT%H%M%S}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=2) + "\n")
-    print(f"wrote {out}")
-    return report
+    return save_report(report, args.out, f"render_host-{args.resolution}")
 
 
 if __name__ == "__main__":

@@ -416,13 +416,22 @@ def main(argv: list[str] | None = None) -> dict:
         rounds.append(result)
         print(json.dumps({k: v for k, v in result.items() if k != "render_only"}, indent=2), flush=True)
     report = {
-        "command": shlex.join([Path(sys.executable).name, *sys.argv]) if argv is None else shlex.join(argv),
-        "time": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "machine": platform.node(), "backend": mi.variant(), "mitsuba": mi.__version__,
+        **run_record(argv), "backend": mi.variant(), "mitsuba": mi.__version__,
         "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
         "gpu_memory_before_mib": gpu_memory_mib(), "rounds": rounds,
     }
-    out = args.out or RESULTS / f"render_throughput-{mi.variant()}-{datetime.now(timezone.utc):%Y%m%dT%H%M%S}.json"
+    return save_report(report, args.out, f"render_throughput-{mi.variant()}")
+
+
+def run_record(argv: list[str] | None) -> dict:
+    """The command line, time and machine a benchmark result was made with."""
+    return {"command": shlex.join([Path(sys.executable).name, *sys.argv]) if argv is None else shlex.join(argv),
+            "time": datetime.now(timezone.utc).isoformat(timespec="seconds"), "machine": platform.node()}
+
+
+def save_report(report: dict, out: Path | None, name: str) -> dict:
+    """Write ``report`` to ``out`` (default benchmarks/results/<name>-<time>.json) and say where."""
+    out = out or RESULTS / f"{name}-{datetime.now(timezone.utc):%Y%m%dT%H%M%S}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=2) + "\n")
     print(f"wrote {out}")
