@@ -69,7 +69,9 @@ def _paper() -> StudyConfig:
         name="paper",
         sim=SimConfig(motions=("wind", "arm"), remeshing=("uniform1", "uniform2", "uniform3", "adaptive"),
                       sequences_per_class=48, frames=40, device="cuda", wind_nuisance="speed"),
-        render=RenderConfig(variants=("paper",), resolution=112, spp=16, backend="cuda_ad_rgb"),
+        # frames.npy only: PNG and EXR cost more host time than the path tracer at 112 px (render.frames)
+        render=RenderConfig(variants=("paper",), resolution=112, spp=16, backend="cuda_ad_rgb",
+                            write_png=False, write_hdr=False),
         train=TrainConfig(models=("lrcn", "base1", "base2", "base3"), image_size=112, epochs=30,
                           batch_size=64, width=64, fc6=512, hidden=256, device="cuda",
                           motion=True, keep="best"),

@@ -4,7 +4,7 @@ Layout of a run (``runs/<name>`` unless the user names another folder)::
 
     config.json                                  resolved study config
     sim/<setting>/<clip_id>/                     clip.npz, meta.json, DONE
-    render/<variant>/<setting>/<clip_id>/        hdr/*.exr, ldr/*.png, meta.json, DONE
+    render/<variant>/<setting>/<clip_id>/        frames.npy, [ldr/*.png, hdr/*.exr,] meta.json, DONE
     splits/<setting>.json                        train/val/test clip ids (by sequence)
     train/<setting>/<variant>/<model>/s<seed>/   checkpoint.pt, metrics.csv, tb/, DONE
     eval/                                        predictions, tables (CSV, JSON)

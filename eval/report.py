@@ -22,7 +22,6 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from PIL import Image
 
 from clothgap.config import ConfigError, to_dict
 from clothgap.runs import Run, atomic_write_text, is_done
@@ -244,14 +243,10 @@ def _section_learning(run: Run) -> str:
             f'<div class="figs">{"".join(figs)}</div>')
 
 
-def _load_rgb(path: Path) -> np.ndarray:
-    with Image.open(path) as im:
-        return np.asarray(im.convert("RGB"))
-
-
 def _section_frames(run: Run) -> str:
     """The same clip in every rendered variant, a few frames each (a paired view of the variants)."""
     from eval.stage import rendered_variants
+    from render.frames import FrameError, open_clip_frames
 
     out = []
     for setting in run.config.sim.settings():
@@ -264,15 +259,16 @@ def _section_frames(run: Run) -> str:
         clip = sorted(common)[0]
         images, labels = {}, []
         for v in variants:
-            frames = sorted((run.render_dir(v, setting) / clip / "ldr").glob("*.png"))
-            if not frames:
+            try:  # frames.npy, or the PNGs of clips rendered without one
+                frames = open_clip_frames(run.render_dir(v, setting) / clip)
+            except FrameError:
                 continue
             picks = sorted({0, len(frames) // 2, len(frames) - 1})
-            images[v] = [_load_rgb(frames[i]) for i in picks]
+            images[v] = [np.array(frames[i]) for i in picks]
             labels = [f"frame {i}" for i in picks]
         if images:
             fig = figures.frame_grid(images, labels)
-            out.append(_img(figures.png_bytes(fig), f"{setting}, clip {clip} (render/<variant>/{setting}/{clip}/ldr)"))
+            out.append(_img(figures.png_bytes(fig), f"{setting}, clip {clip} (render/<variant>/{setting}/{clip})"))
     if not out:
         return ""
     return ('<h2 id="frames">Sample frames per render variant</h2><p>One clip (same simulation) under every '
