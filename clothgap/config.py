@@ -237,8 +237,9 @@ def apply_settings(cfg: StudyConfig, settings: dict, where: str = "config") -> S
 
 # Settings that say where or how fast work runs, not what it computes (within float rounding across devices),
 # and the run's name: a resumed run may change them at any time.
-EXECUTION_SETTINGS = frozenset({"name", "sim.device", "sim.batch_size", "render.writer_threads", "train.device",
-                                "train.num_threads", "train.num_workers"})
+# (render.write_png / write_hdr only add inspection files; clips rendered before keep what they wrote.)
+EXECUTION_SETTINGS = frozenset({"name", "sim.device", "sim.batch_size", "render.writer_threads", "render.write_png",
+                                "render.write_hdr", "train.device", "train.num_threads", "train.num_workers"})
 # Lists a resumed run may extend: an item more is more work downstream, nothing finished changes.
 GROWING_SETTINGS = frozenset({"sim.motions", "sim.remeshing", "render.variants", "train.models", "train.seeds"})
 # The stages in order; a setting shapes the work of its own stage and of every stage after it.
