@@ -1,18 +1,19 @@
 """The simulator's geometry as a training-time target: the cloth's lattice per rendered frame.
 
 A model on renders sees the cloth only through pixels; the simulation that made
-them knows where every point of the cloth was. With ``train.aux_geometry`` > 0
+them knows where every point of the cloth was. With ``train.aux_geometry`` > 0 (or ``train.bottleneck``)
 the CNN also regresses, from each frame, the 8 x 8 lattice of cloth points
 (``sim.lattice``) that the learnability probe reads, so its features must carry
 the shape the material class shows in. The target exists at training time
 only: prediction and evaluation read pixels alone.
 
 Targets are standardised per setting, robustly: each coordinate of each point
-minus its median over all frames, divided by one global spread (the RMS deviation
-of the median clip), then clipped to +-``TARGET_LIMIT``. A few clips whose cloth leaves its usual place (blown over
-the rod, say) would otherwise set the spread, shrink every other frame's target
-to near zero and leave the regression nothing to learn; those clips are named
-in a warning. The loss weight means the same on every setting. They are cached per setting in
+minus its median over all frames, divided by one global spread (the RMS
+deviation of the median clip), then clipped to +-``TARGET_LIMIT``. A few clips
+whose cloth leaves its usual place would otherwise set the spread, shrink every
+other frame's target towards zero and leave the regression nothing to learn;
+those clips are named in a warning. The loss weight means the same on every
+setting. Targets are cached per setting in
 ``cache/geometry/<setting>/lattice-8.npz`` (one array per clip).
 """
 
@@ -76,11 +77,10 @@ def geometry_targets(run: Run, setting: str, cache: FrameCache, progress: bool =
     used = np.concatenate([np.arange(c.offset, c.offset + c.num_frames) for c in cache.clips.values()])
     centre = np.median(out[used], axis=0, keepdims=True)
     targets = out - centre
-    per_clip = [float((targets[c.offset:c.offset + c.num_frames] ** 2).mean()) for c in cache.clips.values()]
-    spread = float(np.sqrt(np.median(per_clip))) or 1.0
+    rows = {cid: slice(c.offset, c.offset + c.num_frames) for cid, c in cache.clips.items()}
+    spread = float(np.sqrt(np.median([(targets[r] ** 2).mean() for r in rows.values()]))) or 1.0
     targets /= spread
-    far = sorted(cid for cid, c in cache.clips.items()
-                 if np.abs(targets[c.offset:c.offset + c.num_frames]).max() > TARGET_LIMIT)
+    far = sorted(cid for cid, r in rows.items() if np.abs(targets[r]).max() > TARGET_LIMIT)
     if far:
         warnings.warn(f"{len(far)} clip(s) of {setting} have lattice points more than {TARGET_LIMIT:g} spreads "
                       f"({TARGET_LIMIT * spread:.3g} m) from the usual shape; their targets are clipped: "

@@ -222,8 +222,8 @@ def build_model(name: str, *, image_size: int, width: int, fc6: int, hidden: int
 def model_args(cfg) -> dict:
     """The ``build_model`` keyword arguments a TrainConfig asks for (stored in checkpoints).
 
-    Keys that keep their defaults are left out, so checkpoints written before a key existed
-    load with the same arguments."""
+    The bottleneck keys appear only when it is on, so checkpoints written before they
+    existed compare and load with the same arguments."""
     args = dict(image_size=cfg.image_size, width=cfg.width, fc6=cfg.fc6, hidden=cfg.hidden,
                 dropout=cfg.dropout, readout=cfg.readout, factored=cfg.factored, motion=cfg.motion,
                 geometry_dim=GEOMETRY_DIM if cfg.aux_geometry > 0 or cfg.bottleneck else 0)
