@@ -64,6 +64,10 @@ is the host's, a step leaves the loop once no cloth runs. ``cg_stats()`` reports
 the iterations taken per step (mean, max) and the largest final relative
 residual.
 
+Self-collision (``SolverParams.self_collision``, ``sim.collision``): after the step, point-triangle and
+edge-edge velocity impulses keep non-adjacent parts of each cloth ``collision_thickness`` apart, before the
+arm's projection (the arm, kinematic, has the last word).
+
 Batching: ``BatchSolver(specs)`` concatenates the cloths; every face, hinge and
 vertex knows its cloth id, so per-cloth materials, densities and winds are just
 per-cloth arrays.
@@ -72,7 +76,7 @@ per-cloth arrays.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
@@ -132,7 +136,7 @@ class SolverParams:
     self_collision: bool = False          # point-triangle and edge-edge repulsion within a cloth (sim.collision)
     collision_thickness: float = 0.003    # m, kept between non-adjacent parts of one cloth
     self_friction: float = 0.3            # Coulomb coefficient of cloth on itself
-    collision_passes: int = 4             # Jacobi passes of the self-collision impulses per step
+    collision_passes: int = 8             # Jacobi passes of the self-collision impulses per step
     collision_slots: int = 16             # pairs kept per vertex and per edge each step
 
 
@@ -466,6 +470,13 @@ class BatchSolver:
         sums, maxes = self.cg_iteration_sum.numpy(), self.cg_iteration_max.numpy()
         res = self.cg_residual_max.numpy()
         return [CGStats(self._steps, float(sums[c]), int(maxes[c]), float(res[c])) for c in range(self.num_cloths)]
+
+    def collision_dropped(self) -> list[int] | None:
+        """Per cloth: the self-collision pairs found with no free slot (left unresolved) over every step so far;
+        None when self-collision is off."""
+        if self.collision is None:
+            return None
+        return [int(n) for n in self.collision.dropped_pairs()]
 
     def set_wind(self, winds: np.ndarray) -> None:
         """Per-cloth wind velocities, (num_cloths, 3) m/s."""
