@@ -14,7 +14,7 @@ self-collision off and once on (``--thickness``). Kernels are compiled (or
 loaded) on one clip of each mode first, so the timings are simulation only.
 
 Per setting and mode: seconds, clips per second, failed clips, the pairs
-self-collision left unresolved (no free slot), and the intersecting triangle
+self-collision dropped unresolved (beyond a vertex's or edge's slots), and the intersecting triangle
 pairs (``sim.intersections``) in the last frame of each clip (and, with
 ``--every K``, the most in any K-th frame): clips with any, total, max.
 Counting runs on the host after the timing.

@@ -35,9 +35,12 @@ starts at its cloth's group root, so cloths that overlap in space (every wind
 clip hangs at the origin) never see each other. Both are refitted every step
 (the same topology, boxes from the moving cloth: a recorded launch, so a step
 is still one CUDA graph). Found pairs go to fixed slots per querying vertex
-or edge (``slots`` each; a count of dropped pairs per cloth is kept), found in
-the BVH's traversal order: no global counter, so the pair lists are the same
-on every run and device.
+or edge, in the BVH's traversal order: no global counter, so the pair lists are
+the same on every run and device. A vertex or edge with more pairs than
+``slots`` (deep in a fold pressed into several layers) keeps the closest ones
+and drops the farthest, counted per cloth (meta health
+``collision_pairs_dropped``); a dropped pair is one that was farther than
+every kept one.
 
 Determinism. On the CPU, Warp runs a kernel's threads one after another, so
 the atomic sums of the impulses are added in thread order and a rerun is
@@ -147,12 +150,31 @@ def edge_boxes(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3), edge: w
 # ---------------------------------------------------------------- narrow phase: pairs into per-query slots
 
 
+@wp.func
+def free_slot(closeness: wp.array2d(dtype=float), q: int, found: int, key: float, dropped: wp.array(dtype=int),
+              cloth: int):
+    """The slot of query ``q`` for a pair whose closest predicted distance is ``key``: the next free one, or when
+    all are taken the slot of the farthest kept pair if this one is closer (-1: none). Either way a full query
+    counts one dropped pair for its cloth."""
+    slots = closeness.shape[1]
+    if found < slots:
+        return found
+    wp.atomic_add(dropped, cloth, 1)
+    far = int(0)
+    for s in range(1, slots):
+        if closeness[q, s] > closeness[q, far]:
+            far = s
+    if key < closeness[q, far]:
+        return far
+    return -1
+
+
 @wp.kernel
 def find_point_triangle(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
                         vertex_cloth: wp.array(dtype=int), tri: wp.array2d(dtype=int), reach: float,
                         count: wp.array(dtype=int), pair: wp.array2d(dtype=int), weight: wp.array2d(dtype=wp.vec3),
                         normal: wp.array2d(dtype=wp.vec3), gap: wp.array2d(dtype=float),
-                        dropped: wp.array(dtype=int)):
+                        closeness: wp.array2d(dtype=float), dropped: wp.array(dtype=int)):
     """Vertex i's triangles (not incident to it) within ``reach`` at the start or the predicted end of the
     step, along the start's normal: triangle, barycentric weights, normal (triangle -> vertex), distance."""
     i = wp.tid()
@@ -180,16 +202,16 @@ def find_point_triangle(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.arra
             if wp.length(m) == 0.0:
                 continue
             n = wp.normalize(m)
-        end = wp.dot(n, p1 - (w[0] * x1[a] + w[1] * x1[b] + w[2] * x1[d]))
-        if wp.min(dist, end) < reach:
-            if found < slots:
-                pair[i, found] = f
-                weight[i, found] = w
-                normal[i, found] = n
-                gap[i, found] = dist
-                found += 1
-            else:
-                wp.atomic_add(dropped, c, 1)
+        key = wp.min(dist, wp.dot(n, p1 - (w[0] * x1[a] + w[1] * x1[b] + w[2] * x1[d])))
+        if key < reach:
+            slot = free_slot(closeness, i, found, key, dropped, c)
+            if slot >= 0:
+                pair[i, slot] = f
+                weight[i, slot] = w
+                normal[i, slot] = n
+                gap[i, slot] = dist
+                closeness[i, slot] = key
+                found = wp.min(found + 1, slots)
     count[i] = found
 
 
@@ -197,7 +219,8 @@ def find_point_triangle(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.arra
 def find_edge_edge(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
                    edge_cloth: wp.array(dtype=int), edge: wp.array2d(dtype=int), reach: float,
                    count: wp.array(dtype=int), pair: wp.array2d(dtype=int), weight: wp.array2d(dtype=wp.vec2),
-                   normal: wp.array2d(dtype=wp.vec3), gap: wp.array2d(dtype=float), dropped: wp.array(dtype=int)):
+                   normal: wp.array2d(dtype=wp.vec3), gap: wp.array2d(dtype=float),
+                   closeness: wp.array2d(dtype=float), dropped: wp.array(dtype=int)):
     """Edge e's edges of higher index (each pair once) sharing no vertex with it, within ``reach`` as in
     ``find_point_triangle``: other edge, closest-point parameters (s on e, t on the other), normal, distance."""
     e = wp.tid()
@@ -231,16 +254,16 @@ def find_edge_edge(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.array(dty
             if wp.length(m) == 0.0:
                 continue
             n = wp.normalize(m)
-        end = wp.dot(n, (x1[i] + s * (x1[j] - x1[i])) - (x1[k] + t * (x1[l] - x1[k])))
-        if wp.min(dist, end) < reach:
-            if found < slots:
-                pair[e, found] = g
-                weight[e, found] = wp.vec2(s, t)
-                normal[e, found] = n
-                gap[e, found] = dist
-                found += 1
-            else:
-                wp.atomic_add(dropped, c, 1)
+        key = wp.min(dist, wp.dot(n, (x1[i] + s * (x1[j] - x1[i])) - (x1[k] + t * (x1[l] - x1[k]))))
+        if key < reach:
+            slot = free_slot(closeness, e, found, key, dropped, c)
+            if slot >= 0:
+                pair[e, slot] = g
+                weight[e, slot] = wp.vec2(s, t)
+                normal[e, slot] = n
+                gap[e, slot] = dist
+                closeness[e, slot] = key
+                found = wp.min(found + 1, slots)
     count[e] = found
 
 
@@ -381,11 +404,13 @@ class SelfCollision:
         self.pt_weight = wp.zeros((nv, slots), dtype=wp.vec3, device=dev)
         self.pt_normal = wp.zeros((nv, slots), dtype=wp.vec3, device=dev)
         self.pt_gap = wp.zeros((nv, slots), dtype=float, device=dev)
+        self.pt_key = wp.zeros((nv, slots), dtype=float, device=dev)
         self.ee_count = wp.zeros(ne, dtype=int, device=dev)
         self.ee_pair = wp.zeros((ne, slots), dtype=int, device=dev)
         self.ee_weight = wp.zeros((ne, slots), dtype=wp.vec2, device=dev)
         self.ee_normal = wp.zeros((ne, slots), dtype=wp.vec3, device=dev)
         self.ee_gap = wp.zeros((ne, slots), dtype=float, device=dev)
+        self.ee_key = wp.zeros((ne, slots), dtype=float, device=dev)
         self.dropped = wp.zeros(num_cloths, dtype=int, device=dev)
         self.change = wp.zeros(nv, dtype=wp.vec3, device=dev)
         self.hits = wp.zeros(nv, dtype=float, device=dev)
@@ -400,9 +425,10 @@ class SelfCollision:
         cmds.append(self.edge_bvh.refit)
         launch(find_point_triangle, nv, [self.face_bvh.id, x0, x, self.vertex_cloth, self.tri, self.reach,
                                          self.pt_count, self.pt_pair, self.pt_weight, self.pt_normal, self.pt_gap,
-                                         self.dropped])
+                                         self.pt_key, self.dropped])
         launch(find_edge_edge, ne, [self.edge_bvh.id, x0, x, self.edge_cloth, self.edge, self.reach, self.ee_count,
-                                    self.ee_pair, self.ee_weight, self.ee_normal, self.ee_gap, self.dropped])
+                                    self.ee_pair, self.ee_weight, self.ee_normal, self.ee_gap, self.ee_key,
+                                    self.dropped])
         for _ in range(self.passes):
             launch(resolve_point_triangle, nv, [v, self.inv_mass, self.tri, self.pt_count, self.pt_pair,
                                                 self.pt_weight, self.pt_normal, self.pt_gap, self.thickness, dt,
@@ -413,5 +439,5 @@ class SelfCollision:
             launch(apply_changes, nv, [dt, RELAXATION, self.change, self.hits, x, v])
 
     def dropped_pairs(self) -> np.ndarray:
-        """Per cloth: the pairs found so far that had no free slot (and so were not resolved)."""
+        """Per cloth: the pairs found so far beyond a full vertex's or edge's slots (the farthest; not resolved)."""
         return self.dropped.numpy().copy()

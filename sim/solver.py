@@ -472,8 +472,8 @@ class BatchSolver:
         return [CGStats(self._steps, float(sums[c]), int(maxes[c]), float(res[c])) for c in range(self.num_cloths)]
 
     def collision_dropped(self) -> list[int] | None:
-        """Per cloth: the self-collision pairs found with no free slot (left unresolved) over every step so far;
-        None when self-collision is off."""
+        """Per cloth: the self-collision pairs dropped over every step so far (the farthest pairs of a vertex or
+        edge with more than ``collision_slots``; left unresolved); None when self-collision is off."""
         if self.collision is None:
             return None
         return [int(n) for n in self.collision.dropped_pairs()]

@@ -78,7 +78,7 @@ class ClipResult:
     reason: str | None                # why it failed, else None
     frames: list | None = None        # adaptive: (positions, faces, uv) per frame when ok
     cg: CGStats | None = None         # the solver's CG work on this cloth (meta "health")
-    collision_dropped: int | None = None   # self-collision pairs left unresolved (no free slot); None: off
+    collision_dropped: int | None = None   # self-collision pairs dropped (beyond the slots), unresolved; None: off
 
 
 def _edges(mesh: ClothMesh) -> np.ndarray:
@@ -172,7 +172,7 @@ def simulate_adaptive_scenes(scenes: list[ClipScene], base, *, fps: float, frame
 
 def clip_health(result: ClipResult, mesh: ClothMesh) -> dict:
     """The meta's ``health``: the CG statistics, the triangle pairs that cut through each other in the last
-    recorded frame (``sim.intersections``), and with self-collision the pairs it left unresolved."""
+    recorded frame (``sim.intersections``), and with self-collision the pairs it dropped, unresolved."""
     out = result.cg.health() if result.cg is not None else {}
     if result.frames is not None:
         x, faces, _ = result.frames[-1]

@@ -88,7 +88,7 @@ def test_corner_drop_folds_through_itself_without_collision_and_not_with_it(corn
     on = [count_intersections(x, faces) for x in corner_drops[True][0]]
     assert off[-1] >= 10 and max(off) >= 20, off
     assert on == [0] * len(on)
-    assert corner_drops[True][1] == [0]        # no pair went unresolved for lack of a slot
+    assert corner_drops[True][1] == [0]        # no pair dropped for lack of a slot
     assert corner_drops[False][1] is None
 
 
@@ -101,6 +101,28 @@ def test_corner_drop_keeps_the_thickness(corner_drops):
     assert min(off) < 0.2 * THICKNESS
     assert min(on[6:]) < 1.5 * THICKNESS       # in contact ...
     assert min(on) > 0.95 * THICKNESS, on      # ... at the thickness
+
+
+def test_a_full_vertex_keeps_its_closest_pairs(corner_drops):
+    """With too few slots, each vertex and edge keeps the pairs closest over the step: the same as the first
+    ones of a solver with room for all, and the rest are counted as dropped."""
+    import dataclasses
+
+    frames, _ = corner_drops[True]
+    spec = dataclasses.replace(_corner_drop(), positions=frames[9], velocities=(frames[9] - frames[8]) / 0.1)
+    kept, dropped = {}, {}
+    for slots in (3, 64):
+        solver = BatchSolver([spec], SolverParams(self_collision=True, collision_slots=slots), "cpu")
+        solver.step(1)
+        c = solver.collision
+        kept[slots] = [(c.pt_count.numpy(), c.pt_key.numpy()), (c.ee_count.numpy(), c.ee_key.numpy())]
+        dropped[slots] = solver.collision_dropped()[0]
+    assert dropped[64] == 0 and dropped[3] > 0
+    for (few_n, few_key), (all_n, all_key) in zip(kept[3], kept[64]):
+        assert all_n.max() > 3                  # some vertex or edge has more pairs than 3 slots hold
+        for q in np.flatnonzero(all_n):
+            want = np.sort(all_key[q, :all_n[q]])[:3]
+            assert np.array_equal(np.sort(few_key[q, :few_n[q]]), want)
 
 
 def test_self_collision_is_deterministic_and_batched_equals_alone():

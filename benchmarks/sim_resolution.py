@@ -1,0 +1,184 @@
+"""The resolution and time-step study of docs/simulation.md: what each mesh level resolves, and how much a
+folding clip depends on the time step compared with how much it depends on the bending class.
+
+    python benchmarks/sim_resolution.py --device cpu                          # both parts (CPU: ~30 min)
+    python benchmarks/sim_resolution.py --device cpu --parts cantilever
+    python benchmarks/sim_resolution.py --device cpu --parts dt --settings uniform1,uniform2
+
+``cantilever``: the ASTM D1388 test of ``clothgap sim cantilever`` (``sim.cantilever.measure``) on the basis
+fabric scaled to the bending classes k = 1, 5, 20 (p = 1; classes 10, 13, 17), at one fixed overhang per
+class near its 41.5 deg overhang (1.67, 3.33, 6.67 cm: whole edges of the level-2, -1, -1 meshes), on the
+uniform levels 1..3 of the stage's mesh and the finer levels 4..6 (edge 4.2, 2.1, 1.0 mm). The bending
+length c is the heavy-elastica inversion of the tip's chord angle; the error is c's against level 6's.
+A level whose edge is longer than the overhang cannot hold the test (``null``).
+
+``dt``: two folding scenes on each setting's mesh (the stage's 16-vertex 0.5 m cloth; ``adaptive`` remeshes
+every frame as the stage does): ``drop``, the cloth lying flat and held at one corner, 1 s after release;
+``wind``, clip 0's draw of the wind motion (the ``corners`` pose: two top corners pinned, gathered, wind
+on after the 0.4 s settle), 1 s after the wind starts. Material: the basis at p = 1 and k = 1, 2, 4, 5
+(two pairs of neighbouring bending classes; 4 and 5 are the closest in the class grid). Each scene is run at
+the stage's dt = 1/200 s (8 substeps at 25 fps) and at half of it, with self-collision off and on. Shapes
+are compared on the 16 x 16 base-grid vertices, which every mesh level and every adaptive mesh holds:
+``dt_shift`` = mean (and max) distance between the two time steps' shapes of one material, averaged over
+the four materials; ``class_step`` = the same between neighbouring classes (1 vs 2, 4 vs 5) at the finer dt.
+
+Writes ``benchmarks/results/sim_resolution-<device>.json`` (``--out``), rewritten after each piece, with
+the command; prints one line per measurement.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import math
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from clothgap import seeding
+from sim import remesh
+from sim.adaptive import cloth_mesh
+from sim.cantilever import level_edge, material_of, measure
+from sim.config import SimConfig
+from sim.materials import load_material
+from sim.mesh import square_cloth
+from sim.motions import ClipScene, wind_scene
+from sim.solver import ClothSpec, resolve_device
+from sim.stage import simulate_adaptive_scenes, simulate_scenes
+
+CANTILEVER = {10: 0.0167, 13: 0.0333, 17: 0.0667}      # class -> overhang (m)
+CANTILEVER_LEVELS = (1, 2, 3, 4, 5, 6)
+DT_K = (1.0, 2.0, 4.0, 5.0)
+NEIGHBOURS = ((1.0, 2.0), (4.0, 5.0))
+WIND_CLIP = 0                                           # its motion draw: the corners pose
+
+
+def cantilever_part(device: str, record) -> dict:
+    out = {}
+    for cls, overhang in CANTILEVER.items():
+        material, name = material_of(str(cls))
+        rows = {}
+        for level in CANTILEVER_LEVELS:
+            edge = level_edge(level)
+            edges = int(round(overhang / edge))
+            if edges < 1 or abs(edges * edge - overhang) > 0.05 * overhang:
+                rows[level] = None
+                continue
+            start = time.perf_counter()
+            (r,) = measure(material, edge, [edges], "u", device)
+            c = r.bending_length if math.isfinite(r.bending_length) else None
+            rows[level] = {"edge_mm": round(edge * 1000, 2), "chord_deg": round(math.degrees(r.angle), 2),
+                           "c_cm": None if c is None else round(c * 100, 4),
+                           "seconds": round(time.perf_counter() - start, 2)}
+            print(f"cantilever class {cls} level {level}: {rows[level]}", flush=True)
+        finest = rows[CANTILEVER_LEVELS[-1]]["c_cm"]
+        for row in rows.values():
+            if row is not None and row["c_cm"] is not None:
+                row["error_vs_finest_pct"] = round(100.0 * (row["c_cm"] / finest - 1.0), 2)
+        out[str(cls)] = {"material": name, "overhang_cm": overhang * 100, "levels": rows}
+        record(out)
+    return out
+
+
+def base_grid(x: np.ndarray, uv: np.ndarray, size: float, n: int) -> np.ndarray:
+    """The positions of the n x n base-grid vertices (row-major in v, then u) among a mesh's vertices."""
+    g = np.asarray(uv, np.float64) * (n - 1) / size
+    on = np.all(np.abs(g - np.round(g)) < 1e-4, axis=1)
+    ij = np.round(g[on]).astype(int)
+    out = np.full((n * n, 3), np.nan)
+    out[ij[:, 1] * n + ij[:, 0]] = x[on]
+    assert not np.isnan(out).any()
+    return out
+
+
+def drop_scene(mesh, size: float, material) -> ClipScene:
+    pos = np.stack([mesh.uv[:, 0], mesh.uv[:, 1], np.ones(len(mesh.uv))], axis=1)
+    corner = int(np.argmin(mesh.uv.sum(axis=1)))
+    spec = ClothSpec(mesh, pos, material.stretching, material.bending, material.density, pinned=[corner])
+    return ClipScene(spec, np.zeros(3), {"scene": "drop"})
+
+
+def dt_part(cfg: SimConfig, levels: list[str], device: str, record) -> dict:
+    basis = load_material(cfg.basis)
+    materials = [basis.scaled(1.0, k) for k in DT_K]
+    out = {}
+    for name in levels:
+        if name == "adaptive":
+            base = remesh.uniform(cfg.grid_vertices, cfg.cloth_size_m, 1)
+            mesh = cloth_mesh(base)
+            simulate = functools.partial(simulate_adaptive_scenes, base=base)
+        else:
+            mesh = square_cloth(cfg.cloth_size_m, cfg.grid_vertices, int(name.removeprefix("uniform")))
+            simulate = simulate_scenes
+        scenes = {"drop": ([drop_scene(mesh, cfg.cloth_size_m, m) for m in materials], 0.0),
+                  "wind": ([wind_scene(mesh, cfg.cloth_size_m, m,
+                                       seeding.rng(0, WIND_CLIP, seeding.SIM, "motion-wind"), "full")
+                            for m in materials], cfg.settle_s)}
+        out[name] = {}
+        for kind, (batch, settle) in scenes.items():
+            row = {}
+            for on in (False, True):
+                shapes, seconds = {}, {}
+                for substeps in (cfg.substeps, 2 * cfg.substeps):
+                    start = time.perf_counter()
+                    results = simulate(batch, fps=cfg.fps, frames=int(round(cfg.fps)), substeps=substeps,
+                                       settle_s=settle, cg_iterations=cfg.cg_iterations,
+                                       cg_tolerance=cfg.cg_tolerance, self_collision=on,
+                                       collision_thickness=cfg.collision_thickness, device=device)
+                    seconds[substeps] = round(time.perf_counter() - start, 2)
+                    assert all(r.reason is None for r in results), [r.reason for r in results]
+                    last = [r.frames[-1] if r.frames is not None else (r.positions[-1], mesh.faces, mesh.uv)
+                            for r in results]
+                    shapes[substeps] = [base_grid(x, uv, cfg.cloth_size_m, cfg.grid_vertices) for x, _, uv in last]
+                coarse, fine = shapes[cfg.substeps], shapes[2 * cfg.substeps]
+                shift = [np.linalg.norm(a - b, axis=1) for a, b in zip(coarse, fine)]
+                steps = {f"k{a:g}-k{b:g}": np.linalg.norm(fine[DT_K.index(a)] - fine[DT_K.index(b)], axis=1)
+                         for a, b in NEIGHBOURS}
+                row["on" if on else "off"] = {
+                    "dt_shift_mm": {"mean": round(1000 * float(np.mean([s.mean() for s in shift])), 2),
+                                    "max": round(1000 * float(max(s.max() for s in shift)), 2),
+                                    "per_k_mean": {f"k{k:g}": round(1000 * float(s.mean()), 2)
+                                                   for k, s in zip(DT_K, shift)}},
+                    "class_step_mm": {key: {"mean": round(1000 * float(d.mean()), 2),
+                                            "max": round(1000 * float(d.max()), 2)} for key, d in steps.items()},
+                    "seconds": seconds}
+                print(f"dt {name} {kind} self-collision {'on' if on else 'off'}: "
+                      f"{json.dumps(row['on' if on else 'off'])}", flush=True)
+            out[name][kind] = row
+            record(out)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--parts", default="cantilever,dt")
+    ap.add_argument("--settings", default="uniform1,uniform2,uniform3,adaptive", help="remeshing levels of the dt part")
+    ap.add_argument("--out", type=Path, help="JSON path (default: benchmarks/results/sim_resolution-<device>.json)")
+    args = ap.parse_args()
+    device = resolve_device(args.device)
+    out = args.out or (Path(__file__).resolve().parent / "results" / f"sim_resolution-{device.replace(':', '')}.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    result = {"command": " ".join([Path(sys.executable).name, *sys.argv]), "device": device,
+              "platform": platform.platform()}
+
+    def recorder(key):
+        def record(part):
+            result[key] = part
+            out.write_text(json.dumps(result, indent=2) + "\n")
+        return record
+
+    parts = args.parts.split(",")
+    if "cantilever" in parts:
+        cantilever_part(device, recorder("cantilever"))
+    if "dt" in parts:
+        dt_part(SimConfig(), args.settings.split(","), device, recorder("dt"))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
