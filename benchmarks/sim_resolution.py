@@ -17,10 +17,11 @@ every frame as the stage does): ``drop``, the cloth lying flat and held at one c
 ``wind``, clip 0's draw of the wind motion (the ``corners`` pose: two top corners pinned, gathered, wind
 on after the 0.4 s settle), 1 s after the wind starts. Material: the basis at p = 1 and k = 1, 2, 4, 5
 (two pairs of neighbouring bending classes; 4 and 5 are the closest in the class grid). Each scene is run at
-the stage's dt = 1/200 s (8 substeps at 25 fps) and at half of it, with self-collision off and on. Shapes
-are compared on the 16 x 16 base-grid vertices, which every mesh level and every adaptive mesh holds:
-``dt_shift`` = mean (and max) distance between the two time steps' shapes of one material, averaged over
-the four materials; ``class_step`` = the same between neighbouring classes (1 vs 2, 4 vs 5) at the finer dt.
+the stage's dt = 1/200 s (8 substeps at 25 fps) and at half of it with self-collision off, and at 1/200,
+1/400 and 1/800 s with it on. Shapes are compared on the 16 x 16 base-grid vertices, which every mesh level
+and every adaptive mesh holds: ``dt_shift`` = mean (and max) distance between the shapes of one material at
+two successive time steps, averaged over the four materials (and per material); ``class_step`` = the same
+between neighbouring classes (1 vs 2, 4 vs 5) at the finest time step of the series.
 
 Writes ``benchmarks/results/sim_resolution-<device>.json`` (``--out``), rewritten after each piece, with
 the command; prints one line per measurement.
@@ -123,7 +124,8 @@ def dt_part(cfg: SimConfig, levels: list[str], device: str, record) -> dict:
             row = {}
             for on in (False, True):
                 shapes, seconds = {}, {}
-                for substeps in (cfg.substeps, 2 * cfg.substeps):
+                series = (cfg.substeps, 2 * cfg.substeps, 4 * cfg.substeps) if on else (cfg.substeps, 2 * cfg.substeps)
+                for substeps in series:
                     start = time.perf_counter()
                     results = simulate(batch, fps=cfg.fps, frames=int(round(cfg.fps)), substeps=substeps,
                                        settle_s=settle, cg_iterations=cfg.cg_iterations,
@@ -134,17 +136,21 @@ def dt_part(cfg: SimConfig, levels: list[str], device: str, record) -> dict:
                     last = [r.frames[-1] if r.frames is not None else (r.positions[-1], mesh.faces, mesh.uv)
                             for r in results]
                     shapes[substeps] = [base_grid(x, uv, cfg.cloth_size_m, cfg.grid_vertices) for x, _, uv in last]
-                coarse, fine = shapes[cfg.substeps], shapes[2 * cfg.substeps]
-                shift = [np.linalg.norm(a - b, axis=1) for a, b in zip(coarse, fine)]
-                steps = {f"k{a:g}-k{b:g}": np.linalg.norm(fine[DT_K.index(a)] - fine[DT_K.index(b)], axis=1)
+                shifts = {}
+                for coarse, fine in zip(series, series[1:]):
+                    d = [np.linalg.norm(a - b, axis=1) for a, b in zip(shapes[coarse], shapes[fine])]
+                    shifts[f"dt 1/{int(cfg.fps * coarse)} vs 1/{int(cfg.fps * fine)}"] = {
+                        "mean": round(1000 * float(np.mean([x.mean() for x in d])), 2),
+                        "max": round(1000 * float(max(x.max() for x in d)), 2),
+                        "per_k_mean": {f"k{k:g}": round(1000 * float(x.mean()), 2) for k, x in zip(DT_K, d)}}
+                finest = shapes[series[-1]]
+                steps = {f"k{a:g}-k{b:g}": np.linalg.norm(finest[DT_K.index(a)] - finest[DT_K.index(b)], axis=1)
                          for a, b in NEIGHBOURS}
                 row["on" if on else "off"] = {
-                    "dt_shift_mm": {"mean": round(1000 * float(np.mean([s.mean() for s in shift])), 2),
-                                    "max": round(1000 * float(max(s.max() for s in shift)), 2),
-                                    "per_k_mean": {f"k{k:g}": round(1000 * float(s.mean()), 2)
-                                                   for k, s in zip(DT_K, shift)}},
+                    "dt_shift_mm": shifts,
                     "class_step_mm": {key: {"mean": round(1000 * float(d.mean()), 2),
                                             "max": round(1000 * float(d.max()), 2)} for key, d in steps.items()},
+                    "class_step_dt": f"1/{int(cfg.fps * series[-1])}",
                     "seconds": seconds}
                 print(f"dt {name} {kind} self-collision {'on' if on else 'off'}: "
                       f"{json.dumps(row['on' if on else 'off'])}", flush=True)
