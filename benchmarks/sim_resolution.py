@@ -30,7 +30,6 @@ the command; prints one line per measurement.
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import math
 import platform
@@ -41,15 +40,12 @@ from pathlib import Path
 import numpy as np
 
 from clothgap import seeding
-from sim import remesh
-from sim.adaptive import cloth_mesh
 from sim.cantilever import level_edge, material_of, measure
 from sim.config import SimConfig
 from sim.materials import load_material
-from sim.mesh import square_cloth
 from sim.motions import ClipScene, wind_scene
 from sim.solver import ClothSpec, resolve_device
-from sim.stage import simulate_adaptive_scenes, simulate_scenes
+from sim.stage import parse_setting, setting_simulator
 
 CANTILEVER = {10: 0.0167, 13: 0.0333, 17: 0.0667}      # class -> overhang (m)
 CANTILEVER_LEVELS = (1, 2, 3, 4, 5, 6)
@@ -108,13 +104,7 @@ def dt_part(cfg: SimConfig, levels: list[str], device: str, record) -> dict:
     materials = [basis.scaled(1.0, k) for k in DT_K]
     out = {}
     for name in levels:
-        if name == "adaptive":
-            base = remesh.uniform(cfg.grid_vertices, cfg.cloth_size_m, 1)
-            mesh = cloth_mesh(base)
-            simulate = functools.partial(simulate_adaptive_scenes, base=base)
-        else:
-            mesh = square_cloth(cfg.cloth_size_m, cfg.grid_vertices, int(name.removeprefix("uniform")))
-            simulate = simulate_scenes
+        mesh, simulate = setting_simulator(cfg, parse_setting(f"wind-{name}"))
         scenes = {"drop": ([drop_scene(mesh, cfg.cloth_size_m, m) for m in materials], 0.0),
                   "wind": ([wind_scene(mesh, cfg.cloth_size_m, m,
                                        seeding.rng(0, WIND_CLIP, seeding.SIM, "motion-wind"), "full")

@@ -26,7 +26,6 @@ rewritten after each setting, with the command that made it.
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import platform
 import sys
@@ -38,12 +37,9 @@ from pathlib import Path
 import numpy as np
 
 from clothgap.config import PRESETS
-from sim import remesh
-from sim.adaptive import cloth_mesh
 from sim.intersections import count_intersections
-from sim.mesh import square_cloth
 from sim.solver import resolve_device
-from sim.stage import build_scene, parse_setting, simulate_adaptive_scenes, simulate_scenes
+from sim.stage import build_scene, parse_setting, setting_simulator
 
 
 def clip_counts(result, faces: np.ndarray | None, every: int) -> tuple[int, int]:
@@ -59,13 +55,7 @@ def clip_counts(result, faces: np.ndarray | None, every: int) -> tuple[int, int]
 
 def run_setting(cfg, name: str, n: int, batch: int, every: int, thickness: float, device: str) -> dict:
     setting = parse_setting(name)
-    if setting.remeshing == "adaptive":
-        base = remesh.uniform(cfg.grid_vertices, cfg.cloth_size_m, 1)
-        mesh = cloth_mesh(base)
-        simulate = functools.partial(simulate_adaptive_scenes, base=base)
-    else:
-        mesh = square_cloth(cfg.cloth_size_m, cfg.grid_vertices, setting.level)
-        simulate = simulate_scenes
+    mesh, simulate = setting_simulator(cfg, setting)
     scenes = [build_scene(cfg, 0, i, setting, mesh)[0] for i in range(n)]
     kw = dict(fps=cfg.fps, frames=cfg.frames, substeps=cfg.substeps, settle_s=cfg.settle_s,
               cg_iterations=cfg.cg_iterations, cg_tolerance=cfg.cg_tolerance, collision_thickness=thickness,

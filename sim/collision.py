@@ -151,22 +151,29 @@ def edge_boxes(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3), edge: w
 
 
 @wp.func
-def free_slot(closeness: wp.array2d(dtype=float), q: int, found: int, key: float, dropped: wp.array(dtype=int),
+def keep_pair(q: int, found: int, key: float, other: int, w: wp.vec3, n: wp.vec3, dist: float,
+              pair: wp.array2d(dtype=int), weight: wp.array2d(dtype=wp.vec3), normal: wp.array2d(dtype=wp.vec3),
+              gap: wp.array2d(dtype=float), closeness: wp.array2d(dtype=float), dropped: wp.array(dtype=int),
               cloth: int):
-    """The slot of query ``q`` for a pair whose closest predicted distance is ``key``: the next free one, or when
-    all are taken the slot of the farthest kept pair if this one is closer (-1: none). Either way a full query
-    counts one dropped pair for its cloth."""
-    slots = closeness.shape[1]
-    if found < slots:
-        return found
-    wp.atomic_add(dropped, cloth, 1)
-    far = int(0)
-    for s in range(1, slots):
-        if closeness[q, s] > closeness[q, far]:
-            far = s
-    if key < closeness[q, far]:
-        return far
-    return -1
+    """Store a pair of query ``q`` (its closest predicted distance ``key``) in the next free slot, or when all
+    are taken in the slot of the farthest kept pair if this one is closer; a full query counts one dropped pair
+    for its cloth. Returns the number of slots in use."""
+    slots = pair.shape[1]
+    slot = found
+    if found == slots:
+        wp.atomic_add(dropped, cloth, 1)
+        slot = int(0)
+        for s in range(1, slots):
+            if closeness[q, s] > closeness[q, slot]:
+                slot = s
+        if key >= closeness[q, slot]:
+            return found
+    pair[q, slot] = other
+    weight[q, slot] = w
+    normal[q, slot] = n
+    gap[q, slot] = dist
+    closeness[q, slot] = key
+    return wp.min(found + 1, slots)
 
 
 @wp.kernel
@@ -179,7 +186,6 @@ def find_point_triangle(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.arra
     step, along the start's normal: triangle, barycentric weights, normal (triangle -> vertex), distance."""
     i = wp.tid()
     c = vertex_cloth[i]
-    slots = pair.shape[1]
     p0 = x0[i]
     p1 = x1[i]
     query = wp.bvh_query_aabb(bvh, box_min(p0, p1), box_max(p0, p1), wp.bvh_get_group_root(bvh, c))
@@ -204,28 +210,20 @@ def find_point_triangle(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.arra
             n = wp.normalize(m)
         key = wp.min(dist, wp.dot(n, p1 - (w[0] * x1[a] + w[1] * x1[b] + w[2] * x1[d])))
         if key < reach:
-            slot = free_slot(closeness, i, found, key, dropped, c)
-            if slot >= 0:
-                pair[i, slot] = f
-                weight[i, slot] = w
-                normal[i, slot] = n
-                gap[i, slot] = dist
-                closeness[i, slot] = key
-                found = wp.min(found + 1, slots)
+            found = keep_pair(i, found, key, f, w, n, dist, pair, weight, normal, gap, closeness, dropped, c)
     count[i] = found
 
 
 @wp.kernel
 def find_edge_edge(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
                    edge_cloth: wp.array(dtype=int), edge: wp.array2d(dtype=int), reach: float,
-                   count: wp.array(dtype=int), pair: wp.array2d(dtype=int), weight: wp.array2d(dtype=wp.vec2),
+                   count: wp.array(dtype=int), pair: wp.array2d(dtype=int), weight: wp.array2d(dtype=wp.vec3),
                    normal: wp.array2d(dtype=wp.vec3), gap: wp.array2d(dtype=float),
                    closeness: wp.array2d(dtype=float), dropped: wp.array(dtype=int)):
     """Edge e's edges of higher index (each pair once) sharing no vertex with it, within ``reach`` as in
-    ``find_point_triangle``: other edge, closest-point parameters (s on e, t on the other), normal, distance."""
+    ``find_point_triangle``: other edge, closest-point parameters (s on e, t on the other, 0), normal, distance."""
     e = wp.tid()
     c = edge_cloth[e]
-    slots = pair.shape[1]
     i = edge[e, 0]
     j = edge[e, 1]
     half = wp.vec3(0.5 * reach)        # the other edge's box is grown by the other half
@@ -256,14 +254,8 @@ def find_edge_edge(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.array(dty
             n = wp.normalize(m)
         key = wp.min(dist, wp.dot(n, (x1[i] + s * (x1[j] - x1[i])) - (x1[k] + t * (x1[l] - x1[k]))))
         if key < reach:
-            slot = free_slot(closeness, e, found, key, dropped, c)
-            if slot >= 0:
-                pair[e, slot] = g
-                weight[e, slot] = wp.vec2(s, t)
-                normal[e, slot] = n
-                gap[e, slot] = dist
-                closeness[e, slot] = key
-                found = wp.min(found + 1, slots)
+            found = keep_pair(e, found, key, g, wp.vec3(s, t, 0.0), n, dist, pair, weight, normal, gap, closeness,
+                              dropped, c)
     count[e] = found
 
 
@@ -316,7 +308,7 @@ def resolve_point_triangle(v: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=
 
 @wp.kernel
 def resolve_edge_edge(v: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float), edge: wp.array2d(dtype=int),
-                      count: wp.array(dtype=int), pair: wp.array2d(dtype=int), weight: wp.array2d(dtype=wp.vec2),
+                      count: wp.array(dtype=int), pair: wp.array2d(dtype=int), weight: wp.array2d(dtype=wp.vec3),
                       normal: wp.array2d(dtype=wp.vec3), gap: wp.array2d(dtype=float), thickness: float, dt: float,
                       friction: float, change: wp.array(dtype=wp.vec3), hits: wp.array(dtype=float)):
     e = wp.tid()
@@ -407,7 +399,7 @@ class SelfCollision:
         self.pt_key = wp.zeros((nv, slots), dtype=float, device=dev)
         self.ee_count = wp.zeros(ne, dtype=int, device=dev)
         self.ee_pair = wp.zeros((ne, slots), dtype=int, device=dev)
-        self.ee_weight = wp.zeros((ne, slots), dtype=wp.vec2, device=dev)
+        self.ee_weight = wp.zeros((ne, slots), dtype=wp.vec3, device=dev)      # (s, t, 0)
         self.ee_normal = wp.zeros((ne, slots), dtype=wp.vec3, device=dev)
         self.ee_gap = wp.zeros((ne, slots), dtype=float, device=dev)
         self.ee_key = wp.zeros((ne, slots), dtype=float, device=dev)

@@ -170,6 +170,15 @@ def simulate_adaptive_scenes(scenes: list[ClipScene], base, *, fps: float, frame
     return [ClipResult(None, r.reason, r.frames, r.cg, r.collision_dropped) for r in out]
 
 
+def setting_simulator(cfg: SimConfig, setting: Setting) -> tuple[ClothMesh, Callable[..., list[ClipResult]]]:
+    """The mesh a setting's scenes are built on and the function that simulates a batch of them
+    (``simulate_scenes``, or ``simulate_adaptive_scenes`` remeshing from the level-1 quadtree)."""
+    if setting.remeshing == "adaptive":
+        base = remesh.uniform(cfg.grid_vertices, cfg.cloth_size_m, 1)
+        return cloth_mesh(base), functools.partial(simulate_adaptive_scenes, base=base)
+    return square_cloth(cfg.cloth_size_m, cfg.grid_vertices, setting.level), simulate_scenes
+
+
 def clip_health(result: ClipResult, mesh: ClothMesh) -> dict:
     """The meta's ``health``: the CG statistics, the triangle pairs that cut through each other in the last
     recorded frame (``sim.intersections``), and with self-collision the pairs it dropped, unresolved."""
@@ -264,13 +273,7 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
         todo = [j for j in jobs[setting.name] if not is_done(out / j.name)]
         summary["skipped"] += len(jobs[setting.name]) - len(todo)
         n = vertices_per_side(cfg.grid_vertices, setting.level)
-        if setting.remeshing == "adaptive":
-            base = remesh.uniform(cfg.grid_vertices, cfg.cloth_size_m, 1)
-            mesh = cloth_mesh(base)
-            simulate = functools.partial(simulate_adaptive_scenes, base=base)
-        else:
-            mesh = square_cloth(cfg.cloth_size_m, cfg.grid_vertices, setting.level)
-            simulate = simulate_scenes
+        mesh, simulate = setting_simulator(cfg, setting)
         # Progress in clip-frames: a GPU batch of thousands of clips finishes all at once.
         bar = tqdm(total=len(todo) * cfg.frames, desc=f"{label} {setting.name}", unit="clip-frame",
                    unit_scale=True, disable=not progress)
