@@ -8,9 +8,11 @@ folding clip depends on the time step compared with how much it depends on the b
 ``cantilever``: the ASTM D1388 test of ``clothgap sim cantilever`` (``sim.cantilever.measure``) on the basis
 fabric scaled to the bending classes k = 1, 5, 20 (p = 1; classes 10, 13, 17), at one fixed overhang per
 class near its 41.5 deg overhang (1.67, 3.33, 6.67 cm: whole edges of the level-2, -1, -1 meshes), on the
-uniform levels 1..3 of the stage's mesh and the finer levels 4..6 (edge 4.2, 2.1, 1.0 mm). The bending
-length c is the heavy-elastica inversion of the tip's chord angle; the error is c's against level 6's.
-A level whose edge is longer than the overhang cannot hold the test (``null``).
+uniform levels 1..3 of the stage's mesh and the finer levels 4..6 (edge 4.2, 2.1, 1.0 mm), with the
+class's table as simulated (ke softens or stiffens with curvature) and with each bending row held at its
+zero-curvature value (``constant``: the discretisation alone). The bending length c is the heavy-elastica
+inversion of the tip's chord angle; the error is c's against level 6's. A level whose edge does not divide
+the overhang cannot hold the test (``null``).
 
 ``dt``: two folding scenes on each setting's mesh (the stage's 16-vertex 0.5 m cloth; ``adaptive`` remeshes
 every frame as the stage does): ``drop``, the cloth lying flat and held at one corner, 1 s after release;
@@ -23,13 +25,15 @@ and every adaptive mesh holds: ``dt_shift`` = mean (and max) distance between th
 two successive time steps, averaged over the four materials (and per material); ``class_step`` = the same
 between neighbouring classes (1 vs 2, 4 vs 5) at the finest time step of the series.
 
-Writes ``benchmarks/results/sim_resolution-<device>.json`` (``--out``), rewritten after each piece, with
-the command; prints one line per measurement.
+Writes ``benchmarks/results/sim_resolution-<device>.json`` (``--out``), rewritten after each piece; a run of
+one part replaces that part only. Each part's command is in ``commands``; one line per measurement printed.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import itertools
 import json
 import math
 import platform
@@ -42,7 +46,7 @@ import numpy as np
 from clothgap import seeding
 from sim.cantilever import level_edge, material_of, measure
 from sim.config import SimConfig
-from sim.materials import load_material
+from sim.materials import Material, load_material
 from sim.motions import ClipScene, wind_scene
 from sim.solver import ClothSpec, resolve_device
 from sim.stage import parse_setting, setting_simulator
@@ -54,10 +58,18 @@ NEIGHBOURS = ((1.0, 2.0), (4.0, 5.0))
 WIND_CLIP = 0                                           # its motion draw: the corners pose
 
 
+def constant_table(material: Material) -> Material:
+    """The material with each bending row held at its zero-curvature value (no softening or stiffening)."""
+    return dataclasses.replace(material, name=f"{material.name} (constant table)",
+                               bending=np.repeat(material.bending[:, :1], material.bending.shape[1], axis=1))
+
+
 def cantilever_part(device: str, record) -> dict:
     out = {}
-    for cls, overhang in CANTILEVER.items():
+    for (cls, overhang), table in itertools.product(CANTILEVER.items(), ("as simulated", "constant")):
         material, name = material_of(str(cls))
+        if table == "constant":
+            material = constant_table(material)
         rows = {}
         for level in CANTILEVER_LEVELS:
             edge = level_edge(level)
@@ -69,14 +81,15 @@ def cantilever_part(device: str, record) -> dict:
             (r,) = measure(material, edge, [edges], "u", device)
             c = r.bending_length if math.isfinite(r.bending_length) else None
             rows[level] = {"edge_mm": round(edge * 1000, 2), "chord_deg": round(math.degrees(r.angle), 2),
-                           "c_cm": None if c is None else round(c * 100, 4),
+                           "c_cm": None if c is None else round(c * 100, 4), "settled_um": round(r.settled * 1e6, 3),
                            "seconds": round(time.perf_counter() - start, 2)}
-            print(f"cantilever class {cls} level {level}: {rows[level]}", flush=True)
+            print(f"cantilever class {cls} ({table} table) level {level}: {rows[level]}", flush=True)
         finest = rows[CANTILEVER_LEVELS[-1]]["c_cm"]
         for row in rows.values():
             if row is not None and row["c_cm"] is not None:
                 row["error_vs_finest_pct"] = round(100.0 * (row["c_cm"] / finest - 1.0), 2)
-        out[str(cls)] = {"material": name, "overhang_cm": overhang * 100, "levels": rows}
+        out[f"{cls} {table}"] = {"class": cls, "table": table, "material": name, "overhang_cm": overhang * 100,
+                                 "levels": rows}
         record(out)
     return out
 
@@ -159,12 +172,15 @@ def main() -> None:
     device = resolve_device(args.device)
     out = args.out or (Path(__file__).resolve().parent / "results" / f"sim_resolution-{device.replace(':', '')}.json")
     out.parent.mkdir(parents=True, exist_ok=True)
-    result = {"command": " ".join([Path(sys.executable).name, *sys.argv]), "device": device,
-              "platform": platform.platform()}
+    # Each part replaces only its own entry of an existing result file, with the command that made it.
+    result = json.loads(out.read_text()) if out.is_file() else {}
+    result.update(device=device, platform=platform.platform())
+    command = " ".join([Path(sys.executable).name, *sys.argv])
 
     def recorder(key):
         def record(part):
             result[key] = part
+            result.setdefault("commands", {})[key] = command
             out.write_text(json.dumps(result, indent=2) + "\n")
         return record
 
