@@ -3,7 +3,7 @@ folding clip depends on the time step compared with how much it depends on the b
 
     python benchmarks/sim_resolution.py --device cpu                          # both parts (CPU: ~30 min)
     python benchmarks/sim_resolution.py --device cpu --parts cantilever
-    python benchmarks/sim_resolution.py --device cpu --parts dt --settings uniform1,uniform2
+    python benchmarks/sim_resolution.py --device cpu --parts dt,floor --settings uniform1,uniform2
 
 ``cantilever``: the ASTM D1388 test of ``clothgap sim cantilever`` (``sim.cantilever.measure``) on the basis
 fabric scaled to the bending classes k = 1, 5, 20 (p = 1; classes 10, 13, 17), at one fixed overhang per
@@ -24,6 +24,11 @@ the stage's dt = 1/200 s (8 substeps at 25 fps) and at half of it with self-coll
 and every adaptive mesh holds: ``dt_shift`` = mean (and max) distance between the shapes of one material at
 two successive time steps, averaged over the four materials (and per material); ``class_step`` = the same
 between neighbouring classes (1 vs 2, 4 vs 5) at the finest time step of the series.
+
+``floor``: the same scenes at the stage's dt, once as built and once with every vertex's start moved by
+about 1 um and 100 um (normal, seeded): how far a perturbation grows in 1 s, the floor under ``dt_shift``.
+A dt shift at that floor is the folding's sensitivity (chaos), not an integration error that a smaller dt
+would remove.
 
 Writes ``benchmarks/results/sim_resolution-<device>.json`` (``--out``), rewritten after each piece; a run of
 one part replaces that part only. Each part's command is in ``commands``; one line per measurement printed.
@@ -56,6 +61,7 @@ CANTILEVER_LEVELS = (1, 2, 3, 4, 5, 6)
 DT_K = (1.0, 2.0, 4.0, 5.0)
 NEIGHBOURS = ((1.0, 2.0), (4.0, 5.0))
 WIND_CLIP = 0                                           # its motion draw: the corners pose
+NUDGES_M = (1.0e-6, 1.0e-4)                             # the floor part's initial perturbations
 
 
 def constant_table(material: Material) -> Material:
@@ -112,16 +118,41 @@ def drop_scene(mesh, size: float, material) -> ClipScene:
     return ClipScene(spec, np.zeros(3), {"scene": "drop"})
 
 
-def dt_part(cfg: SimConfig, levels: list[str], device: str, record) -> dict:
+def folding_scenes(cfg: SimConfig, name: str):
+    """The mesh, the simulate function and the two folding scenes (``drop``, ``wind``: one cloth per k of
+    ``DT_K``, with their settle times) of a remeshing level."""
     basis = load_material(cfg.basis)
     materials = [basis.scaled(1.0, k) for k in DT_K]
+    mesh, simulate = setting_simulator(cfg, parse_setting(f"wind-{name}"))
+    scenes = {"drop": ([drop_scene(mesh, cfg.cloth_size_m, m) for m in materials], 0.0),
+              "wind": ([wind_scene(mesh, cfg.cloth_size_m, m, seeding.rng(0, WIND_CLIP, seeding.SIM, "motion-wind"),
+                                   "full") for m in materials], cfg.settle_s)}
+    return mesh, simulate, scenes
+
+
+def final_shapes(cfg: SimConfig, mesh, simulate, batch, settle: float, substeps: int, on: bool,
+                 device: str) -> list[np.ndarray]:
+    """Each cloth's base-grid vertices 1 s (``fps`` frames) after the settle."""
+    results = simulate(batch, fps=cfg.fps, frames=int(round(cfg.fps)), substeps=substeps, settle_s=settle,
+                       cg_iterations=cfg.cg_iterations, cg_tolerance=cfg.cg_tolerance, self_collision=on,
+                       collision_thickness=cfg.collision_thickness, device=device)
+    assert all(r.reason is None for r in results), [r.reason for r in results]
+    last = [r.frames[-1] if r.frames is not None else (r.positions[-1], mesh.faces, mesh.uv) for r in results]
+    return [base_grid(x, uv, cfg.cloth_size_m, cfg.grid_vertices) for x, _, uv in last]
+
+
+def distances_mm(a: list[np.ndarray], b: list[np.ndarray]) -> dict:
+    """Mean (over the cloths of the mean vertex distance) and max distance between two sets of shapes, mm."""
+    d = [np.linalg.norm(x - y, axis=1) for x, y in zip(a, b)]
+    return {"mean": round(1000 * float(np.mean([x.mean() for x in d])), 2),
+            "max": round(1000 * float(max(x.max() for x in d)), 2),
+            "per_k_mean": {f"k{k:g}": round(1000 * float(x.mean()), 2) for k, x in zip(DT_K, d)}}
+
+
+def dt_part(cfg: SimConfig, levels: list[str], device: str, record) -> dict:
     out = {}
     for name in levels:
-        mesh, simulate = setting_simulator(cfg, parse_setting(f"wind-{name}"))
-        scenes = {"drop": ([drop_scene(mesh, cfg.cloth_size_m, m) for m in materials], 0.0),
-                  "wind": ([wind_scene(mesh, cfg.cloth_size_m, m,
-                                       seeding.rng(0, WIND_CLIP, seeding.SIM, "motion-wind"), "full")
-                            for m in materials], cfg.settle_s)}
+        mesh, simulate, scenes = folding_scenes(cfg, name)
         out[name] = {}
         for kind, (batch, settle) in scenes.items():
             row = {}
@@ -130,29 +161,16 @@ def dt_part(cfg: SimConfig, levels: list[str], device: str, record) -> dict:
                 series = (cfg.substeps, 2 * cfg.substeps, 4 * cfg.substeps) if on else (cfg.substeps, 2 * cfg.substeps)
                 for substeps in series:
                     start = time.perf_counter()
-                    results = simulate(batch, fps=cfg.fps, frames=int(round(cfg.fps)), substeps=substeps,
-                                       settle_s=settle, cg_iterations=cfg.cg_iterations,
-                                       cg_tolerance=cfg.cg_tolerance, self_collision=on,
-                                       collision_thickness=cfg.collision_thickness, device=device)
+                    shapes[substeps] = final_shapes(cfg, mesh, simulate, batch, settle, substeps, on, device)
                     seconds[substeps] = round(time.perf_counter() - start, 2)
-                    assert all(r.reason is None for r in results), [r.reason for r in results]
-                    last = [r.frames[-1] if r.frames is not None else (r.positions[-1], mesh.faces, mesh.uv)
-                            for r in results]
-                    shapes[substeps] = [base_grid(x, uv, cfg.cloth_size_m, cfg.grid_vertices) for x, _, uv in last]
-                shifts = {}
-                for coarse, fine in zip(series, series[1:]):
-                    d = [np.linalg.norm(a - b, axis=1) for a, b in zip(shapes[coarse], shapes[fine])]
-                    shifts[f"dt 1/{int(cfg.fps * coarse)} vs 1/{int(cfg.fps * fine)}"] = {
-                        "mean": round(1000 * float(np.mean([x.mean() for x in d])), 2),
-                        "max": round(1000 * float(max(x.max() for x in d)), 2),
-                        "per_k_mean": {f"k{k:g}": round(1000 * float(x.mean()), 2) for k, x in zip(DT_K, d)}}
+                shifts = {f"dt 1/{int(cfg.fps * a)} vs 1/{int(cfg.fps * b)}": distances_mm(shapes[a], shapes[b])
+                          for a, b in zip(series, series[1:])}
                 finest = shapes[series[-1]]
-                steps = {f"k{a:g}-k{b:g}": np.linalg.norm(finest[DT_K.index(a)] - finest[DT_K.index(b)], axis=1)
+                steps = {f"k{a:g}-k{b:g}": distances_mm([finest[DT_K.index(a)]], [finest[DT_K.index(b)]])
                          for a, b in NEIGHBOURS}
                 row["on" if on else "off"] = {
                     "dt_shift_mm": shifts,
-                    "class_step_mm": {key: {"mean": round(1000 * float(d.mean()), 2),
-                                            "max": round(1000 * float(d.max()), 2)} for key, d in steps.items()},
+                    "class_step_mm": {key: {"mean": d["mean"], "max": d["max"]} for key, d in steps.items()},
                     "class_step_dt": f"1/{int(cfg.fps * series[-1])}",
                     "seconds": seconds}
                 print(f"dt {name} {kind} self-collision {'on' if on else 'off'}: "
@@ -162,10 +180,36 @@ def dt_part(cfg: SimConfig, levels: list[str], device: str, record) -> dict:
     return out
 
 
+def floor_part(cfg: SimConfig, levels: list[str], device: str, record) -> dict:
+    """How far the same folding scenes drift apart at the stage's dt when every vertex starts a distance of
+    the order of ``NUDGES_M`` away (normal, seeded): what any perturbation grows to in 1 s, the floor under
+    dt_shift (one step of free fall at 1/200 s already differs from the exact path by g h^2 / 2 = 0.12 mm)."""
+    out = {}
+    for name in levels:
+        mesh, simulate, scenes = folding_scenes(cfg, name)
+        out[name] = {}
+        for kind, (batch, settle) in scenes.items():
+            row = {}
+            for on in (False, True):
+                ref = final_shapes(cfg, mesh, simulate, batch, settle, cfg.substeps, on, device)
+                row["on" if on else "off"] = cell = {}
+                for nudge in NUDGES_M:
+                    rng = np.random.default_rng(0)
+                    nudged = [dataclasses.replace(s, spec=dataclasses.replace(
+                        s.spec, positions=s.spec.positions + rng.normal(0.0, nudge, s.spec.positions.shape)))
+                        for s in batch]
+                    cell[f"{nudge * 1e6:g} um"] = distances_mm(
+                        ref, final_shapes(cfg, mesh, simulate, nudged, settle, cfg.substeps, on, device))
+                print(f"floor {name} {kind} self-collision {'on' if on else 'off'}: {json.dumps(cell)}", flush=True)
+            out[name][kind] = row
+            record(out)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--parts", default="cantilever,dt")
+    ap.add_argument("--parts", default="cantilever,dt,floor")
     ap.add_argument("--settings", default="uniform1,uniform2,uniform3,adaptive", help="remeshing levels of the dt part")
     ap.add_argument("--out", type=Path, help="JSON path (default: benchmarks/results/sim_resolution-<device>.json)")
     args = ap.parse_args()
@@ -189,6 +233,8 @@ def main() -> None:
         cantilever_part(device, recorder("cantilever"))
     if "dt" in parts:
         dt_part(SimConfig(), args.settings.split(","), device, recorder("dt"))
+    if "floor" in parts:
+        floor_part(SimConfig(), args.settings.split(","), device, recorder("floor"))
     print(f"wrote {out}")
 
 
