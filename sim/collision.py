@@ -36,7 +36,8 @@ clip hangs at the origin) never see each other. Both are refitted every step
 (the same topology, boxes from the moving cloth: a recorded launch, so a step
 is still one CUDA graph). Found pairs go to fixed slots per querying vertex
 or edge, in the BVH's traversal order: no global counter, so the pair lists are
-the same on every run and device. A vertex or edge with more pairs than
+the same on every run of a device (the CPU's tree is built by SAH, a GPU's by
+LBVH, so their orders differ). A vertex or edge with more pairs than
 ``slots`` (deep in a fold pressed into several layers) keeps the closest ones
 and drops the farthest, counted per cloth (meta health
 ``collision_pairs_dropped``); a dropped pair is one that was farther than
