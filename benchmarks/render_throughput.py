@@ -1,10 +1,15 @@
-"""Render throughput at one frame per Mitsuba launch: a new scene per clip (the baseline) against pooled scenes.
+"""Render throughput at one frame per Mitsuba launch, as a ratio to the path tracer's own ceiling.
 
 All loops run on the same backend, on the same synthetic clips (waving sheets,
 render.synthetic, ``--vertices`` per side, each clip its own texture, lights and
 camera) at the same resolution, for each spp in ``--spp``; every timed frame is
 copied to the host:
 
+* ``ceiling``: the device time of Dr.Jit's kernels per frame (path tracing,
+  normals, copies; read from its kernel history over a few pooled frames; OptiX
+  BVH builds and all host work left out) and the frame rate that time allows,
+  ``ceiling_frames_per_s``. Every row below gets ``ceiling_ratio``, its
+  frames/s over that ceiling, measured in the same run;
 * ``scene_per_clip``: a new Mitsuba scene for every clip, the cloth moved in
   place frame to frame (``reuse_scenes=False``; on CUDA each new scene costs an
   OptiX compile of the path tracer);
@@ -17,15 +22,25 @@ copied to the host:
   the clips pooled (frozen too with ``--procs-freeze``), timed from a barrier
   after every process has compiled;
 * ``batched_k<K>`` (with ``--k``): K frames of a clip per launch (render.batch),
-  with its noise against a high-spp reference (batched frames are noisier).
+  with its noise against a high-spp reference (batched frames are noisier);
+* ``phases``: host milliseconds per frame in each step of the stage's path
+  (pooled, frozen where it can be) on four clips: a new clip's setup, the
+  geometry update, the render call, the read-back (where the host waits for
+  the device), composite + tone map.
 
-Host RSS and (with nvidia-smi) GPU memory are sampled over each single-process
-loop, so a leak shows as a slope (``memory``: first, last, max). ``--write``
-also times the stage's ``render_clip`` (tone mapping, EXR + PNG on a writer pool).
-Writes a JSON under benchmarks/results/ with the command line.
+With ``--write``, ``with_output`` times the stage's own ``render_clip`` (the
+stage's scene pooling and freezing, composite and tone mapping on a writer pool,
+``frames.npy`` written per clip) for each output set of ``--outputs``: ``npy``
+(the array alone, the ``paper`` preset), ``png`` (plus PNGs), ``png+exr`` (plus
+EXRs: what every clip wrote before frames.npy); each row records the files it
+wrote. ``--write-procs`` runs the same in N processes at once, as
+``clothgap render --executor process`` does. Host RSS and (with nvidia-smi) GPU
+memory are sampled over each single-process loop, so a leak shows as a slope
+(``memory``: first, last, max). Writes a JSON under benchmarks/results/ with the
+command line.
 
-    python benchmarks/render_throughput.py --device cuda --resolution 224 --spp 16 --procs 2,4
-    python benchmarks/render_throughput.py --device cpu --resolution 32 --spp 4 --clips 4 --frames 8 --procs ""
+    python benchmarks/render_throughput.py --device cuda --resolution 112 --spp 16 --write --write-procs 4
+    python benchmarks/render_throughput.py --device cpu --resolution 32 --spp 4 --clips 4 --frames 8 --procs "" --write
 """
 
 from __future__ import annotations
@@ -43,7 +58,6 @@ import tempfile
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import replace
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -76,7 +90,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--clips", type=int, default=50)
     p.add_argument("--frames", type=int, default=40, help="frames per clip")
     p.add_argument("--vertices", type=int, default=65, help="sheet vertices per side")
-    p.add_argument("--write", action="store_true", help="also time the stage's render_clip (EXR + PNG, writer pool)")
+    p.add_argument("--write", action="store_true", help="also time the stage's render_clip for each of --outputs")
+    p.add_argument("--outputs", default="npy,png+exr", help="comma-separated output sets for --write: npy, png, "
+                   "png+exr (frames.npy is always written)")
+    p.add_argument("--write-procs", default="", help="comma-separated process counts for the --write loops")
+    p.add_argument("--ceiling-frames", type=int, default=8, help="frames whose kernel time gives the ceiling")
     p.add_argument("--writer-threads", type=int, default=4)
     p.add_argument("--reference-spp", type=int, default=0, help="spp of the noise reference (default 16 x spp)")
     p.add_argument("--sample-s", type=float, default=0.5, help="memory sampling period")
@@ -89,6 +107,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     args.spp = [int(s) for s in str(args.spp).split(",")]
     args.k = [int(k) for k in str(args.k).split(",") if k]
     args.procs = [int(n) for n in str(args.procs).split(",") if n]
+    args.write_procs = [int(n) for n in str(args.write_procs).split(",") if n]
+    args.outputs = [o for o in str(args.outputs).split(",") if o]
+    bad = [o for o in args.outputs if o not in OUTPUTS]
+    if bad:
+        p.error(f"--outputs: unknown output set(s) {', '.join(bad)}; known: {', '.join(OUTPUTS)}")
     return args
 
 
@@ -138,6 +161,8 @@ class MemorySampler:
 
 # How each single-process loop makes its renderers: (reuse_scenes, freeze).
 MODES = {"scene_per_clip": (False, False), "pooled": (True, False), "pooled_frozen": (True, True)}
+# What the --write loops write besides frames.npy: (render.write_png, render.write_hdr).
+OUTPUTS = {"npy": (False, False), "png": (True, False), "png+exr": (True, True)}
 
 
 def make_renderer(args, clip, index: int, spp: int, mode: str = "scene_per_clip") -> ClipRenderer:
@@ -173,27 +198,36 @@ def frozen_error(args, clips, spp: int) -> float:
     return float(np.mean(errors))
 
 
-def _process_worker(args, spp: int, indices: list[int], freeze: bool, barrier, queue) -> None:
+def _process_worker(args, spp: int, indices: list[int], freeze: bool, barrier, queue, outputs: str = "") -> None:
     mode = "pooled_frozen" if freeze else "pooled"
-    render_loop(args, [waving_sheet(frames=args.frames, n=args.vertices, index=10_000 + indices[0])], spp, 1, mode)
+    warm = [waving_sheet(frames=args.frames, n=args.vertices, index=10_000 + indices[0])]
     clips = [waving_sheet(frames=args.frames, n=args.vertices, index=i) for i in indices]
+    if outputs:
+        stage_loop(args, warm, spp, 1, outputs)
+    else:
+        render_loop(args, warm, spp, 1, mode)
     barrier.wait()
     start = time.perf_counter()
-    frames = 0
-    for index, clip in zip(indices, clips):
-        r = make_renderer(args, clip, index, spp, mode)
-        for t in range(clip.num_frames):
-            r.render_hdr(t)
-            frames += 1
+    if outputs:
+        frames = stage_loop(args, clips, spp, 1, outputs, indices)
+    else:
+        frames = 0
+        for index, clip in zip(indices, clips):
+            r = make_renderer(args, clip, index, spp, mode)
+            for t in range(clip.num_frames):
+                r.render_hdr(t)
+                frames += 1
     queue.put((frames, start, time.perf_counter()))
 
 
-def processes_loop(args, spp: int, n: int) -> dict:
-    """N processes sharing the device, each rendering every N-th clip; aggregate rate from the barrier on."""
+def processes_loop(args, spp: int, n: int, outputs: str = "") -> dict:
+    """N processes sharing the device, each rendering every N-th clip; aggregate rate from the barrier on.
+
+    With ``outputs``, each process runs the stage's render_clip (``stage_loop``) instead of bare renders."""
     ctx = mp.get_context("spawn")
     barrier, queue = ctx.Barrier(n), ctx.Queue()
     shares = [list(range(args.clips))[i::n] for i in range(n)]
-    workers = [ctx.Process(target=_process_worker, args=(args, spp, share, args.procs_freeze, barrier, queue))
+    workers = [ctx.Process(target=_process_worker, args=(args, spp, share, args.procs_freeze, barrier, queue, outputs))
                for share in shares if share]
     for w in workers:
         w.start()
@@ -202,25 +236,83 @@ def processes_loop(args, spp: int, n: int) -> dict:
         w.join()
     frames = sum(r[0] for r in results)
     seconds = max(r[2] for r in results) - min(r[1] for r in results)
-    return {"processes": len(workers), "frozen": args.procs_freeze, "frames": frames, "seconds": round(seconds, 3),
+    return {"processes": len(workers), "frozen": args.procs_freeze if not outputs else "stage default",
+            "frames": frames, "seconds": round(seconds, 3),
             "frames_per_s": round(frames / seconds, 2), "ms_per_frame": round(1000 * seconds / frames, 3),
             "gpu_used_mib_after": gpu_memory_mib()}
 
 
-def stage_loop(args, clips, spp: int, k: int) -> int:
-    """The stage's render_clip (tone mapping, EXR + PNG through a shared writer pool) into a temporary folder."""
+def stage_loop(args, clips, spp: int, k: int, outputs: str = "png+exr", indices: list[int] | None = None,
+               written: dict | None = None) -> int:
+    """The stage's render_clip (tone mapping on a shared writer pool, frames.npy, ``outputs``) into a temporary
+    folder; ``written`` gets the number of files of each kind it wrote."""
     from render.stage import render_clip
 
+    write_png, write_hdr = OUTPUTS[outputs]
     config = RenderConfig(variants=(args.variant,), resolution=args.resolution, spp=spp, backend=args.backend,
-                          frames_per_launch=k, writer_threads=args.writer_threads)
+                          frames_per_launch=k, writer_threads=args.writer_threads, write_png=write_png,
+                          write_hdr=write_hdr)
     frames = 0
     with tempfile.TemporaryDirectory(prefix="render-bench-") as tmp, \
             ThreadPoolExecutor(args.writer_threads) as writer:
-        for index, clip in enumerate(clips):
+        for index, clip in zip(indices or range(len(clips)), clips):
             meta = render_clip(clip, get_variant(args.variant), Path(tmp) / f"c{index:05d}", config=config,
                                run_seed=0, clip_index=index, writer=writer)
             frames += meta["num_frames"]
+        if written is not None:
+            for kind in ("npy", "png", "exr"):
+                written[kind] = sum(1 for _ in Path(tmp).rglob(f"*.{kind}"))
     return frames
+
+
+def phases(args, clips, spp: int, mode: str) -> dict:
+    """Host milliseconds per frame in each step of the stage's one-frame path (no extra synchronisation, so a
+    wait for the device shows where it happens): geometry update, render call, read-back, composite + tone map."""
+    totals = dict.fromkeys(("clip_setup", "geometry", "render_call", "readback", "finish"), 0.0)
+    frames = 0
+    for index, clip in enumerate(clips):
+        t0 = time.perf_counter()
+        r = make_renderer(args, clip, index, spp, mode)
+        r.background                                    # the clip's background draw, on its helper thread
+        totals["clip_setup"] += time.perf_counter() - t0
+        for t in range(clip.num_frames):
+            t0 = time.perf_counter()
+            r._set_geometry(t)
+            t1 = time.perf_counter()
+            image = r._render(spp, (r.sampler_seed + t) & 0xFFFFFFFF)
+            t2 = time.perf_counter()
+            hdr = np.array(image, np.float32)
+            t3 = time.perf_counter()
+            r.finish(hdr, t)
+            t4 = time.perf_counter()
+            for key, dt in zip(("geometry", "render_call", "readback", "finish"), (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
+                totals[key] += dt
+            frames += 1
+    return {"mode": mode, "frames": frames, **{f"ms_{k}": round(1e3 * v / frames, 3) for k, v in totals.items()}}
+
+
+def ceiling(args, clips, spp: int) -> dict:
+    """Device time of Dr.Jit's kernels per frame on pooled scenes, and the frame rate it allows."""
+    import drjit as dr
+
+    frames = []
+    for index, clip in enumerate(clips):
+        frames += [(index, clip, t) for t in range(clip.num_frames)]
+    frames = frames[:max(1, args.ceiling_frames)]
+    renderers = {}
+    dr.kernel_history()                 # clears it
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        for index, clip, t in frames:
+            if index not in renderers:
+                renderers[index] = make_renderer(args, clip, index, spp, "pooled")
+            renderers[index].render_hdr(t)
+        history = dr.kernel_history()
+    ms = sum(h.get("execution_time", 0.0) for h in history) / len(frames)
+    jit = [h for h in history if h.get("type") == dr.KernelType.JIT]
+    return {"frames": len(frames), "kernel_ms_per_frame": round(ms, 4),
+            "launches_per_frame": round(len(history) / len(frames), 1),
+            "largest_kernel_ms": round(max((h.get("execution_time", 0.0) for h in jit), default=0.0), 4),
+            "ceiling_frames_per_s": round(1000.0 / ms, 1) if ms > 0 else None}
 
 
 def noise(args, clip, spp: int, ks: list[int]) -> dict:
@@ -274,12 +366,16 @@ def main(argv: list[str] | None = None) -> dict:
                 frozen_failure = f"{type(e).__name__}: {str(e).splitlines()[0][:300]}"
         for k in args.k:
             render_loop(args, warm, spp, k)
-        result: dict = {"spp": spp, "samples_per_frame": args.resolution ** 2 * spp, "render_only": {}}
+        result: dict = {"spp": spp, "samples_per_frame": args.resolution ** 2 * spp,
+                        "ceiling": ceiling(args, clips, spp), "render_only": {}}
+        print("ceiling", json.dumps(result["ceiling"]), flush=True)
         if frozen_failure:
             result["frozen_failure"] = frozen_failure
         for mode in modes:
             result["render_only"][mode] = timed(render_loop, args, clips, spp, 1, mode)
             print(mode, json.dumps(result["render_only"][mode]), flush=True)
+        result["phases"] = phases(args, clips[:4], spp, modes[-1])
+        print("phases", json.dumps(result["phases"]), flush=True)
         if "pooled_frozen" in modes:
             result["frozen_rel_error"] = frozen_error(args, clips, spp)
             print("frozen_rel_error", result["frozen_rel_error"], flush=True)
@@ -301,17 +397,41 @@ def main(argv: list[str] | None = None) -> dict:
                 row["noise_rms_ratio"] = round(ratio, 3)
                 row["equal_noise_frames_per_s"] = round(row["frames_per_s"] / ratio ** 2, 2)
         if args.write and _stage_importable(result):
-            result["with_output"] = {"pooled": timed(stage_loop, args, clips, spp, 1)}
+            result["with_output"] = {}
+            for outputs in args.outputs:
+                written: dict = {}
+                stage_loop(args, warm, spp, 1, outputs)          # untimed: the stage's own kernels (freeze)
+                row = timed(stage_loop, args, clips, spp, 1, outputs, None, written)
+                result["with_output"][outputs] = {"outputs": written, **row}
+                print(f"with_output {outputs}", json.dumps(result["with_output"][outputs]), flush=True)
+                for n in args.write_procs:
+                    row = processes_loop(args, spp, n, outputs)
+                    result["with_output"][f"{outputs}_processes_{n}"] = row
+                    print(f"with_output {outputs}_processes_{n}", json.dumps(row), flush=True)
+        top = result["ceiling"]["ceiling_frames_per_s"]
+        for group in ("render_only", "with_output"):
+            for row in result.get(group, {}).values():
+                if top and "frames_per_s" in row:
+                    row["ceiling_ratio"] = round(row["frames_per_s"] / top, 3)
         rounds.append(result)
         print(json.dumps({k: v for k, v in result.items() if k != "render_only"}, indent=2), flush=True)
     report = {
-        "command": shlex.join([Path(sys.executable).name, *sys.argv]) if argv is None else shlex.join(argv),
-        "time": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "machine": platform.node(), "backend": mi.variant(), "mitsuba": mi.__version__,
+        **run_record(argv), "backend": mi.variant(), "mitsuba": mi.__version__,
         "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
         "gpu_memory_before_mib": gpu_memory_mib(), "rounds": rounds,
     }
-    out = args.out or RESULTS / f"render_throughput-{mi.variant()}-{datetime.now(timezone.utc):%Y%m%dT%H%M%S}.json"
+    return save_report(report, args.out, f"render_throughput-{mi.variant()}")
+
+
+def run_record(argv: list[str] | None) -> dict:
+    """The command line, time and machine a benchmark result was made with."""
+    return {"command": shlex.join([Path(sys.executable).name, *sys.argv]) if argv is None else shlex.join(argv),
+            "time": datetime.now(timezone.utc).isoformat(timespec="seconds"), "machine": platform.node()}
+
+
+def save_report(report: dict, out: Path | None, name: str) -> dict:
+    """Write ``report`` to ``out`` (default benchmarks/results/<name>-<time>.json) and say where."""
+    out = out or RESULTS / f"{name}-{datetime.now(timezone.utc):%Y%m%dT%H%M%S}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=2) + "\n")
     print(f"wrote {out}")

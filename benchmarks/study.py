@@ -7,7 +7,8 @@ Two parts, in one run on one machine:
 
 * ``baselines``: the three stage benchmarks, each timing the project's path against a
   named baseline in the same process (``sim_throughput.py``: one batch vs one clip at a
-  time; ``render_throughput.py``: pooled + frozen scenes vs a scene per clip;
+  time; ``render_throughput.py`` at 112 px: pooled + frozen scenes vs a scene per clip, and the stage
+  writing frames.npy, each as a ratio to the path tracer's ceiling;
   ``train_throughput.py``: bf16 + compile + channels-last vs eager fp32); their JSON is
   embedded whole.
 * ``scaling``: for each size in ``--sizes`` (sequences per class; 48 is the paper's
@@ -111,9 +112,9 @@ def baselines(args, device: str, work: Path) -> dict:
                   "result": json.loads(sim_json.read_text()) if sim_json.is_file() else None}
     render_json = work / "render.json"
     render = [py, "benchmarks/render_throughput.py", "--device", "cuda" if device.startswith("cuda") else "cpu",
-              "--resolution", "32" if quick else "224", "--spp", "2" if quick else "16", "--clips", "3" if quick else "24",
+              "--resolution", "32" if quick else "112", "--spp", "2" if quick else "16", "--clips", "3" if quick else "24",
               "--frames", "4" if quick else "40", "--procs", "" if quick else "4", "--procs-freeze",
-              "--out", str(render_json)]
+              "--write", "--outputs", "npy", "--write-procs", "" if quick else "4", "--out", str(render_json)]
     r = run_measured(render)
     out["render"] = {"command": shlex.join(render[1:]), **r,
                      "result": json.loads(render_json.read_text()) if render_json.is_file() else None}
@@ -192,7 +193,11 @@ def markdown(report: dict) -> str:
             best = max(rows, key=lambda k: rows[k]["frames_per_s"])
             lines.append(f"| render {render['settings']['resolution']} px {rnd['spp']} spp | scene per clip: "
                          f"{rows['scene_per_clip']['frames_per_s']} frames/s | {best}: {rows[best]['frames_per_s']} "
-                         f"frames/s | {rows[best]['speedup']}x |")
+                         f"frames/s ({rows[best].get('ceiling_ratio')} of the ceiling) | {rows[best]['speedup']}x |")
+            for name, row in (rnd.get("with_output") or {}).items():
+                if "frames_per_s" in row:
+                    lines.append(f"| render stage, {name} | | {row['frames_per_s']} frames/s "
+                                 f"({row.get('ceiling_ratio')} of the ceiling) | |")
         train = (b.get("train") or {}).get("result") or {}
         if train:
             loops = train["loops"]

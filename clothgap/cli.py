@@ -23,9 +23,10 @@ from pathlib import Path
 
 import click
 
-from clothgap.config import ConfigError, PRESETS, apply_overrides, pairs, preset, with_name
+from clothgap.api import FIX_FAILURES, StageFailures, failure_message, resolve_config
+from clothgap.config import ConfigError, PRESETS, changed_settings, pairs, shown
 from clothgap.errors import UserError
-from clothgap.runs import Run, atomic_write_json, storage_error
+from clothgap.runs import Run, atomic_write_json, clip_id, is_done, storage_error
 
 
 class DefaultGroup(click.Group):
@@ -47,7 +48,10 @@ class DefaultGroup(click.Group):
 def _run_options(fn):
     """RUN_DIR, or --preset/--out/--set to start (or resume) a run."""
     fn = click.option("--set", "overrides", multiple=True, metavar="SECTION.KEY=VALUE",
-                      help="Override one setting, e.g. --set sim.frames=30 (repeatable).")(fn)
+                      help="Override one setting, e.g. --set sim.frames=30 (repeatable; applied after --config).")(fn)
+    fn = click.option("--config", "config_file", type=click.Path(path_type=Path), metavar="FILE",
+                      help="A TOML file of settings ([sim], [render], ... tables as in config.json, and an "
+                           "optional preset = NAME to start from), for studies kept in version control.")(fn)
     fn = click.option("--out", type=click.Path(path_type=Path),
                       help="Run folder to create or resume (default: runs/<preset>).")(fn)
     fn = click.option("--preset", "preset_name", type=str, metavar="NAME",
@@ -83,36 +87,15 @@ def _allow_failures_option(fn):
                              "summary). Without it the stage does all it can, then exits 1.")(fn)
 
 
-class StageFailures(Exception):
-    """A stage finished the rest of its work but some clips failed or were left out (exit 1)."""
-
-
-def failure_lines(stage: str, summary: object) -> list[str]:
-    """What a stage's summary says failed or was left out, one ``where: why`` line per clip."""
-    if not isinstance(summary, dict):
-        return []
-    if stage == "sim":
-        return [f"{f['setting']}/{f['clip_id']}: {f['error']}" for f in summary.get("failed_clips", [])]
-    if stage == "render":
-        return [f"{f['variant']}/{f['setting']}/{f['clip_id']}: {f['error']}" for f in summary.get("failed", [])]
-    if stage == "eval":
-        return sorted(set(summary.get("left_out_clips", [])))
-    return []
-
-
 def check_failures(stage: str, summary: object, allow_failures: bool) -> None:
     """After a stage did everything else: its failures as one error (or a warning with --allow-failures)."""
-    lines = failure_lines(stage, summary)
-    if not lines:
+    message = failure_message(stage, summary)
+    if not message:
         return
-    what = "test clip(s) left out of the numbers" if stage == "eval" else "clip(s) failed"
-    shown = "; ".join(lines[:5]) + (f"; ... ({len(lines) - 5} more)" if len(lines) > 5 else "")
-    message = f"{stage}: {len(lines)} {what}: {shown}"
     if allow_failures:
         click.echo(f"warning: {message}", err=True)
         return
-    raise StageFailures(f"{message}. Fix or redo them and run again (finished work is kept), "
-                        "or pass --allow-failures to accept the results without them")
+    raise StageFailures(f"{message}. {FIX_FAILURES}")
 
 
 def executor_options(executor: str, workers: int | None, address: str | None, gpus_per_worker: float,
@@ -124,23 +107,27 @@ def executor_options(executor: str, workers: int | None, address: str | None, gp
 
 
 def resolve_run(run_dir: Path | None, preset_name: str | None, out: Path | None,
-                overrides: tuple[str, ...]) -> Run:
-    """Open an existing run, or create/resume one from a preset."""
+                overrides: tuple[str, ...], config_file: Path | None = None) -> Run:
+    """Open an existing run, or create/resume one from a preset, a config file and overrides.
+
+    Settings apply in order: the preset (``--preset``, else ``preset`` in the file, else the run's own config),
+    the file's settings, then each ``--set``. A resumed run may take a config that only adds work (see
+    ``clothgap.runs.Run.create_or_resume``); what changed is said on stderr.
+    """
     if run_dir is not None and out is not None and run_dir != out:
         raise ConfigError(f"give the run folder once: RUN_DIR {run_dir} and --out {out} differ")
-    if preset_name is None and not overrides:
+    if preset_name is None and not overrides and config_file is None:
         if run_dir is None and out is None:
             raise ConfigError("name a run folder (RUN_DIR) or start one with --preset NAME [--out DIR]")
         return Run.open(run_dir or out)
-    if preset_name is None:
-        cfg = Run.open(run_dir or out).config
-    else:
-        cfg = preset(preset_name)
-    cfg = apply_overrides(cfg, list(overrides))
+    cfg = resolve_config(run_dir or out, preset_name, config_file, list(overrides))
     root = run_dir or out or Path("runs") / cfg.name
-    if preset_name is not None and root.name != cfg.name:
-        cfg = with_name(cfg, root.name)
-    return Run.create_or_resume(root, cfg)
+    before = Run.open(root).config if (root / "config.json").is_file() else None
+    run = Run.create_or_resume(root, cfg)
+    if before is not None:
+        for key, (old, new) in changed_settings(before, run.config).items():
+            click.echo(f"{root}: {key} {shown(old)} -> {shown(new)}", err=True)
+    return run
 
 
 def _echo_summary(stage: str, summary: object, seconds: float) -> None:
@@ -159,19 +146,19 @@ def cli() -> None:
 # ---- sim
 @cli.group(cls=DefaultGroup)
 def sim() -> None:
-    """Simulate cloth sequences with Warp (`clothgap sim RUN_DIR`), or run the
+    """Simulate cloth sequences with Warp (`clothgap sim RUN_DIR`), run the
     paper's material analyses (`sensitivity`, `table2`) or the cantilever
-    bending test (`cantilever`)."""
+    bending test (`cantilever`), or write a clip's frames as meshes (`export`)."""
 
 
 @sim.command("run")
 @_run_options
 @_executor_options
 @_allow_failures_option
-def sim_run(run_dir, preset_name, out, overrides, allow_failures, **execution) -> None:
+def sim_run(run_dir, preset_name, out, overrides, config_file, allow_failures, **execution) -> None:
     """Simulate every clip of the run that is not done yet."""
     opts = executor_options(**execution)
-    run = resolve_run(run_dir, preset_name, out, overrides)
+    run = resolve_run(run_dir, preset_name, out, overrides, config_file)
     from clothgap.executor import run_stage
 
     t0 = time.perf_counter()
@@ -186,7 +173,7 @@ def sim_run(run_dir, preset_name, out, overrides, allow_failures, **execution) -
 @click.option("--refine", default=1, show_default=True, type=click.IntRange(1, 8),
               help="Subdivide the hanging cloth and the strip this many times per edge (finer, slower).")
 def sim_sensitivity(out: Path, device: str, refine: int) -> None:
-    """Sensitivity curves (the paper's Fig. 3): max stretch D(M) vs 1/p, max curvature C(M) vs 1/k."""
+    """Sensitivity curves (the paper's Figure 3): max stretch D(M) vs 1/p, max curvature C(M) vs 1/k."""
     from sim.analysis import Setup, sensitivity
 
     click.echo(f"wrote {sensitivity(out, device=device, setup=Setup(refine=refine))}")
@@ -230,13 +217,42 @@ def sim_cantilever(fabric: str, level: int, overhangs: tuple[float, ...], axis: 
     click.echo(run_test(fabric, level, overhangs, axis, device))
 
 
+@sim.command("export")
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.argument("clip")
+@click.option("--setting", help="The clip's setting, e.g. wind-uniform1 (default: the first that holds it).")
+@click.option("--frames", metavar="LIST", help="Frames to write, e.g. 0,5,10-19 (default: all).")
+@click.option("--format", "fmt", type=click.Choice(["ply", "obj", "glb"]), default="ply", show_default=True,
+              help="Mesh format (glb is turned to glTF's +Y up; ply and obj keep the simulation's z up).")
+@click.option("--out", type=click.Path(path_type=Path), help="Folder for the files (default: RUN_DIR/export/<setting>/<clip>).")
+def sim_export(run_dir: Path, clip: str, setting: str | None, frames: str | None, fmt: str, out: Path | None) -> None:
+    """Write a simulated clip's frames as mesh files (one per frame) for Blender or MeshLab. CLIP is a clip
+    id (c00003), a clip index (3) or a measured-fabric clip (<fabric>-<n>)."""
+    run = Run.open(run_dir)
+    name = clip_id(int(clip)) if clip.isdigit() else clip
+    known = run.config.sim.settings()
+    if setting is not None and setting not in known:
+        raise ConfigError(f"unknown setting {setting!r}; this run has {', '.join(known)}")
+    folders = [d / name for s in ([setting] if setting else known) for d in (run.sim_dir(s), run.measured_sim_dir(s))]
+    folder = next((f for f in folders if is_done(f)), None)
+    if folder is None:
+        raise ConfigError(f"no finished sim clip {name} in {run.root} ({', '.join(str(f) for f in folders[:2])}"
+                          f"{', ...' if len(folders) > 2 else ''}): run `clothgap sim {run.root}` first, or name "
+                          "another clip")
+    from sim.export import export_clip
+
+    out = out or run.root / "export" / folder.parent.name / name
+    files = export_clip(folder, out, fmt, frames)
+    click.echo(f"wrote {len(files)} {fmt} file(s) of {folder} to {out}")
+
+
 # ---- render
 @cli.command()
 @_run_options
 @click.option("--list-variants", is_flag=True, help="List the named render variants and exit.")
 @_executor_options
 @_allow_failures_option
-def render(run_dir, preset_name, out, overrides, list_variants, allow_failures, **execution) -> None:
+def render(run_dir, preset_name, out, overrides, config_file, list_variants, allow_failures, **execution) -> None:
     """Render the run's simulated clips under each render variant (Mitsuba 3)."""
     if list_variants:
         from render.variants import describe_variants
@@ -244,7 +260,7 @@ def render(run_dir, preset_name, out, overrides, list_variants, allow_failures, 
         click.echo(describe_variants())
         return
     opts = executor_options(**execution)
-    run = resolve_run(run_dir, preset_name, out, overrides)
+    run = resolve_run(run_dir, preset_name, out, overrides, config_file)
     for setting in run.config.sim.settings():
         run.require(run.sim_dir(setting), "sim")
     from clothgap.executor import run_stage
@@ -262,36 +278,16 @@ def render(run_dir, preset_name, out, overrides, list_variants, allow_failures, 
 @click.option("--variant", help="Train only on this render variant.")
 @click.option("--setting", help="Train only on this setting, e.g. wind-uniform1.")
 @click.option("--seed", "train_seed", type=int, help="Train only this seed.")
-def train(run_dir, preset_name, out, overrides, model_name, variant, setting, train_seed) -> None:
+def train(run_dir, preset_name, out, overrides, config_file, model_name, variant, setting, train_seed) -> None:
     """Train the models on the rendered clips (every setting x variant x model x seed
     not done yet, or the one selected by --model/--variant/--setting/--seed)."""
-    run = resolve_run(run_dir, preset_name, out, overrides)
-    cfg = run.config
-    settings = [setting] if setting else cfg.sim.settings()
-    variants = [variant] if variant else list(cfg.render.variants)
-    if variant and variant not in cfg.render.variants:
-        raise ConfigError(f"unknown variant {variant!r}; this run renders {', '.join(cfg.render.variants)}")
-    for s in settings:
-        if s not in cfg.sim.settings():
-            raise ConfigError(f"unknown setting {s!r}; this run has {', '.join(cfg.sim.settings())}")
-    chosen = [(s, v) for s, v in pairs(cfg) if s in settings and v in variants]
-    for s, v in chosen:
-        run.require(run.render_dir(v, s), "render")
+    run = resolve_run(run_dir, preset_name, out, overrides, config_file)
+    from clothgap.api import train_selected
+
     t0 = time.perf_counter()
-    if model_name or variant or setting or train_seed is not None:
-        from learn.models import MODEL_NAMES
-        from learn.train import train_one
-
-        if model_name and model_name not in MODEL_NAMES:
-            raise ConfigError(f"unknown model {model_name!r}; known models: {', '.join(MODEL_NAMES)}")
-        models = [model_name] if model_name else list(cfg.train.models)
-        seeds = [train_seed] if train_seed is not None else list(cfg.train.seeds)
-        done = [str(train_one(run, s, v, m, sd)) for s, v in chosen for m in models for sd in seeds]
-        _echo_summary("train", {"trained": done}, time.perf_counter() - t0)
-    else:
-        from learn.stage import run_train
-
-        _echo_summary("train", run_train(run), time.perf_counter() - t0)
+    done = train_selected(run, [setting] if setting else None, [variant] if variant else None,
+                          [model_name] if model_name else None, [train_seed] if train_seed is not None else None)
+    _echo_summary("train", {"trained": [str(p) for p in done]}, time.perf_counter() - t0)
 
 
 # ---- eval
@@ -304,12 +300,12 @@ def eval() -> None:  # noqa: A001 - the subcommand is called eval
 @eval.command("run")
 @_run_options
 @_allow_failures_option
-def eval_run(run_dir, preset_name, out, overrides, allow_failures) -> None:
+def eval_run(run_dir, preset_name, out, overrides, config_file, allow_failures) -> None:
     """Accuracy tables (the paper's Table 3) and the domain-gap matrix for a run.
 
     Test clips of the split with no prediction (not rendered, unreadable) are listed in
     eval/summary.json ("left_out") and make the command exit 1 unless --allow-failures."""
-    run = resolve_run(run_dir, preset_name, out, overrides)
+    run = resolve_run(run_dir, preset_name, out, overrides, config_file)
     run.require(run.root / "train", "train")
     from eval.stage import run_eval
 
@@ -447,7 +443,7 @@ def eval_ablation(run_dir: Path, recipes: tuple[str, ...], setting: str | None, 
 @click.option("--out", type=click.Path(path_type=Path), help="Output folder (default: RUN_DIR/clone/<video>).")
 def clone(video, run_dir, model_name, setting, variant, train_seed, garment, motion, frames, render_variant,
           resolution, spp, backend, no_compare, out) -> None:
-    """Material cloning (the paper's Fig. 9): predict VIDEO's cloth class with a model trained in the run,
+    """Material cloning (the paper's Figure 9): predict VIDEO's cloth class with a model trained in the run,
     simulate a skirt of that material (beside a softer and a stiffer one) and render it next to the input."""
     if not video.exists():
         raise ConfigError(f"input video {video} does not exist")
@@ -476,13 +472,13 @@ def report(run_dir: Path) -> None:
 @_run_options
 @_executor_options
 @_allow_failures_option
-def pipeline(run_dir, preset_name, out, overrides, allow_failures, **execution) -> None:
+def pipeline(run_dir, preset_name, out, overrides, config_file, allow_failures, **execution) -> None:
     """Run sim, render, train, eval and report in turn (each skips what is done).
 
     --executor/--workers/--address/--gpus-per-worker spread sim and render; training
     spreads over GPUs with torchrun (`torchrun --nproc-per-node N -m learn RUN_DIR`)."""
     opts = executor_options(**execution)
-    run = resolve_run(run_dir, preset_name, out, overrides)
+    run = resolve_run(run_dir, preset_name, out, overrides, config_file)
     click.echo(f"run folder: {run.root}  (config: {run.root / 'config.json'})")
     timings: dict[str, float] = {}
     summaries: dict[str, object] = {}
@@ -510,15 +506,11 @@ def pipeline(run_dir, preset_name, out, overrides, allow_failures, **execution) 
     atomic_write_json(run.root / "pipeline.json", {"seconds": timings, "summaries": summaries})
     click.echo(f"report: {summaries['report']}")
     # Every stage ran on what the one before produced; now say what failed or was left out on the way.
-    failures = []
-    for name in ("sim", "render", "eval"):
-        try:
-            check_failures(name, summaries[name], allow_failures)
-        except StageFailures as e:
-            failures.append(str(e).split(". Fix or redo")[0])
-    if failures:
-        raise StageFailures("; ".join(failures) + ". Fix or redo them and run again (finished work is kept), "
-                            "or pass --allow-failures to accept the results without them")
+    failures = [m for m in (failure_message(name, summaries[name]) for name in ("sim", "render", "eval")) if m]
+    if failures and allow_failures:
+        click.echo(f"warning: {'; '.join(failures)}", err=True)
+    elif failures:
+        raise StageFailures(f"{'; '.join(failures)}. {FIX_FAILURES}")
 
 
 def _shard_error() -> type[BaseException] | tuple[()]:

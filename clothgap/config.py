@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import tomllib
 import typing
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -34,11 +35,13 @@ class StudyConfig:
 
 def _smoke() -> StudyConfig:
     # Four classes at the corners of the (p, k) grid, four sequences each: a real
-    # study that finishes in a few minutes on 2 CPU cores.
+    # study that finishes in a minute on 2 CPU cores. Two variants (the paper's random
+    # textures and the grid), so the domain-gap matrix, the axis ranking and the side-by-side
+    # frames of the report have something to show.
     return StudyConfig(
         name="smoke",
         sim=SimConfig(classes=(0, 8, 45, 53), sequences_per_class=4, grid_vertices=16, frames=20, device="cpu"),
-        render=RenderConfig(variants=("paper",), resolution=32, spp=2),
+        render=RenderConfig(variants=("paper", "grid"), resolution=32, spp=2),
         train=TrainConfig(models=("lrcn",), image_size=32, epochs=6, batch_size=8, width=16, fc6=64,
                           hidden=32, val_fraction=0.0, test_fraction=0.25, lr=2e-3),
         eval=EvalConfig(bootstrap=200),
@@ -66,7 +69,9 @@ def _paper() -> StudyConfig:
         name="paper",
         sim=SimConfig(motions=("wind", "arm"), remeshing=("uniform1", "uniform2", "uniform3", "adaptive"),
                       sequences_per_class=48, frames=40, device="cuda", wind_nuisance="speed"),
-        render=RenderConfig(variants=("paper",), resolution=112, spp=16, backend="cuda_ad_rgb"),
+        # frames.npy only: PNG and EXR cost more host time than the path tracer at 112 px (render.frames)
+        render=RenderConfig(variants=("paper",), resolution=112, spp=16, backend="cuda_ad_rgb",
+                            write_png=False, write_hdr=False),
         train=TrainConfig(models=("lrcn", "base1", "base2", "base3"), image_size=112, epochs=30,
                           batch_size=64, width=64, fc6=512, hidden=256, device="cuda",
                           motion=True, keep="best"),
@@ -169,6 +174,122 @@ def apply_overrides(cfg: StudyConfig, overrides: list[str]) -> StudyConfig:
                               f"known: {', '.join(sorted(node))}")
         node[keys[-1]] = value
     return from_dict(StudyConfig, data)
+
+
+def read_config_file(path: Path | str) -> tuple[str | None, dict]:
+    """A study's settings kept in a TOML file: ``(preset named in it or None, the settings as nested tables)``.
+
+    The file has the shape of ``config.json``, with an optional top-level ``preset`` to start from::
+
+        preset = "smoke"
+        [render]
+        variants = ["paper", "grid"]
+        [sim]
+        frames = 30
+
+    A missing or unreadable file, bad TOML or a ``preset`` that is not a string is a ConfigError naming the file;
+    unknown settings are named when the settings are applied (``apply_settings``).
+    """
+    path = Path(path)
+    try:
+        with path.open("rb") as f:
+            data = tomllib.load(f)
+    except FileNotFoundError:
+        raise ConfigError(f"config file {path} does not exist") from None
+    except IsADirectoryError:
+        raise ConfigError(f"config file {path} is a folder, not a TOML file") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise ConfigError(f"config file {path} is not valid TOML ({e})") from None
+    except OSError as e:
+        raise ConfigError(f"config file {path} cannot be read: {e.strerror or e}") from None
+    name = data.pop("preset", None)
+    if name is not None and not isinstance(name, str):
+        raise ConfigError(f"{path}: preset must be a preset's name ({', '.join(PRESETS)}), got {name!r}")
+    return name, data
+
+
+def apply_settings(cfg: StudyConfig, settings: dict, where: str = "config") -> StudyConfig:
+    """``cfg`` with the nested tables of ``settings`` laid over it (what a config file gives).
+
+    Only the keys named change; an unknown section or setting is a ConfigError naming it, ``where`` and what is known.
+    """
+    data = to_dict(cfg)
+
+    def lay(node: dict, new: dict, at: str) -> None:
+        for key, value in new.items():
+            if key not in node:
+                raise ConfigError(f"{where}: unknown setting {at}{key}; known: {', '.join(sorted(node))}")
+            if isinstance(node[key], dict):
+                if not isinstance(value, dict):
+                    raise ConfigError(f"{where}: {at}{key} is a section ([{at}{key}] in TOML), got {value!r}")
+                lay(node[key], value, f"{at}{key}.")
+            else:
+                node[key] = value
+
+    lay(data, settings, "")
+    try:
+        return from_dict(StudyConfig, data)
+    except ConfigError as e:
+        raise ConfigError(f"{where}: {e}") from None
+
+
+# ---------------------------------------------------------------- changing a run's config
+
+# Settings that say where or how fast work runs, not what it computes (within float rounding across devices),
+# and the run's name: a resumed run may change them at any time.
+# (render.write_png / write_hdr only add inspection files; clips rendered before keep what they wrote.)
+EXECUTION_SETTINGS = frozenset({"name", "sim.device", "sim.batch_size", "render.writer_threads", "render.write_png",
+                                "render.write_hdr", "train.device", "train.num_threads", "train.num_workers"})
+# Lists a resumed run may extend: an item more is more work downstream, nothing finished changes.
+GROWING_SETTINGS = frozenset({"sim.motions", "sim.remeshing", "render.variants", "train.models", "train.seeds"})
+# The stages in order; a setting shapes the work of its own stage and of every stage after it.
+STAGES = ("sim", "render", "train", "eval")
+
+
+def _flat(data: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in data.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def shown(value: Any) -> str:
+    """A setting's value as ``--set`` takes it (lists joined by commas)."""
+    return ",".join(map(str, value)) if isinstance(value, (list, tuple)) else str(value)
+
+
+def changed_settings(old: StudyConfig, new: StudyConfig) -> dict[str, tuple[Any, Any]]:
+    """``{"section.key": (old value, new value)}`` for every setting that differs."""
+    a, b = _flat(to_dict(old)), _flat(to_dict(new))
+    return {k: (a[k], b[k]) for k in a if a[k] != b[k]}
+
+
+def invalidating_settings(old: StudyConfig, new: StudyConfig) -> dict[str, str]:
+    """The changed settings that would make a stage's finished work disagree with the config:
+    ``{"section.key": first stage it shapes}``.
+
+    Not listed: execution settings (``EXECUTION_SETTINGS``), lists that only grow (``GROWING_SETTINGS``: more
+    settings, variants, models or seeds), ``render.variant_settings`` when every variant keeps the settings it
+    had, and ``eval.*`` (``clothgap eval`` recomputes its tables and checks what it reuses). The run seed shapes
+    the simulations, hence everything.
+    """
+    out = {}
+    for key, (before, after) in changed_settings(old, new).items():
+        section = key.partition(".")[0]
+        if key in EXECUTION_SETTINGS or section == "eval":
+            continue
+        if key in GROWING_SETTINGS and set(before) <= set(after):
+            continue
+        if key == "render.variant_settings":
+            settings = new.sim.settings()
+            if all(set(old.render.settings_of(v, settings)) <= set(new.render.settings_of(v, settings))
+                   for v in old.render.variants):
+                continue
+        out[key] = section if section in STAGES else "sim"
+    return out
 
 
 def problems(cfg: StudyConfig) -> list[str]:

@@ -4,7 +4,7 @@ Layout of a run (``runs/<name>`` unless the user names another folder)::
 
     config.json                                  resolved study config
     sim/<setting>/<clip_id>/                     clip.npz, meta.json, DONE
-    render/<variant>/<setting>/<clip_id>/        hdr/*.exr, ldr/*.png, meta.json, DONE
+    render/<variant>/<setting>/<clip_id>/        frames.npy, [ldr/*.png, hdr/*.exr,] meta.json, DONE
     splits/<setting>.json                        train/val/test clip ids (by sequence)
     train/<setting>/<variant>/<model>/s<seed>/   checkpoint.pt, metrics.csv, tb/, DONE
     eval/                                        predictions, tables (CSV, JSON)
@@ -30,7 +30,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from clothgap.config import ConfigError, StudyConfig, load_config, save_config, to_dict, validate
+from clothgap.config import (STAGES, ConfigError, StudyConfig, changed_settings, invalidating_settings, load_config,
+                             save_config, shown, to_dict, validate)
 from clothgap.errors import InputError, MissingInputError, StorageError
 
 DONE = "DONE"
@@ -126,6 +127,16 @@ def fresh_dir(folder: Path) -> Path:
     return folder
 
 
+def finished_stages(root: Path) -> set[str]:
+    """The stages with finished work in a run folder: a clip's DONE (sim, render; measured fabrics included),
+    a split or a finished model (train, ablations included)."""
+    root = Path(root)
+    patterns = {"sim": ("sim/*/*/DONE", "measured/sim/*/*/DONE"),
+                "render": ("render/*/*/*/DONE", "measured/render/*/*/*/DONE"),
+                "train": ("splits/*.json", "train/*/*/*/*/DONE", "ablation/*/*/*/*/*/DONE")}
+    return {stage for stage, globs in patterns.items() if any(next(root.glob(g), None) for g in globs)}
+
+
 def clip_id(index: int) -> str:
     return f"c{index:05d}"
 
@@ -164,7 +175,13 @@ class Run:
 
     @classmethod
     def create_or_resume(cls, root: Path | str, config: StudyConfig) -> "Run":
-        """Start a run in ``root``, or resume it when it holds the same config (a bad config is a ConfigError)."""
+        """Start a run in ``root``, or resume it (a bad config is a ConfigError).
+
+        A run folder that already holds a config takes a different one when the change only adds work (more
+        settings, variants, models, seeds; see ``clothgap.config.invalidating_settings``) or touches settings
+        of stages with no finished work yet; ``config.json`` is then rewritten. A change that would make
+        finished work disagree with the config is a ConfigError naming each setting and the finished stage.
+        """
         validate(config)
         root = Path(root)
         path = root / "config.json"
@@ -172,11 +189,24 @@ class Run:
             raise ConfigError(f"--out {root} is a file, not a folder: choose another --out folder")
         if path.is_file():
             existing = load_config(path)
-            if to_dict(existing) != to_dict(config):
+            if to_dict(existing) == to_dict(config):
+                return cls(root, existing)
+            done = finished_stages(root)
+            blocked = {key: stage for key, stage in invalidating_settings(existing, config).items()
+                       if any(s in done for s in STAGES[STAGES.index(stage):])}
+            if blocked:
+                changes = changed_settings(existing, config)
+                named = "; ".join(f"{key} {shown(changes[key][0])} -> {shown(changes[key][1])} "
+                                  f"({', '.join(s for s in STAGES[STAGES.index(stage):] if s in done)} work is done)"
+                                  for key, stage in blocked.items())
                 raise ConfigError(
-                    f"{root} already holds a run with a different config; resume it without "
-                    "--preset/--set, or choose another --out folder")
-            return cls(root, existing)
+                    f"{root} already holds a run whose finished work this config would invalidate or leave out: {named}. "
+                    "A run may gain settings, variants, models and seeds, and change eval settings, at any time; "
+                    "other settings only before their stage has finished work. Leave those out, or choose "
+                    "another --out folder")
+            # Only adds work (or changes what nothing finished depends on): the run goes on under the new config.
+            save_config(config, path)
+            return cls(root, config)
         try:
             root.mkdir(parents=True, exist_ok=True)
             save_config(config, path)

@@ -38,6 +38,7 @@ LEVERS: dict[str, dict] = {
     "best": {"keep": "best"},                  # early stopping: the epoch of best validation accuracy
     "motion": {"motion": True},                # frame differences beside the frames
     "geometry": {"aux_geometry": 1.0},         # regress the simulated 8 x 8 lattice per frame (training only)
+    "bottleneck": {"bottleneck": True},         # classes read only the CNN's predicted lattice (learn.models)
     "factored": {"factored": True},            # extra stretching and bending heads
     "smooth": {"label_smoothing": 0.1},
     "last": {"readout": "last"},               # loss and answer from the last step only

@@ -29,7 +29,7 @@ def conv5_maps(model, frames: np.ndarray) -> np.ndarray:
         x = torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2).float().div(255)
         device = next(model.parameters()).device
         with torch.no_grad():
-            model.cnn(x.to(device))
+            model(x.to(device)[None])   # the whole model: it adds the inputs its CNN reads (frame differences)
     finally:
         hook.remove()
     maps = captured["conv5"].mean(dim=1, keepdim=True)

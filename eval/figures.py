@@ -121,3 +121,51 @@ def frame_grid(images: dict[str, list[np.ndarray]], frame_labels: list[str]):
                 ax.set_xlabel(frame_labels[j], fontsize=7)
     fig.tight_layout()
     return fig
+
+
+def axis_ranking(ranking: pd.DataFrame):
+    """Render axes by mean accuracy gain (% points) with their intervals; clean pairs solid, confounded hatched."""
+    ranking = ranking.iloc[::-1]            # largest gain on top
+    gain = 100 * ranking["mean_gain"].to_numpy(float)
+    lo = 100 * ranking.get("mean_gain_lo", pd.Series(np.nan, ranking.index)).to_numpy(float)
+    hi = 100 * ranking.get("mean_gain_hi", pd.Series(np.nan, ranking.index)).to_numpy(float)
+    err = np.where(np.isfinite(lo) & np.isfinite(hi), np.abs(np.stack([gain - lo, hi - gain])), 0.0)
+    clean = ranking["clean"].astype(bool).to_numpy()
+    fig, ax = plt.subplots(figsize=(6.0, 0.45 * len(ranking) + 1.3))
+    y = np.arange(len(ranking))
+    bars = ax.barh(y, gain, xerr=err, color=np.where(gain >= 0, "tab:blue", "tab:red"), alpha=0.8,
+                   error_kw={"ecolor": "black", "capsize": 3, "lw": 1})
+    for bar, is_clean in zip(bars, clean):
+        if not is_clean:
+            bar.set_hatch("//")
+    ax.axvline(0, color="black", lw=0.8)
+    ax.set_yticks(y, [f"{a}{'' if c else ' (confounded)'}" for a, c in zip(ranking["axis"], clean)], fontsize=8)
+    ax.set_xlabel("accuracy won back by matching the test variant on this axis (% points, 95% interval)")
+    ax.grid(axis="x", alpha=0.3)
+    fig.tight_layout()
+    return fig
+
+
+def measured_scatter(table: pd.DataFrame):
+    """Predicted against measured bending and stretching stiffness of the measured fabrics, one colour per
+    training variant (a point per model and fabric; on the diagonal, the prediction is the measurement)."""
+    fig, axes = plt.subplots(1, 2, figsize=(9.0, 4.0))
+    variants = list(dict.fromkeys(table["train_variant"]))
+    colours = {v: plt.cm.tab10(i % 10) for i, v in enumerate(variants)}
+    markers = dict(zip(dict.fromkeys(table["model"]), "osD^v<>px"))
+    for ax, (what, unit) in zip(axes, (("bending", "N*m"), ("stretching", "N/m"))):
+        x, y = table[f"{what}_N_m"].to_numpy(float), table[f"pred_{what}_N_m"].to_numpy(float)
+        for (variant, model), g in table.groupby(["train_variant", "model"], sort=False):
+            ax.scatter(g[f"{what}_N_m"], g[f"pred_{what}_N_m"], color=colours[variant], marker=markers[model],
+                       s=28, alpha=0.85, label=f"{model} trained on {variant}")
+        ok = np.isfinite(x) & np.isfinite(y) & (x > 0) & (y > 0)
+        if ok.any():
+            lo, hi = min(x[ok].min(), y[ok].min()) / 1.5, max(x[ok].max(), y[ok].max()) * 1.5
+            ax.plot([lo, hi], [lo, hi], "k--", lw=0.8)
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+        ax.set(xlabel=f"measured {what} ({unit})", ylabel=f"predicted {what} ({unit})")
+        ax.grid(alpha=0.3, which="both")
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    return fig

@@ -22,7 +22,6 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from PIL import Image
 
 from clothgap.config import ConfigError, to_dict
 from clothgap.runs import Run, atomic_write_text, is_done
@@ -36,11 +35,11 @@ main{max-width:1180px;margin:0 auto;padding:24px 32px 64px;background:#fff}
 h1{font-size:1.6em;margin-bottom:.2em}h2{border-bottom:2px solid #e3e6ea;padding-bottom:.2em;margin-top:2em}
 h3{font-size:1.05em;margin:1.4em 0 .4em}
 .meta{color:#5b6570;font-size:.9em}code{background:#f0f2f4;padding:1px 4px;border-radius:3px;font-size:.88em}
-table{border-collapse:collapse;margin:.6em 0 1em;font-size:.86em}
+table{border-collapse:collapse;margin:.6em 0 1em;font-size:.86em;display:block;max-width:100%;overflow-x:auto}
 th,td{border:1px solid #dde1e5;padding:4px 8px;text-align:left;vertical-align:top}
 th{background:#eef1f4}tr:nth-child(even) td{background:#fafbfc}
 td.num{text-align:right;font-variant-numeric:tabular-nums;white-space:nowrap}
-.ci{color:#7a848e;font-size:.85em}.figs{display:flex;flex-wrap:wrap;gap:14px}
+.ci{color:#7a848e;font-size:.85em}td.na{color:#8a939c;font-size:.8em;font-style:italic}.figs{display:flex;flex-wrap:wrap;gap:14px}
 figure{margin:0}figure img{max-width:100%;border:1px solid #e3e6ea}figcaption{font-size:.8em;color:#5b6570}
 nav a{margin-right:12px}details{margin:.5em 0}summary{cursor:pointer;color:#2a5d9f}
 pre{background:#f0f2f4;padding:10px;overflow:auto;font-size:.8em;max-height:420px}
@@ -82,9 +81,34 @@ def _links(run: Run, paths: str) -> str:
     return "<br>".join(_link(run, p) for p in str(paths).split()) if isinstance(paths, str) else ""
 
 
+# Why a cell of these columns can be empty: said in the cell instead of leaving it blank.
+_CORRELATION_WHY = "undefined: the predictions or the truth are constant over these test clips"
+WHY_EMPTY = {
+    "drop": "the training variant was not tested on itself",
+    "gap": "no model was trained on the test variant",
+    **{c: _CORRELATION_WHY for c in tables.CORRELATION_COLUMNS},
+    "mean_share": "no gap to close: the in-domain model did no better",
+    "mean_gain": "no pair of training variants tells this axis apart",
+    "pearson": "undefined: fewer than 3 points, or one side constant",
+    "spearman": "undefined: fewer than 3 points, or one side constant",
+    **{c: "not in the paper's Table 2" for c in ("paper_p_est", "paper_p", "paper_k_est", "paper_k", "p_match",
+                                                 "k_match", "p_table_match", "k_table_match")},
+}
+
+
+def _empty(column: str, why: str | None = None) -> str:
+    """An empty cell that says why it is empty."""
+    return f'<td class="na">n/a: {_esc(why or WHY_EMPTY.get(column, "no value"))}</td>'
+
+
+def _missing(v) -> bool:
+    return v is None or (pd.api.types.is_scalar(v) and pd.isna(v))
+
+
 def _table(frame: pd.DataFrame, pct: tuple[str, ...] = (), est: tuple[str, ...] = (), run: Run | None = None) -> str:
     """A frame as an HTML table; ``pct`` columns (fractions) shown as percent with their _lo/_hi,
-    ``est`` columns as value [lo, hi]; with ``run``, path columns (``LINK_COLUMNS``) become links."""
+    ``est`` columns as value [lo, hi]; with ``run``, path columns (``LINK_COLUMNS``) become links.
+    An empty cell says why (``WHY_EMPTY``)."""
     shown = [c for c in frame.columns if not (c.endswith(("_lo", "_hi")) and c[:-3] in pct + est)]
     head = "".join(f"<th>{_esc(c)}</th>" for c in shown)
     rows = []
@@ -92,7 +116,9 @@ def _table(frame: pd.DataFrame, pct: tuple[str, ...] = (), est: tuple[str, ...] 
         cells = []
         for c in shown:
             v = r[c]
-            if c in pct and pd.notna(v):
+            if _missing(v):
+                cells.append(_empty(c))
+            elif c in pct:
                 lo, hi = r.get(f"{c}_lo", np.nan), r.get(f"{c}_hi", np.nan)
                 ci = f' <span class="ci">[{100 * lo:.1f}, {100 * hi:.1f}]</span>' if pd.notna(lo) else ""
                 cells.append(f'<td class="num">{100 * v:.1f}{ci}</td>')
@@ -101,17 +127,17 @@ def _table(frame: pd.DataFrame, pct: tuple[str, ...] = (), est: tuple[str, ...] 
             elif run is not None and c in LINK_COLUMNS:
                 cells.append(f"<td>{_links(run, v)}</td>")
             elif isinstance(v, (float, np.floating)):
-                cells.append(f'<td class="num">{"" if pd.isna(v) else f"{v:.4g}"}</td>')
+                cells.append(f'<td class="num">{v:.4g}</td>')
             else:
                 cells.append(f"<td>{_esc(v)}</td>")
         rows.append("<tr>" + "".join(cells) + "</tr>")
     return f"<table><tr>{head}</tr>{''.join(rows)}</table>"
 
 
-def _est(r, prefix: str, scale: float = 100.0, digits: int = 1) -> str:
+def _est(r, prefix: str, scale: float = 100.0, digits: int = 1, why: str | None = None) -> str:
     est = Estimate(r[prefix], r.get(f"{prefix}_lo", np.nan), r.get(f"{prefix}_hi", np.nan))
     if not np.isfinite(est.value):
-        return "<td></td>"
+        return _empty(prefix, why)
     if not (np.isfinite(est.low) and np.isfinite(est.high)):
         return f'<td class="num">{est.value * scale:.{digits}f}</td>'
     return (f'<td class="num">{est.value * scale:.{digits}f} <span class="ci">[{est.low * scale:.{digits}f}, '
@@ -149,7 +175,8 @@ def _section_table3(run: Run) -> str:
     rows = []
     for _, r in table.iterrows():
         cells = "".join(f"<td>{_esc(r[c])}</td>" for c in ("motion", "remeshing", "texture", "variant"))
-        cells += "".join(_est(r, f"{m}_acc") if pd.notna(r.get(f"{m}_acc")) else "<td></td>" for m in models)
+        cells += "".join(_est(r, f"{m}_acc") if pd.notna(r.get(f"{m}_acc"))
+                         else _empty("acc", f"no {m} trained on {r['variant']}") for m in models)
         rows.append(f"<tr>{cells}</tr>")
     out = ['<h2 id="table3">Table 3: accuracy on simulated test sequences</h2>',
            "<p>Accuracy over 54 classes (% of 10-frame test sub-sequences) of each model trained and tested on the "
@@ -216,14 +243,10 @@ def _section_learning(run: Run) -> str:
             f'<div class="figs">{"".join(figs)}</div>')
 
 
-def _load_rgb(path: Path) -> np.ndarray:
-    with Image.open(path) as im:
-        return np.asarray(im.convert("RGB"))
-
-
 def _section_frames(run: Run) -> str:
     """The same clip in every rendered variant, a few frames each (a paired view of the variants)."""
     from eval.stage import rendered_variants
+    from render.frames import FrameError, open_clip_frames
 
     out = []
     for setting in run.config.sim.settings():
@@ -236,15 +259,16 @@ def _section_frames(run: Run) -> str:
         clip = sorted(common)[0]
         images, labels = {}, []
         for v in variants:
-            frames = sorted((run.render_dir(v, setting) / clip / "ldr").glob("*.png"))
-            if not frames:
+            try:  # frames.npy, or the PNGs of clips rendered without one
+                frames = open_clip_frames(run.render_dir(v, setting) / clip)
+            except FrameError:
                 continue
             picks = sorted({0, len(frames) // 2, len(frames) - 1})
-            images[v] = [_load_rgb(frames[i]) for i in picks]
+            images[v] = [np.array(frames[i]) for i in picks]
             labels = [f"frame {i}" for i in picks]
         if images:
             fig = figures.frame_grid(images, labels)
-            out.append(_img(figures.png_bytes(fig), f"{setting}, clip {clip} (render/<variant>/{setting}/{clip}/ldr)"))
+            out.append(_img(figures.png_bytes(fig), f"{setting}, clip {clip} (render/<variant>/{setting}/{clip})"))
     if not out:
         return ""
     return ('<h2 id="frames">Sample frames per render variant</h2><p>One clip (same simulation) under every '
@@ -306,21 +330,33 @@ def _section_gap(run: Run) -> str:
     fig_root = run.eval_dir / "figures" / "gap"
     pngs = sorted(fig_root.rglob("*.png")) if fig_root.is_dir() else []
     if pngs:
-        out.append('<div class="figs">' + "".join(_img_file(p, str(p.relative_to(run.root)), 420) for p in pngs)
+        out.append("<p>Accuracy (%) of every model on every test variant: rows the variant it was trained on, "
+                   "columns the one it was tested on; the diagonal is in-domain.</p>"
+                   '<div class="figs">' + "".join(_img_file(p, str(p.relative_to(run.root)), 420) for p in pngs)
                    + "</div>")
+    elif gap["train_variant"].nunique() < 2 and gap["test_variant"].nunique() < 2:
+        out.append('<p class="note">One render variant: no gap to measure yet. Add variants to this run (they '
+                   f"reuse its simulations): <code>clothgap pipeline {_esc(run.root)} --set "
+                   "render.variants=paper,grid</code>, or <code>study.add_variants(...)</code> in "
+                   "<code>clothgap.api</code>.</p>")
     corr = [f"{c}{x}" for c in tables.CORRELATION_COLUMNS for x in ("", "_lo", "_hi")]
     cols = ["setting", "model", "train_variant", "test_variant", "sequences", "acc", "acc_lo", "acc_hi",
             "drop", "drop_lo", "drop_hi", "gap", "gap_lo", "gap_hi", *corr, "checkpoints"]
     out.append(_table(gap[[c for c in cols if c in gap]], pct=("acc", "drop", "gap"),
                       est=tables.CORRELATION_COLUMNS, run=run))
     rank_path = run.eval_dir / "axis_ranking.csv"
-    if rank_path.is_file():
-        ranking = pd.read_csv(rank_path)
-        if not ranking.empty:
-            out.append("<h3>Render axes ranked by the gap they close</h3><p><b>mean_gain</b>: accuracy gained on a "
-                       "test variant by training on a variant that matches it on this axis (fraction; "
-                       "<b>clean</b> = the two training variants differ in this axis only); <b>mean_share</b>: "
-                       "that gain over the gap it started from.</p>" + _table(ranking))
+    ranking = pd.read_csv(rank_path) if rank_path.is_file() else pd.DataFrame()
+    if not ranking.empty:
+        out.append("<h3>Render axes ranked by the gap they close</h3><p><b>mean_gain</b>: accuracy gained on a "
+                   "test variant by training on a variant that matches it on this axis, with its 95% interval "
+                   "from resampling test clips (<b>clean</b> = the two training variants differ in this axis "
+                   "only; otherwise other axes changed too); <b>mean_share</b>: that gain over the gap it "
+                   f"started from. Source: {_link(run, rank_path)}.</p>"
+                   + _img(figures.png_bytes(figures.axis_ranking(ranking)), "axes ranked by mean gain", 560)
+                   + _table(ranking, pct=("mean_gain",)))
+    elif rank_path.is_file():
+        out.append('<p class="note">No axis ranking: the rendered variants do not differ in a render setting, '
+                   "or no two training variants were tested on a common variant.</p>")
     return "".join(out)
 
 
@@ -377,6 +413,11 @@ def _section_measured(run: Run) -> str:
            "bending = mean of the bending table (N*m); a class predicts p or k times the basis fabric's value. "
            f"Sources: {_link(run, path)}, {_link(run, run.eval_dir / 'measured_correlations.csv')}, "
            f"{_link(run, run.eval_dir / 'measured.md')}, clips in {_link(run, run.root / 'measured')}.</p>"]
+    if not table.empty:
+        out.append("<p>Which training variant carries to the measured fabrics: each fabric's predicted stiffness "
+                   "against its measured one, one colour per training variant (on the dashed diagonal the "
+                   "prediction is the measurement; the class grid makes the predictions step).</p>"
+                   + _img(figures.png_bytes(figures.measured_scatter(table)), "measured fabrics, all models", 760))
     keys = ["setting", "train_variant", "model", "seed", "test_variant"]
     for key, g in table.groupby(keys, sort=True):
         setting, train_v, model, seed, _ = key
@@ -438,6 +479,7 @@ def write_report(run: Run) -> Path:
     """
     from eval.stage import stale_checkpoints
 
+    run = Run(run.root.resolve(), run.config)       # relative links from report/, however the folder was named
     stale = stale_checkpoints(run)
     if stale:
         raise ConfigError(f"the eval results are stale: {', '.join(stale[:3])}{' ...' if len(stale) > 3 else ''} "

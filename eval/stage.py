@@ -330,7 +330,8 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
 
     gap = tables.domain_gap(cells, results, **opts)
     atomic_write_text(out / "domain_gap.csv", gap.to_csv(index=False, float_format="%.6g"))
-    ranking = tables.rank_axes(gap, settings_of)
+    ranking = tables.rank_axes(gap, settings_of, cells, resamples=cfg.eval.bootstrap, confidence=cfg.eval.confidence,
+                               rng=rng_for("axes"))
     atomic_write_text(out / "axis_ranking.csv", ranking.to_csv(index=False, float_format="%.6g"))
 
     figs = {"confusion": _confusion_figures(run, cells), "gap": _gap_figures(run, gap)}

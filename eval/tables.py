@@ -232,7 +232,8 @@ def differing_axes(variant_settings: dict[str, dict]) -> list[str]:
     return [k for k in keys if len({repr(s.get(k)) for s in variant_settings.values()}) > 1]
 
 
-def rank_axes(gap: pd.DataFrame, variant_settings: dict[str, dict]) -> pd.DataFrame:
+def rank_axes(gap: pd.DataFrame, variant_settings: dict[str, dict], cells: dict[tuple, Cell] | None = None, *,
+              resamples: int = 1000, confidence: float = 0.95, rng: np.random.Generator | None = None) -> pd.DataFrame:
     """Which render axis closes most of the gap to a test variant.
 
     For a test variant T and two training variants A, B where B agrees with T on
@@ -240,10 +241,13 @@ def rank_axes(gap: pd.DataFrame, variant_settings: dict[str, dict]) -> pd.DataFr
     value bought. Pairs that differ ONLY in x measure x alone (``clean``); pairs
     that differ in more axes are confounded and count only when an axis has no
     clean pair. ``share`` is that gain over A's gap to T (1 = all of it).
-    Ranked by mean gain, largest first.
+    Ranked by mean gain, largest first. With the ``cells`` (key ``(setting, train
+    variant, model, test variant)``), ``mean_gain_lo``/``_hi`` is its interval from
+    resampling test clips, one draw of (setting, clip) for every pair at once: the
+    same clip has the same simulation under every variant.
     """
     axes = differing_axes(variant_settings)
-    cols = ["axis", "mean_gain", "mean_share", "pairs", "clean", "examples"]
+    cols = ["axis", "mean_gain", "mean_gain_lo", "mean_gain_hi", "mean_share", "pairs", "clean", "examples"]
     if len(variant_settings) < 2 or not axes or gap.empty:
         return pd.DataFrame(columns=cols)
     acc = {(r.setting, r.model, r.train_variant, r.test_variant): r.acc for r in gap.itertuples()}
@@ -262,15 +266,42 @@ def rank_axes(gap: pd.DataFrame, variant_settings: dict[str, dict]) -> pd.DataFr
                 if repr(vb.get(x)) == repr(vt.get(x)) != repr(va.get(x)):
                     gain = acc_b - acc_a
                     share = gain / gap_a if np.isfinite(gap_a) and gap_a > 0 else np.nan
-                    evidence[x][diff == [x]].append((gain, share, f"{s}/{m}: {a}->{b} on {t}"))
+                    evidence[x][diff == [x]].append((gain, share, f"{s}/{m}: {a}->{b} on {t}",
+                                                     ((s, a, m, t), (s, b, m, t))))
+    resampled = _ResampledAccuracy(cells, resamples, rng) if cells else None
     rows = []
     for x in axes:
         clean = bool(evidence[x][True])
         items = evidence[x][True] or evidence[x][False]
         if not items:
             continue
-        gains, shares, names = zip(*items)
-        rows.append({"axis": x, "mean_gain": float(np.mean(gains)),
+        gains, shares, names, keys = zip(*items)
+        low = high = np.nan
+        if resampled is not None and all(k in cells for pair in keys for k in pair):
+            samples = np.mean([resampled(kb) - resampled(ka) for ka, kb in keys], axis=0)
+            low, high = metrics._interval(samples, confidence)
+        rows.append({"axis": x, "mean_gain": float(np.mean(gains)), "mean_gain_lo": low, "mean_gain_hi": high,
                      "mean_share": float(np.nanmean(shares)) if np.isfinite(shares).any() else np.nan,
                      "pairs": len(items), "clean": clean, "examples": "; ".join(names[:3])})
     return pd.DataFrame(rows, columns=cols).sort_values("mean_gain", ascending=False, ignore_index=True)
+
+
+class _ResampledAccuracy:
+    """Each cell's accuracy under the same bootstrap draws of (setting, clip id): ``(resamples,)`` per cell."""
+
+    def __init__(self, cells: dict[tuple, Cell], resamples: int, rng: np.random.Generator | None):
+        self.cells = cells
+        labels = sorted({(k[0], c) for k, cell in cells.items() for c in cell.frame["clip_id"]})
+        self.code = {label: i for i, label in enumerate(labels)}
+        self.weights = metrics.resample_weights(len(labels), resamples, rng or np.random.default_rng(0))
+        self.done: dict[tuple, np.ndarray] = {}
+
+    def __call__(self, key: tuple) -> np.ndarray:
+        if key not in self.done:
+            frame = self.cells[key].frame
+            codes = np.array([self.code[(key[0], c)] for c in frame["clip_id"]], np.int64)
+            n = len(self.code)
+            hits = np.bincount(codes, metrics.correct(frame["class_index"], frame["pred"]), n)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                self.done[key] = (self.weights @ hits) / (self.weights @ np.bincount(codes, minlength=n))
+        return self.done[key]

@@ -54,6 +54,14 @@ class TrainConfig:
     aux_geometry: float = 0.0               # weight of the auxiliary lattice regression (learn.geometry)
     label_smoothing: float = 0.0
     keep: str = "last"                      # "last" epoch, or the "best" epoch by validation accuracy
+    bottleneck: bool = False                # classes read only the CNN's predicted lattice (learn.models);
+                                            # the lattice loss weighs aux_geometry (1 when left at 0)
+    bottleneck_noise: float = 0.0           # std of noise on that lattice while training (standardised units)
+
+    @property
+    def geometry_weight(self) -> float:
+        """The weight of the lattice loss: ``aux_geometry``, or 1 for a bottleneck left at 0."""
+        return self.aux_geometry or (1.0 if self.bottleneck else 0.0)
 
     def problems(self) -> list[str]:
         """What is wrong with these settings, one message each (empty when they are valid)."""
@@ -92,6 +100,9 @@ class TrainConfig:
         out += checks.number("train.aux_geometry", self.aux_geometry, 0)
         out += checks.number("train.label_smoothing", self.label_smoothing, 0, 1, hi_open=True)
         out += checks.choice("train.keep", self.keep, KEEP)
+        out += checks.number("train.bottleneck_noise", self.bottleneck_noise, 0)
+        if self.bottleneck_noise and not self.bottleneck:
+            out.append("train.bottleneck_noise is set but train.bottleneck is off; set train.bottleneck=true")
         if self.keep == "best" and self.val_fraction <= 0:
             out.append("train.keep=best needs validation clips: set train.val_fraction > 0")
         return out

@@ -1,15 +1,18 @@
-"""Rendered clips -> sub-sequence samples, decoded once into a packed frame cache.
+"""Rendered clips -> sub-sequence samples, packed once into a frame cache.
 
-Training reads frames many times, so the PNGs of one (variant, setting) are
-decoded and resized once into ``cache/<variant>/<setting>/<size>.npy``, a uint8
-array of shape (total frames, size, size, 3) opened as a memmap, with
-``<size>.json`` beside it saying where each clip's frames start. The index is
-written last, so a cache without one is unfinished and is rebuilt.
+Training reads frames many times, so the frames of one (variant, setting) are
+packed once into ``cache/<variant>/<setting>/<size>.npy``, a uint8 array of
+shape (total frames, size, size, 3) opened as a memmap, with ``<size>.json``
+beside it saying where each clip's frames start. Each clip's frames come from
+its ``frames.npy`` (copied as they are, or resized when ``size`` is not the
+render resolution), or, in clip folders without one, from its PNGs
+(``render.frames.read_clip_frames``). The index is written last, so a cache
+without one is unfinished and is rebuilt.
 
 A sequence of T frames yields sub-sequences starting every ``clip_stride``
 frames (``clip_len`` frames each); ``learn.windows`` cuts them into batches. A
-clip with a missing or unreadable frame is reported by a warning naming the
-clip and the file, and left out.
+clip with a missing, truncated or unreadable frame file is reported by a
+warning naming the clip and the file, and left out.
 """
 
 from __future__ import annotations
@@ -23,17 +26,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from PIL import Image
 from tqdm import tqdm
 
 from clothgap.errors import MissingInputError, StorageError
 from clothgap.runs import Run, atomic_write_json, read_meta
+from render.frames import FrameError, frame_count, open_clip_frames, read_clip_frames, resize_frames
 
 CACHE_VERSION = 1
-
-
-class FrameError(RuntimeError):
-    """A frame of a clip is missing or cannot be decoded."""
 
 
 @dataclass(frozen=True)
@@ -46,36 +45,13 @@ class CachedClip:
 
 # ---------------------------------------------------------------- reading clips
 
-def frame_paths(clip_dir: Path, meta: dict | None = None) -> list[Path]:
-    """The expected ``ldr/%04d.png`` paths of a rendered clip (count from its meta.json when it says)."""
-    meta = read_meta(clip_dir, "render") if meta is None else meta
-    count = meta.get("num_frames")
-    if count is None:
-        count = len(list((clip_dir / "ldr").glob("*.png")))
-    return [clip_dir / "ldr" / f"{t:04d}.png" for t in range(int(count))]
-
-
 def read_frames(clip_dir: Path, size: int, meta: dict | None = None) -> np.ndarray:
     """All frames of a clip as (T, size, size, 3) uint8, resized with antialiasing.
 
-    Raises FrameError naming the clip and the first frame that is missing or corrupt.
+    Raises FrameError naming the clip and the first frame file that is missing or corrupt.
     """
-    paths = frame_paths(clip_dir, meta)
-    if not paths:
-        raise FrameError(f"clip {clip_dir.name}: no frames in {clip_dir / 'ldr'}")
-    out = np.empty((len(paths), size, size, 3), np.uint8)
-    for t, path in enumerate(paths):
-        if not path.is_file():
-            raise FrameError(f"clip {clip_dir.name}: frame {path} is missing")
-        try:
-            with Image.open(path) as img:
-                img = img.convert("RGB")
-                if img.size != (size, size):
-                    img = img.resize((size, size), Image.Resampling.BILINEAR)
-                out[t] = np.asarray(img)
-        except (OSError, ValueError, SyntaxError) as err:
-            raise FrameError(f"clip {clip_dir.name}: frame {path} is unreadable ({err})") from err
-    return out
+    meta = read_meta(clip_dir, "render") if meta is None else meta
+    return read_clip_frames(clip_dir, frame_count(clip_dir, meta), size)
 
 
 def subsequence_starts(num_frames: int, clip_len: int, stride: int) -> list[int]:
@@ -132,7 +108,8 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
         index_path.unlink(missing_ok=True)   # stale: rebuilt below
 
     metas = {cid: read_meta(render_dir / cid, "render") for cid in clip_ids}
-    total = sum(len(frame_paths(render_dir / cid, metas[cid])) for cid in clip_ids)
+    counts = {cid: frame_count(render_dir / cid, metas[cid]) for cid in clip_ids}
+    total = sum(counts.values())
     array_path.parent.mkdir(parents=True, exist_ok=True)
     # A memmap written past a full disk dies of SIGBUS with no message: check the space first.
     need, free = total * size * size * 3, shutil.disk_usage(array_path.parent).free
@@ -145,12 +122,16 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
     try:
         for cid in tqdm(clip_ids, desc=f"cache {variant}/{setting} {size}px", disable=not progress, leave=False):
             try:
-                frames = read_frames(render_dir / cid, size, metas[cid])
+                frames = open_clip_frames(render_dir / cid, counts[cid])
+                rows = array[offset:offset + len(frames)]
+                if frames.shape[1:3] == (size, size):
+                    rows[:] = frames        # the render resolution: the clip's array as it is
+                else:
+                    resize_frames(frames, size, out=rows)
             except FrameError as err:
                 warnings.warn(f"{err}; clip left out of {variant}/{setting}", stacklevel=2)
                 skipped[cid] = str(err)
                 continue
-            array[offset:offset + len(frames)] = frames
             clips.append(CachedClip(cid, int(metas[cid]["class_index"]), offset, len(frames)))
             offset += len(frames)
         array.flush()

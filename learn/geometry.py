@@ -7,15 +7,19 @@ the CNN also regresses, from each frame, the 8 x 8 lattice of cloth points
 the shape the material class shows in. The target exists at training time
 only: prediction and evaluation read pixels alone.
 
-Targets are standardised per setting (each coordinate of each point minus its
-mean over all frames, divided by one global spread), so the loss weight means
-the same on every setting. They are cached per setting in
+Targets are standardised per setting, robustly: each coordinate of each point
+minus its median over all frames, divided by one global spread (the RMS deviation
+of the median clip), then clipped to +-``TARGET_LIMIT``. A few clips whose cloth leaves its usual place (blown over
+the rod, say) would otherwise set the spread, shrink every other frame's target
+to near zero and leave the regression nothing to learn; those clips are named
+in a warning. The loss weight means the same on every setting. They are cached per setting in
 ``cache/geometry/<setting>/lattice-8.npz`` (one array per clip).
 """
 
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +30,9 @@ from clothgap.runs import Run
 from learn.dataset import FrameCache
 from learn.models import GEOMETRY_DIM
 from sim.lattice import LATTICE, clip_lattice
+
+
+TARGET_LIMIT = 10.0        # standardised units
 
 
 def lattice_cache_path(run: Run, setting: str) -> Path:
@@ -67,6 +74,15 @@ def geometry_targets(run: Run, setting: str, cache: FrameCache, progress: bool =
                                     f"{clip.num_frames} rendered ones; re-render it")
         out[clip.offset:clip.offset + clip.num_frames] = lat.reshape(len(lat), -1)
     used = np.concatenate([np.arange(c.offset, c.offset + c.num_frames) for c in cache.clips.values()])
-    mean = out[used].mean(axis=0, keepdims=True)
-    spread = float((out[used] - mean).std()) or 1.0
-    return (out - mean) / spread
+    centre = np.median(out[used], axis=0, keepdims=True)
+    targets = out - centre
+    per_clip = [float((targets[c.offset:c.offset + c.num_frames] ** 2).mean()) for c in cache.clips.values()]
+    spread = float(np.sqrt(np.median(per_clip))) or 1.0
+    targets /= spread
+    far = sorted(cid for cid, c in cache.clips.items()
+                 if np.abs(targets[c.offset:c.offset + c.num_frames]).max() > TARGET_LIMIT)
+    if far:
+        warnings.warn(f"{len(far)} clip(s) of {setting} have lattice points more than {TARGET_LIMIT:g} spreads "
+                      f"({TARGET_LIMIT * spread:.3g} m) from the usual shape; their targets are clipped: "
+                      f"{', '.join(far[:5])}{' ...' if len(far) > 5 else ''}", stacklevel=2)
+    return np.clip(targets, -TARGET_LIMIT, TARGET_LIMIT)

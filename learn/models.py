@@ -6,6 +6,15 @@ logits (B, T, 54) (plus (B, T, 6) stretching and (B, T, 9) bending logits with
 ``"mean"`` trains on every step and averages the step probabilities (LRCN's
 own recipe), ``"last"`` trains and predicts from the last step only.
 
+With ``bottleneck`` the CNN is a pixels -> cloth-shape regressor: its geometry
+head predicts the 8 x 8 lattice of each frame (trained on the simulation's own
+lattice, ``learn.geometry``), and the recurrent layer and the class heads read
+only that prediction and its change from the previous frame, never the CNN's
+features. The class loss does not reach the CNN, so the network cannot learn a
+clip's class from its texture (every clip has its own), which is how it
+otherwise memorises training clips; it has to go through the shape the
+simulation says carries the material (docs/learnability.md).
+
     lrcn   AlexNet-style CNN + fc6 per frame, an LSTM over the frames (Section 5)
     base1  the CNN + fc6 alone, one prediction per frame, averaged over the clip
     base2  base1's CNN frozen (weights put in by the trainer), an LSTM trained on top
@@ -83,26 +92,37 @@ class ClipClassifier(nn.Module):
 
     def __init__(self, cnn: FrameCNN, temporal: str | None, hidden: int, readout: str = "mean",
                  factored: bool = False, freeze_cnn: bool = False, num_classes: int = NUM_CLASSES,
-                 motion: bool = False, geometry_dim: int = 0):
+                 motion: bool = False, geometry_dim: int = 0, bottleneck: bool = False,
+                 bottleneck_noise: float = 0.0):
         super().__init__()
         # motion: each frame goes in beside its difference from the previous frame (zero for the
         # first), so the first convolution sees motion directly, not only through the recurrence.
         # geometry_dim: a per-frame regression head on the CNN's features (learn.geometry), trained
         # as an auxiliary target and unused at prediction.
         self.motion, self.geometry_dim = motion, geometry_dim
+        if bottleneck and not geometry_dim:
+            raise ValueError("bottleneck needs the geometry head (geometry_dim > 0)")
+        self.bottleneck, self.bottleneck_noise = bottleneck, bottleneck_noise
         self.channels_last = False   # set by the trainer on CUDA: the convolutions' fast layout
         if readout not in READOUTS:
             raise ValueError(f"readout={readout!r}: known readouts are {', '.join(READOUTS)}")
         self.cnn, self.readout, self.freeze_cnn = cnn, readout, freeze_cnn
+        per_frame = cnn.out_features
+        if bottleneck:
+            # The shape and its change since the previous frame, read by a small MLP: a linear
+            # map of raw point positions is a poor per-frame classifier (base1) or LSTM input.
+            per_frame = hidden
+            self.reader = nn.Sequential(nn.Linear(2 * geometry_dim, hidden), nn.ReLU(inplace=True),
+                                        nn.Linear(hidden, hidden), nn.ReLU(inplace=True))
         if temporal == "lstm":
-            self.temporal = nn.LSTM(cnn.out_features, hidden, batch_first=True)
+            self.temporal = nn.LSTM(per_frame, hidden, batch_first=True)
         elif temporal == "rnn":
-            self.temporal = nn.RNN(cnn.out_features, hidden, nonlinearity="tanh", batch_first=True)
+            self.temporal = nn.RNN(per_frame, hidden, nonlinearity="tanh", batch_first=True)
         elif temporal is None:
             self.temporal = None
         else:
             raise ValueError(f"temporal={temporal!r}: expected 'lstm', 'rnn' or None")
-        features = hidden if self.temporal is not None else cnn.out_features
+        features = hidden if self.temporal is not None else per_frame
         self.head = nn.Linear(features, num_classes)
         self.factored = factored
         if factored:
@@ -130,6 +150,14 @@ class ClipClassifier(nn.Module):
             frames = frames.contiguous(memory_format=torch.channels_last)
         feats = self.cnn(frames).unflatten(0, (b, t))
         geometry = self.head_geometry(feats) if self.geometry_dim else None
+        if self.bottleneck:
+            shape = geometry.detach().float()
+            if self.training and self.bottleneck_noise:
+                # Training clips' shapes come out cleaner than new clips' (the CNN has seen them):
+                # noise keeps the readers from relying on precision they will not get.
+                shape = shape + self.bottleneck_noise * torch.randn_like(shape)
+            change = shape - torch.cat([shape[:, :1], shape[:, :-1]], dim=1)
+            feats = self.reader(torch.cat([shape, change], dim=-1))
         if self.temporal is not None:
             feats, _ = self.temporal(feats)
         out = {"logits": self.head(feats)}
@@ -179,6 +207,7 @@ if tuple(_SPECS) != MODEL_NAMES:      # the names a config may use are listed in
 
 def build_model(name: str, *, image_size: int, width: int, fc6: int, hidden: int, dropout: float = 0.5,
                 readout: str = "mean", factored: bool = False, motion: bool = False, geometry_dim: int = 0,
+                bottleneck: bool = False, bottleneck_noise: float = 0.0,
                 num_classes: int = NUM_CLASSES) -> ClipClassifier:
     """A model by registry name; ``model_args(cfg)`` gives the keyword arguments from a TrainConfig."""
     if name not in _SPECS:
@@ -186,14 +215,21 @@ def build_model(name: str, *, image_size: int, width: int, fc6: int, hidden: int
     temporal, freeze_cnn, forced_readout = _SPECS[name]
     cnn = FrameCNN(image_size, width, fc6, dropout, in_channels=6 if motion else 3)
     return ClipClassifier(cnn, temporal, hidden, forced_readout or readout, factored, freeze_cnn, num_classes,
-                          motion=motion, geometry_dim=geometry_dim)
+                          motion=motion, geometry_dim=geometry_dim, bottleneck=bottleneck,
+                          bottleneck_noise=bottleneck_noise)
 
 
 def model_args(cfg) -> dict:
-    """The ``build_model`` keyword arguments a TrainConfig asks for (stored in checkpoints)."""
-    return dict(image_size=cfg.image_size, width=cfg.width, fc6=cfg.fc6, hidden=cfg.hidden,
+    """The ``build_model`` keyword arguments a TrainConfig asks for (stored in checkpoints).
+
+    Keys that keep their defaults are left out, so checkpoints written before a key existed
+    load with the same arguments."""
+    args = dict(image_size=cfg.image_size, width=cfg.width, fc6=cfg.fc6, hidden=cfg.hidden,
                 dropout=cfg.dropout, readout=cfg.readout, factored=cfg.factored, motion=cfg.motion,
-                geometry_dim=GEOMETRY_DIM if cfg.aux_geometry > 0 else 0)
+                geometry_dim=GEOMETRY_DIM if cfg.aux_geometry > 0 or cfg.bottleneck else 0)
+    if cfg.bottleneck:
+        args.update(bottleneck=True, bottleneck_noise=cfg.bottleneck_noise)
+    return args
 
 
 def load_cnn_weights(model: ClipClassifier, source: Path | str | dict) -> None:

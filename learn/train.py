@@ -3,7 +3,9 @@
 ``train_one`` writes into ``run.train_dir(setting, variant, model, seed)``:
 
     config.json     the resolved settings (train config, model args, seeds, data sizes)
-    metrics.csv     epoch, train_loss, train_acc, val_loss, val_acc, lr, seconds
+    metrics.csv     epoch, train_loss, train_acc, val_loss, val_acc, lr, seconds, and with a lattice
+                    target train_shape, val_shape: the mean squared error of the predicted lattice
+                    (standardised units: 1 is no better than the mean shape)
     tb/             TensorBoard scalars
     last.pt         model, optimizer, scheduler and RNG states after each epoch (tensors and plain
                     data only: it is read with ``weights_only=True``, so a run folder cannot run code)
@@ -46,6 +48,7 @@ from learn.split import PARTS, get_or_make_split, part_clips, part_windows
 from learn.windows import WindowSet
 
 METRIC_COLUMNS = ("epoch", "train_loss", "train_acc", "val_loss", "val_acc", "lr", "seconds")
+SHAPE_COLUMNS = ("train_shape", "val_shape")
 
 
 def resolve_device(name: str) -> torch.device:
@@ -89,11 +92,12 @@ def run_epoch(net: torch.nn.Module, model: ClipClassifier, batches, device: torc
 
     ``net`` is what runs the forward pass (``model`` itself, or it wrapped by
     DDP / torch.compile); ``model`` gives the loss and readout. Returns the sums
-    (loss x clips, correct clips, clips) as a float64 tensor, so that ranks can add them.
+    (loss x clips, correct clips, clips, lattice squared error x clips) as a float64
+    tensor, so that ranks can add them.
     """
     training = optimizer is not None
     net.train(training)
-    sums = torch.zeros(3, dtype=torch.float64, device=device)   # summed on the device: no sync per step
+    sums = torch.zeros(4, dtype=torch.float64, device=device)   # summed on the device: no sync per step
     with torch.set_grad_enabled(training):
         for x, y, target in tqdm(batches, desc=desc, disable=not progress, leave=False, total=total):
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
@@ -105,17 +109,21 @@ def run_epoch(net: torch.nn.Module, model: ClipClassifier, batches, device: torc
                 loss.backward()
                 optimizer.step()
             correct = (model.probs(out).argmax(-1) == y).sum()
-            sums += torch.stack([loss.detach().double() * len(y), correct.double(), sums.new_tensor(len(y))])
+            shape = (((out["geometry"].detach().float() - target) ** 2).mean() if target is not None and
+                     "geometry" in out else sums.new_tensor(math.nan))
+            sums += torch.stack([loss.detach().double() * len(y), correct.double(), sums.new_tensor(len(y)),
+                                 shape.double() * len(y)])
     return sums.cpu()
 
 
-def _loss_and_accuracy(sums: torch.Tensor, all_ranks: bool = False) -> tuple[float, float]:
+def _epoch_scores(sums: torch.Tensor, all_ranks: bool = False) -> tuple[float, float, float]:
+    """(loss, accuracy, lattice squared error) per clip from ``run_epoch``'s sums."""
     if all_ranks and _world_size() > 1:
         sums = sums.to(_comm_device())
         torch.distributed.all_reduce(sums)
         sums = sums.cpu()
-    loss, correct, count = sums.tolist()
-    return (loss / count, correct / count) if count else (math.nan, math.nan)
+    loss, correct, count, shape = sums.tolist()
+    return (loss / count, correct / count, shape / count) if count else (math.nan, math.nan, math.nan)
 
 
 # ---------------------------------------------------------------- torchrun (DDP)
@@ -161,9 +169,10 @@ def _save_state(path: Path, state: dict) -> None:
 
 
 def _write_metrics(path: Path, rows: list[dict]) -> None:
-    lines = [",".join(METRIC_COLUMNS)]
-    lines += [",".join(f"{row[c]:.6g}" if isinstance(row[c], float) else str(row[c]) for c in METRIC_COLUMNS)
-              for row in rows]
+    columns = METRIC_COLUMNS + tuple(c for c in SHAPE_COLUMNS
+                                     if any(not math.isnan(row.get(c, math.nan)) for row in rows))
+    cell = lambda v: f"{v:.6g}" if isinstance(v, float) else str(v)   # noqa: E731
+    lines = [",".join(columns)] + [",".join(cell(row.get(c, math.nan)) for c in columns) for row in rows]
     atomic_write_text(path, "\n".join(lines) + "\n")
 
 
@@ -251,7 +260,7 @@ def window_sets(run: Run, setting: str, variant: str, cfg: TrainConfig, device: 
         _barrier()
     split = get_or_make_split(run, setting)
     cache = build_cache(run, variant, setting, cfg.image_size, progress)
-    targets = geometry_targets(run, setting, cache, progress) if cfg.aux_geometry > 0 else None
+    targets = geometry_targets(run, setting, cache, progress) if cfg.geometry_weight > 0 else None
     if main:
         _barrier()
     unassigned = sorted(set(cache.clips) - {c for part in PARTS for c in part_clips(split, part)})
@@ -265,7 +274,8 @@ def window_sets(run: Run, setting: str, variant: str, cfg: TrainConfig, device: 
                       f"or were left out of the frame cache and are not used: {', '.join(not_rendered[:5])}"
                       f"{' ...' if len(not_rendered) > 5 else ''}", stacklevel=2)
     train_set = WindowSet(cache, part_windows(split, "train"), cfg.clip_len, cfg.clip_stride, device, targets)
-    val_set = WindowSet(cache, part_windows(split, "val"), cfg.clip_len, cfg.clip_stride, device)
+    # Validation clips' lattices too: how well the shape is read on new clips, never a training signal.
+    val_set = WindowSet(cache, part_windows(split, "val"), cfg.clip_len, cfg.clip_stride, device, targets)
     if not len(train_set):
         raise ConfigError(f"no training sub-sequences for {setting}/{variant}: {len(split['train'])} train clips, "
                           f"clip_len={cfg.clip_len}; are the clips rendered and long enough?")
@@ -366,24 +376,25 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
         steps = len(order) // cfg.batch_size if len(order) >= cfg.batch_size else 1
         batches = train_set.batches(cfg.batch_size, order=order, augment=augment, drop_last=True)
         sums = run_epoch(net, model, batches, device, optimizer, amp, progress, f"epoch {epoch}", steps,
-                         cfg.aux_geometry, cfg.label_smoothing)
-        train_loss, train_acc = _loss_and_accuracy(sums, all_ranks=True)
+                         cfg.geometry_weight, cfg.label_smoothing)
+        train_loss, train_acc, train_shape = _epoch_scores(sums, all_ranks=True)
         _check_finite(model, train_loss, cfg, str(out), epoch)
         # Every rank scores the whole (small) val set with its own copy of the same weights.
-        val_loss, val_acc = (_loss_and_accuracy(run_epoch(model, model, val_set.batches(cfg.batch_size), device,
-                                                          None, amp))
-                             if len(val_set) else (math.nan, math.nan))
+        val_loss, val_acc, val_shape = (_epoch_scores(run_epoch(model, model, val_set.batches(cfg.batch_size),
+                                                                device, None, amp))
+                                        if len(val_set) else (math.nan, math.nan, math.nan))
         lr = optimizer.param_groups[0]["lr"]
         scheduler.step()
         row = {"epoch": epoch, "train_loss": train_loss, "train_acc": train_acc, "val_loss": val_loss,
-               "val_acc": val_acc, "lr": lr, "seconds": time.perf_counter() - started}
+               "val_acc": val_acc, "lr": lr, "seconds": time.perf_counter() - started,
+               "train_shape": train_shape, "val_shape": val_shape}
         metrics.append(row)
         if cfg.keep == "best" and not math.isnan(val_acc) and (best is None or val_acc > best["val_acc"]):
             best = {"epoch": epoch, "val_acc": val_acc,
                     "model": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}}
         rng = _gather(_rng_states())
         if main:
-            for key in ("train_loss", "train_acc", "val_loss", "val_acc", "lr"):
+            for key in ("train_loss", "train_acc", "val_loss", "val_acc", "lr") + SHAPE_COLUMNS:
                 if not math.isnan(row[key]):
                     writer.add_scalar(key, row[key], epoch)
             writer.flush()

@@ -34,16 +34,22 @@ def draw_camera(variant: RenderVariant, rng: np.random.Generator) -> CameraState
     return CameraState(float(2.0 ** stops), tuple(float(g) for g in wb))
 
 
+def adds_noise(variant: RenderVariant) -> bool:
+    return variant.shot_noise > 0 or variant.read_noise > 0
+
+
 def apply_camera(linear: np.ndarray, variant: RenderVariant, state: CameraState,
-                 noise_rng: np.random.Generator) -> np.ndarray:
-    """Linear RGB (H, W, 3) as the camera records it: exposure, white balance, vignetting, noise."""
+                 noise_rng: np.random.Generator | None) -> np.ndarray:
+    """Linear RGB (H, W, 3) as the camera records it: exposure, white balance, vignetting, noise.
+
+    ``noise_rng`` is the frame's noise stream; it may be None when the variant adds no noise."""
     image = linear * (state.gain * np.asarray(state.white_balance, np.float32))
     if variant.vignetting > 0:
         h, w = image.shape[:2]
         y, x = np.mgrid[0:h, 0:w]
         r2 = ((x + 0.5) / w - 0.5) ** 2 + ((y + 0.5) / h - 0.5) ** 2
         image = image * (1.0 - variant.vignetting * (r2 / 0.5))[..., None]  # cos^4-like falloff, corners lose the most
-    if variant.shot_noise > 0 or variant.read_noise > 0:
+    if adds_noise(variant):
         variance = variant.shot_noise * np.maximum(image, 0.0) + variant.read_noise ** 2
         image = image + noise_rng.normal(size=image.shape) * np.sqrt(variance)
-    return np.maximum(image, 0.0).astype(np.float32)
+    return np.maximum(image, 0.0).astype(np.float32, copy=False)

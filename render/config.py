@@ -24,10 +24,12 @@ class RenderConfig:
     resolution: int = 64                    # square frames, pixels
     spp: int = 4                            # samples per pixel
     backend: str = "auto"                   # Mitsuba variant: "auto", "cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb"
-    write_hdr: bool = True                  # keep the linear OpenEXR frames beside the tone-mapped ones
+    write_hdr: bool = True                  # also write linear OpenEXR frames (hdr/); tone mapping needs none
+    write_png: bool = True                  # also write the tone-mapped frames as PNGs (ldr/) to look at; the
+                                            # network reads frames.npy, written always (render.frames)
     frames_per_launch: int = 0              # frames of a clip per Mitsuba launch (render.batch); 1 = one scene,
                                             # one frame per render call; 0 = auto (AUTO_FRAMES_PER_LAUNCH)
-    writer_threads: int = 4                 # threads that tone-map and write EXR/PNG while the next frames render
+    writer_threads: int = 4                 # threads that tone-map (and write EXR/PNG) while the next frames render
     reuse_scenes: bool = True               # one Mitsuba scene per structure, retargeted clip to clip (render.scene
                                             # ScenePool); False = a new scene per clip (on CUDA: an OptiX compile each)
     freeze: bool = True                     # replay mi.render's recorded kernels (dr.freeze) instead of re-tracing

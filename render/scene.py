@@ -43,7 +43,7 @@ import numpy as np
 from clothgap import seeding
 from render.backend import load_mitsuba
 from render.backgrounds import Backgrounds
-from render.camera import apply_camera, draw_camera
+from render.camera import adds_noise, apply_camera, draw_camera
 from render.lighting import Framing, emitters, room_shapes
 from render.materials import cloth_bsdf
 from render.textures import make_texture
@@ -442,6 +442,9 @@ class ClipRenderer:
         """Frame t's linear cloth RGBA (H, W, 4) float32; with motion blur, the average over the frame interval."""
         n = self.variant.motion_blur_subframes
         spp = max(1, self.spp // n)
+        if n == 1:  # the same float32 values as the average below, without its float64 copies
+            self._set_geometry(t)
+            return np.array(self._render(spp, (self.sampler_seed + t) & 0xFFFFFFFF), np.float32)  # owned copy
         total = np.zeros((self.resolution, self.resolution, 4), np.float64)
         for k in range(n):
             self._set_geometry(t + k / n)
@@ -468,7 +471,8 @@ class ClipRenderer:
         """Frame t's 8-bit sRGB image the network reads, from the cloth's linear RGBA."""
         rgb, alpha = hdr[..., :3], hdr[..., 3:4]
         composite = rgb + (1.0 - np.clip(alpha, 0.0, 1.0)) * self.background  # rgb is premultiplied by coverage
-        recorded = apply_camera(composite, self.variant, self.camera, self._stream("noise", t))
+        noise = self._stream("noise", t) if adds_noise(self.variant) else None
+        recorded = apply_camera(composite, self.variant, self.camera, noise)
         return tonemap(recorded, self.variant.tonemap)
 
     def render_frame(self, t: int) -> Frame:

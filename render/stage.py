@@ -4,17 +4,22 @@
 folders that are already finished (``DONE``), and renders the rest, one Mitsuba
 scene per clip (``render.scene.ClipRenderer``), ``render.frames_per_launch`` frames
 per Mitsuba launch (``render.batch``; one per launch for lightings it cannot
-batch). A pool of ``render.writer_threads`` threads composites, tone-maps and
-writes each frame while the next ones render. Each clip folder gets::
+batch). A pool of ``render.writer_threads`` threads composites and tone-maps
+each frame (and writes its EXR/PNG when asked) while the next ones render.
+Each clip folder gets::
 
+    frames.npy         (T, H, W, 3) uint8 sRGB, composited and tone-mapped: what the network reads
+                       (render.frames; the learn stage packs these arrays into its frame cache)
+    ldr/0000.png ...   the same frames as PNGs, when render.write_png
     hdr/0000.exr ...   linear RGBA cloth radiance (float32), when render.write_hdr
-    ldr/0000.png ...   8-bit sRGB RGB, composited and tone-mapped: what the network reads
     meta.json          the sim meta + variant, render settings (backend, seeds, draws), num_frames
     DONE               written last
 
-A clip that fails to render gets a ``FAILED`` file with the reason and no
-``DONE``; the stage goes on with the next clip and lists the failures in its
-summary, so one bad clip does not cost a long run.
+Tone mapping works on the frame in memory, so a variant's tone curve needs no
+EXR; PNG and EXR are for looking at a run (``python -m render.frames`` writes
+PNGs from the array afterwards). A clip that fails to render gets a ``FAILED``
+file with the reason and no ``DONE``; the stage goes on with the next clip and
+lists the failures in its summary, so one bad clip does not cost a long run.
 """
 
 from __future__ import annotations
@@ -24,11 +29,11 @@ import time
 import traceback
 import warnings
 from collections.abc import Sequence
+from dataclasses import replace
 from concurrent.futures import Executor, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 from tqdm import tqdm
 
 from clothgap.runs import (Run, atomic_write_json, clip_id as clip_name, fresh_dir, is_done, mark_done, select_clips,
@@ -38,6 +43,7 @@ from render.backgrounds import Backgrounds
 from render.batch import BatchRenderer, batchable
 from render.config import RenderConfig, frames_per_launch
 from render.exr import write_exr
+from render.frames import LDR_DIR, write_frames, write_png
 from render.scene import ClipRenderer
 from render.variants import RenderVariant, get_variant
 from render.video import compress_frames
@@ -58,7 +64,7 @@ def clip_index_of(clip: SimClip, clip_dir: Path) -> int:
 
 def render_clip(clip: SimClip, variant: RenderVariant, out_dir: Path, *, config: RenderConfig, run_seed: int,
                 clip_index: int, backgrounds: Backgrounds | None = None, writer: Executor | None = None) -> dict:
-    """Render all frames of ``clip`` into ``out_dir`` (hdr/, ldr/, meta.json); returns the meta written.
+    """Render all frames of ``clip`` into ``out_dir`` (frames.npy, ldr/, hdr/, meta.json); returns the meta written.
 
     ``writer`` runs the per-frame host work (composite, tone map, EXR and PNG
     writes) beside the renderer; without one, a pool of ``config.writer_threads``
@@ -77,34 +83,40 @@ def render_clip(clip: SimClip, variant: RenderVariant, out_dir: Path, *, config:
     else:
         hdr_frames, per_launch = ((t, renderer.render_hdr(t)) for t in range(clip.num_frames)), 1
     compress = variant.video_crf > 0
-    (out_dir / "ldr").mkdir(parents=True, exist_ok=True)
+    png = config.write_png
+    (out_dir / LDR_DIR if png else out_dir).mkdir(parents=True, exist_ok=True)
+    res = config.resolution
+    ldr = np.empty((clip.num_frames, res, res, 3), np.uint8)
 
-    def finish(t: int, hdr: np.ndarray) -> np.ndarray:
-        ldr = renderer.finish(hdr, t)
+    def finish(t: int, hdr: np.ndarray) -> None:
+        ldr[t] = renderer.finish(hdr, t)
         if config.write_hdr:
             write_exr(out_dir / "hdr" / f"{t:04d}.exr", hdr)
-        if not compress:
-            Image.fromarray(np.ascontiguousarray(ldr)).save(out_dir / "ldr" / f"{t:04d}.png")
-        return ldr
+        if png and not compress:
+            write_png(out_dir, t, ldr[t])
 
     own = writer is None
     pool = ThreadPoolExecutor(max(1, config.writer_threads), thread_name_prefix="render-writer") if own else writer
     try:
         pending = [pool.submit(finish, t, hdr) for t, hdr in hdr_frames]
-        ldr_frames = [f.result() for f in pending]  # re-raises a failed write; the clip is then FAILED
+        for f in pending:
+            f.result()  # re-raises a failed write; the clip is then FAILED
     finally:
         if own:
             pool.shutdown(wait=True)
     if compress:
-        ldr_frames = compress_frames(ldr_frames, crf=variant.video_crf, fps=float(clip.meta.get("fps", 25.0)))
-        for t, ldr in enumerate(ldr_frames):
-            Image.fromarray(np.ascontiguousarray(ldr)).save(out_dir / "ldr" / f"{t:04d}.png")
+        ldr = np.stack(compress_frames(list(ldr), crf=variant.video_crf, fps=float(clip.meta.get("fps", 25.0))))
+        if png:
+            for t, frame in enumerate(ldr):
+                write_png(out_dir, t, frame)
+    write_frames(out_dir, ldr)
     meta = dict(clip.meta)
     meta.update({
         "variant": variant.name,
         "render": {**variant.settings(), "resolution": config.resolution, "spp": config.spp,
-                   "write_hdr": config.write_hdr, **renderer.info, "scene_builds": renderer.rebuilds,
-                   "frames_per_launch": per_launch, **({"unbatched_because": unbatched} if unbatched else {}),
+                   "write_hdr": config.write_hdr, "write_png": png, **renderer.info,
+                   "scene_builds": renderer.rebuilds, "frames_per_launch": per_launch,
+                   **({"unbatched_because": unbatched} if unbatched else {}),
                    "seconds": round(time.perf_counter() - start, 3)},
         "num_frames": clip.num_frames,
     })
@@ -131,13 +143,15 @@ def run_render(run: Run, progress: bool = True, indices: Sequence[int] | None = 
 
 
 def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], progress: bool = True,
-                label: str = "render", variants: Sequence[RenderVariant] | None = None) -> dict:
+                label: str = "render", variants: Sequence[RenderVariant] | None = None,
+                config: RenderConfig | None = None) -> dict:
     """Render each ``(variant, setting, sim clip folder, output folder)`` not finished yet (summary as run_render).
 
     Shared by ``run_render`` and the measured-fabric set (``render_measured``): the
     same renderer, seeds (the sim meta's clip index), meta, FAILED and DONE markers.
+    ``config`` replaces the run's render settings (the measured set forces PNGs).
     """
-    config = run.config.render
+    config = config or run.config.render
     mi = load_mitsuba(config.backend)
     if variants is None:
         variants = list({v.name: v for v, *_ in jobs}.values())
@@ -198,4 +212,6 @@ def render_measured(run: Run, variant: str, names: Sequence[str] | None = None, 
     jobs = [(chosen, setting, run.measured_sim_dir(setting) / name, run.measured_render_dir(variant, setting) / name)
             for setting in run.config.sim.settings()
             for name in run.done_clips(run.measured_sim_dir(setting)) if names is None or name in names]
-    return render_jobs(run, jobs, progress, label="render measured", variants=[chosen])
+    # The measured set is read as image folders through the real-video path (eval.measured): it keeps PNGs.
+    return render_jobs(run, jobs, progress, label="render measured", variants=[chosen],
+                       config=replace(run.config.render, write_png=True))

@@ -5,10 +5,17 @@ linear values in [0, 1], channel by channel, monotonically, with 0 -> 0; the
 sRGB transfer function (colour-science) and 8-bit quantisation follow. Which
 operator a variant uses is one of the study's axes: cameras do not clip, and a
 network trained on clipped highlights may read real footage differently.
+
+The 8-bit sRGB encoding is a table lookup, not a power per pixel: the 255
+display values at which the code steps up are found once, exactly (bisection
+over float64 on colour-science's sRGB curve), and each pixel is placed between
+them through a 4,096-bin table. It gives the same bytes as encoding each pixel
+with colour-science and rounding, 5x faster (about 0.2 ms for a 112 px frame).
 """
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Callable
 
 import colour
@@ -47,11 +54,55 @@ OPERATORS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
 
 
 def tonemap(linear_rgb: np.ndarray, operator: str) -> np.ndarray:
-    """Scene-linear RGB (H, W, 3) -> 8-bit sRGB (H, W, 3) uint8 through ``operator``."""
+    """Scene-linear RGB (..., 3) -> 8-bit sRGB uint8 of the same shape through ``operator``."""
     try:
         op = OPERATORS[operator]
     except KeyError:
         raise ValueError(f"unknown tone-mapping operator {operator!r}; known: {', '.join(OPERATORS)}") from None
-    display = op(np.asarray(linear_rgb, np.float64))
-    encoded = colour.models.eotf_inverse_sRGB(display)
+    if op is srgb_clip:  # the clip is part of the encoding: no float64 copy needed
+        return encode_srgb8(linear_rgb)
+    return encode_srgb8(op(np.asarray(linear_rgb, np.float64)))
+
+
+def srgb8_reference(display: np.ndarray) -> np.ndarray:
+    """Display-linear values in [0, 1] -> 8-bit sRGB codes, pixel by pixel through colour-science."""
+    encoded = colour.models.eotf_inverse_sRGB(np.clip(np.asarray(display, np.float64), 0.0, 1.0))
     return np.clip(np.round(encoded * 255.0), 0, 255).astype(np.uint8)
+
+
+LUT_BINS = 4096  # a power of two, so d * LUT_BINS is exact and a value's bin is exactly floor(d * LUT_BINS)
+
+
+@lru_cache(maxsize=1)
+def srgb8_steps() -> np.ndarray:
+    """The 255 display values where the 8-bit sRGB code steps up: step k-1 is the least float64 with code >= k."""
+    want = np.arange(1, 256)
+    lo = np.zeros(255, np.int64)                              # non-negative float64s order like their bit patterns
+    hi = np.full(255, np.float64(1.0).view(np.int64))
+    while np.any(hi - lo > 1):
+        mid = (lo + hi) // 2
+        above = srgb8_reference(mid.view(np.float64)).astype(np.int64) >= want
+        hi, lo = np.where(above, mid, hi), np.where(above, lo, mid)
+    return hi.view(np.float64)
+
+
+@lru_cache(maxsize=1)
+def _srgb8_table() -> tuple[np.ndarray, np.ndarray]:
+    """Per bin [i, i+1) / LUT_BINS: the code at its left edge, and the one step inside it (+inf if none)."""
+    steps = srgb8_steps()
+    # Exactness needs at most one step per bin (the codes' narrowest spacing, near black, is 1.24 bins).
+    if np.diff(steps).min() <= 1.0 / LUT_BINS:
+        raise RuntimeError(f"sRGB codes closer than 1 / {LUT_BINS}: the lookup table needs more bins")
+    edges = np.arange(LUT_BINS + 1, dtype=np.float64) / LUT_BINS    # the last bin holds 1.0 alone
+    base = np.searchsorted(steps, edges, side="right")
+    following = np.append(steps, np.inf)[base]
+    inside = np.where(following < edges + 1.0 / LUT_BINS, following, np.inf)
+    return base.astype(np.uint8), inside
+
+
+def encode_srgb8(display: np.ndarray) -> np.ndarray:
+    """Display-linear values -> 8-bit sRGB codes: clipped to [0, 1] (NaN -> 0), the same bytes as the reference."""
+    base, inside = _srgb8_table()
+    d = np.fmin(np.fmax(np.asarray(display), 0.0), 1.0)      # fmax/fmin, unlike clip, send NaN to 0
+    bins = (d * LUT_BINS).astype(np.intp)
+    return base[bins] + (d >= inside[bins])

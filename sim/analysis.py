@@ -192,21 +192,30 @@ def deformations(stretchings: list[np.ndarray], bendings: list[np.ndarray], devi
     hang = [hanging_spec(s, a, setup) for a in AXES for s in stretchings]
     strips = [strip_spec(b, a, setup) for a in AXES for b in bendings]
     D = _settled(hang, setup.params("hang"), device, setup,
-                 lambda x, spec: max_displacement(x, spec.positions))
+                 lambda x, spec: max_displacement(x, spec.positions), f"{len(hang)} hanging cloths")
     C = _settled(strips, setup.params("strip"), device, setup,
-                 lambda x, spec: max_curvature(spec.mesh, x))
+                 lambda x, spec: max_curvature(spec.mesh, x), f"{len(strips)} folding strips")
     return D.reshape(2, -1), C.reshape(2, -1)
 
 
-def _settled(specs: list[ClothSpec], params: SolverParams, device: str, setup: Setup, measure) -> np.ndarray:
-    """``measure(x, spec)`` per cloth, averaged over ``setup.samples`` times in the final window."""
+def _settled(specs: list[ClothSpec], params: SolverParams, device: str, setup: Setup, measure,
+             label: str = "settle") -> np.ndarray:
+    """``measure(x, spec)`` per cloth, averaged over ``setup.samples`` times in the final window
+    (a progress bar on stderr counts the solver steps)."""
+    from tqdm import tqdm
+
     solver = BatchSolver(specs, params, device)
     every = max(1, int(round(setup.average_seconds / setup.samples / params.dt)))
-    solver.step(max(0, int(round(setup.seconds / params.dt)) - every * setup.samples))
+    settle = max(0, int(round(setup.seconds / params.dt)) - every * setup.samples)
     acc = np.zeros(len(specs))
-    for _ in range(setup.samples):
-        solver.step(every)
-        acc += [measure(x, spec) for x, spec in zip(solver.positions(), specs)]
+    with tqdm(total=settle + every * setup.samples, desc=label, unit="step") as bar:
+        for done in range(0, settle, every):    # in chunks, so the bar moves; the same steps as one call
+            solver.step(min(every, settle - done))
+            bar.update(min(every, settle - done))
+        for _ in range(setup.samples):
+            solver.step(every)
+            bar.update(every)
+            acc += [measure(x, spec) for x, spec in zip(solver.positions(), specs)]
     return acc / setup.samples
 
 

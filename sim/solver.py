@@ -76,6 +76,7 @@ per-cloth arrays.
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -85,7 +86,30 @@ from sim import kernels
 from sim.collision import SelfCollision, unique_edges
 from sim.mesh import ClothMesh
 
-wp.config.quiet = True
+
+class _StderrLogger:
+    """Warp's logger with its info lines (the start-up banner, module loads) on stderr, where they do not
+    mix with a command's output; warnings and errors go to Warp's own logger."""
+
+    def __init__(self, default):
+        self.default = default
+
+    def debug(self, message: str) -> None:
+        print(message, file=sys.stderr)
+
+    info = debug
+
+    def warning(self, message: str, category=None, stacklevel: int = 1) -> None:
+        self.default.warning(message, category, stacklevel + 1)
+
+    def error(self, message: str) -> None:
+        self.default.error(message)
+
+
+if hasattr(wp, "set_logger"):
+    wp.set_logger(_StderrLogger(wp.get_logger()))
+else:                                           # an older Warp: no logger to replace, only a switch
+    wp.config.quiet = True
 
 
 @dataclass(frozen=True)

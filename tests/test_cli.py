@@ -212,11 +212,13 @@ def test_config_round_trips_through_json(tmp_path):
         apply_overrides(cfg, ["nosection.x=1"])
 
 
-def test_resuming_a_run_with_another_config_is_refused(tmp_path):
+def test_resuming_a_run_with_another_config_is_refused_once_work_is_done(tmp_path):
     Run.create_or_resume(tmp_path, preset("smoke"))
     assert Run.open(tmp_path).config == preset("smoke")
-    with pytest.raises(ConfigError, match="different config"):
+    mark_done(tmp_path / "sim" / "wind-uniform1" / clip_id(0))
+    with pytest.raises(ConfigError, match="finished work this config would invalidate or leave out: seed 0 -> 3"):
         Run.create_or_resume(tmp_path, apply_overrides(preset("smoke"), ["seed=3"]))
+    assert Run.open(tmp_path).config == preset("smoke")
 
 
 def test_done_marker_and_fresh_dir(tmp_path):

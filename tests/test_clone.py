@@ -147,4 +147,4 @@ def test_clone_bad_inputs_are_named_without_a_traceback(tmp_path, monkeypatch, c
         err = capsys.readouterr().err
         assert exit_.value.code != 0 and message in err, (args, err)
     r = clothgap("clone", "--help")
-    assert r.returncode == 0 and "Fig. 9" in r.stdout
+    assert r.returncode == 0 and "Figure 9" in r.stdout

@@ -261,7 +261,7 @@ def test_eval_real_refuses_colliding_inputs_and_duplicate_or_inf_truth(tmp_path,
 # ------------------------------------------------------------------ failed clips, full disk (item 7)
 
 def fake_sim_run(root: Path, clips: int = 2) -> Run:
-    run = Run.create_or_resume(root, preset("smoke"))
+    run = Run.create_or_resume(root, apply_overrides(preset("smoke"), ["render.variants=paper"]))
     for i in range(clips):
         folder = run.sim_dir(SETTING) / clip_id(i)
         folder.mkdir(parents=True)

@@ -100,3 +100,40 @@ def test_motion_input_adds_frame_differences():
     model.cnn.register_forward_pre_hook(lambda _m, inp: seen.update(x=inp[0]))
     assert model(still)["logits"].shape == (2, 5, 54)
     assert seen["x"].shape == (10, 6, 32, 32) and float(seen["x"][:, 3:].abs().max()) == 0   # nothing moves
+
+
+def test_bottleneck_classes_read_only_the_predicted_shape():
+    torch.manual_seed(0)
+    model = build_model("lrcn", image_size=32, geometry_dim=192, bottleneck=True, **TINY)
+    x, y = torch.rand(2, 4, 3, 32, 32), torch.tensor([3, 40])
+    out = model(x)
+    model.loss(out, y).backward()                         # the class loss alone
+    assert all(p.grad is None or float(p.grad.abs().max()) == 0 for p in model.cnn.parameters())
+    assert all(p.grad is None for p in model.head_geometry.parameters())
+    assert float(model.reader[0].weight.grad.abs().max()) > 0
+    model.zero_grad()
+    model.loss(model(x), y, geometry=torch.randn(2, 4, 192), geometry_weight=1.0).backward()
+    assert float(model.cnn.fc6[1].weight.grad.abs().max()) > 0   # the shape loss trains the CNN
+    # Frames that differ but give the same predicted shape give the same class scores.
+    model.eval()
+    model.head_geometry.weight.data.zero_()
+    assert torch.equal(model(x)["logits"], model(torch.rand_like(x))["logits"])
+    with pytest.raises(ValueError, match="geometry head"):
+        build_model("lrcn", image_size=32, bottleneck=True, **TINY)
+
+
+@pytest.mark.parametrize("name", MODEL_NAMES)
+def test_each_model_builds_with_the_bottleneck(name):
+    model = build_model(name, image_size=32, geometry_dim=192, bottleneck=True, **TINY)
+    assert model(torch.rand(2, 3, 3, 32, 32))["logits"].shape == (2, 3, 54)
+
+
+def test_conv5_maps_of_a_model_reading_frame_differences():
+    import numpy as np
+
+    from eval.activations import conv5_maps
+
+    model = build_model("lrcn", image_size=32, motion=True, **TINY).eval()
+    frames = np.random.default_rng(0).integers(0, 256, (5, 32, 32, 3), dtype=np.uint8)
+    maps = conv5_maps(model, frames)
+    assert maps.shape == (5, 32, 32) and 0 <= maps.min() and maps.max() <= 1

@@ -3,6 +3,8 @@
 # process so that a failure costs one row, stopping before the device's 10-minute limit.
 #   RECIPES="baseline best augment+best" MODELS=lrcn bash scripts/gpu/learn_study.sh
 #   RECIPES=auto MODELS="base1 base2 base3" ...   the recipe with the best lrcn validation accuracy so far
+#   MEASURED=1 ...   then the measured-fabric set (clothgap eval measured, held-out variant) on this call's
+#                    models of the first (or chosen) recipe, which become the run's train/ models
 # The data comes first: STAGES="sim render" SPP=16 RUN=/tmp/paper_study bash scripts/gpu/paper_study.sh
 # Every recipe resumes epoch by epoch, so a call cut short loses at most one epoch: call again.
 # Writes $OUT/ablation-<setting>-<variant>.{json,md} (every finished recipe) and $OUT/learn_study.log.
@@ -34,6 +36,7 @@ print(max(rows, key=val)["recipe"])
 PY
 )
   echo "recipe chosen on validation accuracy: $RECIPES"
+  echo "$RECIPES" > "$RUN/eval/chosen-recipe.txt"
 fi
 for r in $RECIPES; do
   left=$(( DEADLINE - ($(date +%s) - t0) ))
@@ -50,5 +53,17 @@ if [ -n "$done_recipes" ]; then
   "${ABL[@]}" "${rargs[@]}" "${margs[@]}" --name "$NAME" 2>&1 | tail -2
   cp "$RUN/eval/$NAME.json" "$RUN/eval/$NAME.md" "$OUT"/ 2>/dev/null
   cat "$RUN/eval/$NAME.md"
+fi
+if [ "${MEASURED:-0}" = 1 ]; then
+  r=${RECIPES%% *}
+  mkdir -p "$RUN/train/$SETTING/$VARIANT"
+  for m in $MODELS; do
+    src="$RUN/ablation/$r/$SETTING/$VARIANT/$m"
+    [ -f "$src/s0/DONE" ] && rm -rf "$RUN/train/$SETTING/$VARIANT/$m" && cp -r "$src" "$RUN/train/$SETTING/$VARIANT/$m"
+  done
+  echo "== measured fabrics on recipe $r"
+  python3 -m clothgap eval measured "$RUN" --sequences ${SEQUENCES:-4} 2>&1 | tr '\r' '\n' \
+    | grep -vE "it/s\]|s/it\]|clip/s\]" | tail -3
+  cp "$RUN"/eval/measured.{md,json} "$OUT"/ 2>/dev/null; cat "$RUN/eval/measured.md" 2>/dev/null | head -40
 fi
 nvidia-smi --query-gpu=memory.used --format=csv,noheader

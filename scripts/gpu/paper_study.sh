@@ -2,6 +2,9 @@
 # GPU: one setting of the paper's study at full size through the real CLI, stage by stage.
 #   STAGES="sim render" bash scripts/gpu/paper_study.sh     (then "train", then "eval report")
 #   RENDER_ARGS="--executor process --workers 12 --gpus-per-worker 0.0833" overlaps the per-clip host work.
+#   The paper preset writes each clip's frames.npy alone; EXTRA='--set render.write_png=true' adds the PNGs
+#   (the cost every clip paid before). The render line's summary has frames and seconds: frames/s over the
+#   ceiling of scripts/gpu/render_bench.sh (RESOLUTIONS=112) on the same machine is the render's ratio.
 # Every stage resumes, so a call cut off at the device's 10-minute limit loses nothing:
 # call again with the same STAGES. Timings accumulate in $RUN/gpu_timings.jsonl; each
 # call copies them, the config and the eval tables to $OUT (one tarball).
@@ -15,7 +18,8 @@ for stage in $STAGES; do
   t0=$(date +%s.%N)
   if [ -f "$RUN/config.json" ]; then args=("$RUN"); else args=(--preset paper --out "$RUN" "${SETS[@]}"); fi
   extra=(); [ "$stage" = render ] && extra=(${RENDER_ARGS:-})
-  python3 -m clothgap $stage "${args[@]}" "${extra[@]}" 2>&1 | tr '\r' '\n' | grep -vE "it/s\]|clip/s\]|shard/s\]|s/it\]" | tail -8
+  # LIMIT (seconds, optional) stops the stage in time for the call's 10 minutes; it resumes next call.
+  ${LIMIT:+timeout -k 10 "$LIMIT"} python3 -m clothgap $stage "${args[@]}" "${extra[@]}" 2>&1 | tr '\r' '\n' | grep -vE "it/s\]|clip/s\]|shard/s\]|s/it\]" | tail -8
   rc=${PIPESTATUS[0]}
   t1=$(date +%s.%N)
   python3 -c "import json,sys; print(json.dumps({'stage': '$stage', 'rc': $rc, 'seconds': round($t1-$t0, 1)}))" >> "$RUN/gpu_timings.jsonl"

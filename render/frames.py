@@ -1,0 +1,172 @@
+"""A rendered clip's tone-mapped frames, the network's input: one uint8 array per clip, PNGs on request.
+
+In a clip folder (``render/<variant>/<setting>/<clip_id>/``)::
+
+    frames.npy     (T, H, W, 3) uint8 sRGB, every frame of the clip; written whole (temporary file, then
+                   renamed) before the folder's DONE marker
+    ldr/0000.png   the same frames as 8-bit PNGs, when ``render.write_png`` is on; the only frames of
+                   clips rendered before frames.npy existed, and of real-video and synthetic clips
+
+``read_clip_frames`` reads either (the array when the folder has one), so every
+reader of rendered frames takes old and new folders alike. A clip whose frames
+are missing, truncated or of the wrong shape raises ``FrameError`` naming the
+file; callers leave the clip out with a warning.
+
+To look at a clip frame by frame when only the array was written::
+
+    python -m render.frames RUN/render/paper/wind-uniform1/c00012 --out frames/   # frames/0000.png ...
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+FRAMES_FILE = "frames.npy"
+LDR_DIR = "ldr"
+
+
+class FrameError(RuntimeError):
+    """A frame of a clip is missing or cannot be decoded; the message names the clip and the file."""
+
+
+def write_frames(clip_dir: Path, frames: np.ndarray) -> Path:
+    """Write a clip's (T, H, W, 3) uint8 frames as ``frames.npy``, atomically (no partial file under the name)."""
+    frames = np.asarray(frames)
+    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
+        raise ValueError(f"write_frames({clip_dir}): expected (T, H, W, 3) uint8, got {frames.shape} {frames.dtype}")
+    path = Path(clip_dir) / FRAMES_FILE
+    tmp = path.with_name(f"frames.tmp{os.getpid()}.npy")
+    try:
+        with open(tmp, "wb") as f:
+            np.save(f, np.ascontiguousarray(frames))
+        tmp.replace(path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)     # a full disk or a kill leaves no half-written array behind
+        raise
+    return path
+
+
+def png_path(clip_dir: Path, t: int) -> Path:
+    return Path(clip_dir) / LDR_DIR / f"{t:04d}.png"
+
+
+def write_png(clip_dir: Path, t: int, frame: np.ndarray) -> None:
+    Image.fromarray(np.ascontiguousarray(frame)).save(png_path(clip_dir, t))
+
+
+def frame_count(clip_dir: Path, meta: dict) -> int:
+    """How many frames a finished clip has: its meta's ``num_frames``, else its array's, else its PNGs."""
+    if meta.get("num_frames") is not None:
+        return int(meta["num_frames"])
+    array = Path(clip_dir) / FRAMES_FILE
+    if array.is_file():
+        try:
+            return int(np.load(array, mmap_mode="r").shape[0])
+        except (OSError, ValueError, EOFError, IndexError):
+            return 0                    # read_clip_frames names the file
+    return len(list((Path(clip_dir) / LDR_DIR).glob("*.png")))
+
+
+def open_clip_frames(clip_dir: Path, num_frames: int | None = None) -> np.ndarray:
+    """A clip's frames as (T, H, W, 3) uint8: ``frames.npy`` opened read-only (memmap), else its decoded PNGs.
+
+    ``num_frames`` (the meta's count) is checked against the array and names the PNGs
+    to read (default: every ``ldr/*.png``). Raises FrameError naming the clip and file.
+    """
+    clip_dir = Path(clip_dir)
+    array = clip_dir / FRAMES_FILE
+    if not array.is_file():
+        return _read_pngs(clip_dir, num_frames)
+    try:
+        frames = np.load(array, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError, EOFError) as err:     # truncated, not an .npy, or a header that lies
+        raise FrameError(f"clip {clip_dir.name}: frames {array} are unreadable ({err})") from err
+    count = frames.shape[0] if num_frames is None else int(num_frames)
+    if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[-1] != 3 or frames.shape[0] != count \
+            or count == 0:
+        raise FrameError(f"clip {clip_dir.name}: frames {array} hold a {frames.dtype} array of shape "
+                         f"{frames.shape}, not {count} frames of (H, W, 3) uint8")
+    return frames
+
+
+def read_clip_frames(clip_dir: Path, num_frames: int | None = None, size: int | None = None) -> np.ndarray:
+    """A clip's frames as an owned (T, H, W, 3) uint8 array, each resized to (size, size) when ``size`` is given.
+
+    Resizing is PIL's bilinear on the uint8 frame, the same for the array and the PNGs,
+    so both give the same bytes for the same frames.
+    """
+    frames = open_clip_frames(clip_dir, num_frames)
+    if size is None or frames.shape[1:3] == (size, size):
+        return np.array(frames)
+    return resize_frames(frames, size)
+
+
+def resize_frames(frames: np.ndarray, size: int, out: np.ndarray | None = None) -> np.ndarray:
+    """(T, H, W, 3) uint8 -> (T, size, size, 3), frame by frame through PIL's bilinear filter."""
+    out = np.empty((len(frames), size, size, 3), np.uint8) if out is None else out
+    for t, frame in enumerate(frames):
+        out[t] = _resized(Image.fromarray(np.asarray(frame)), size)
+    return out
+
+
+def _resized(img: Image.Image, size: int) -> np.ndarray:
+    if img.size != (size, size):
+        img = img.resize((size, size), Image.Resampling.BILINEAR)
+    return np.asarray(img)
+
+
+def _read_pngs(clip_dir: Path, num_frames: int | None) -> np.ndarray:
+    count = len(list((clip_dir / LDR_DIR).glob("*.png"))) if num_frames is None else int(num_frames)
+    if count == 0:
+        raise FrameError(f"clip {clip_dir.name}: no frames in {clip_dir / LDR_DIR} and no {FRAMES_FILE}")
+    frames = None
+    for t in range(count):
+        path = png_path(clip_dir, t)
+        if not path.is_file():
+            raise FrameError(f"clip {clip_dir.name}: frame {path} is missing")
+        try:
+            with Image.open(path) as img:
+                rgb = np.asarray(img.convert("RGB"))
+        except (OSError, ValueError, SyntaxError) as err:
+            raise FrameError(f"clip {clip_dir.name}: frame {path} is unreadable ({err})") from err
+        if frames is None:
+            frames = np.empty((count, *rgb.shape), np.uint8)
+        elif rgb.shape != frames.shape[1:]:
+            raise FrameError(f"clip {clip_dir.name}: frame {path} is {rgb.shape[1]}x{rgb.shape[0]} pixels, "
+                             f"frame 0 {frames.shape[2]}x{frames.shape[1]}")
+        frames[t] = rgb
+    return frames
+
+
+def export_png(clip_dir: Path, out_dir: Path) -> list[Path]:
+    """Write a clip's frames to ``out_dir/%04d.png`` (from its array or its PNGs); returns the paths."""
+    frames = open_clip_frames(clip_dir)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for t, frame in enumerate(frames):
+        paths.append(out_dir / f"{t:04d}.png")
+        Image.fromarray(np.asarray(frame)).save(paths[-1])
+    return paths
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(prog="python -m render.frames",
+                                description="Write a rendered clip's frames (frames.npy or ldr/) as PNG files.")
+    p.add_argument("clip_dir", type=Path, help="a rendered clip folder, e.g. RUN/render/paper/wind-uniform1/c00012")
+    p.add_argument("--out", type=Path, required=True, help="folder for 0000.png ...")
+    args = p.parse_args(argv)
+    try:
+        paths = export_png(args.clip_dir, args.out)
+    except FrameError as err:
+        raise SystemExit(f"error: {err}") from None
+    print(f"wrote {len(paths)} frames to {args.out}")
+
+
+if __name__ == "__main__":
+    main()
