@@ -149,61 +149,60 @@ def distances_mm(a: list[np.ndarray], b: list[np.ndarray]) -> dict:
             "per_k_mean": {f"k{k:g}": round(1000 * float(x.mean()), 2) for k, x in zip(DT_K, d)}}
 
 
-def dt_part(cfg: SimConfig, levels: list[str], device: str, record) -> dict:
+def each_scene(cfg: SimConfig, levels: list[str], label: str, record, cell) -> dict:
+    """``cell(mesh, simulate, batch, settle, on)`` for every level, folding scene and self-collision off / on,
+    as {level: {scene: {"off": ..., "on": ...}}}, recorded after each scene."""
     out = {}
     for name in levels:
         mesh, simulate, scenes = folding_scenes(cfg, name)
         out[name] = {}
         for kind, (batch, settle) in scenes.items():
-            row = {}
+            out[name][kind] = row = {}
             for on in (False, True):
-                shapes, seconds = {}, {}
-                series = (cfg.substeps, 2 * cfg.substeps, 4 * cfg.substeps) if on else (cfg.substeps, 2 * cfg.substeps)
-                for substeps in series:
-                    start = time.perf_counter()
-                    shapes[substeps] = final_shapes(cfg, mesh, simulate, batch, settle, substeps, on, device)
-                    seconds[substeps] = round(time.perf_counter() - start, 2)
-                shifts = {f"dt 1/{int(cfg.fps * a)} vs 1/{int(cfg.fps * b)}": distances_mm(shapes[a], shapes[b])
-                          for a, b in zip(series, series[1:])}
-                finest = shapes[series[-1]]
-                steps = {f"k{a:g}-k{b:g}": distances_mm([finest[DT_K.index(a)]], [finest[DT_K.index(b)]])
-                         for a, b in NEIGHBOURS}
-                row["on" if on else "off"] = {
-                    "dt_shift_mm": shifts,
-                    "class_step_mm": {key: {"mean": d["mean"], "max": d["max"]} for key, d in steps.items()},
-                    "class_step_dt": f"1/{int(cfg.fps * series[-1])}",
-                    "seconds": seconds}
-                print(f"dt {name} {kind} self-collision {'on' if on else 'off'}: "
+                row["on" if on else "off"] = cell(mesh, simulate, batch, settle, on)
+                print(f"{label} {name} {kind} self-collision {'on' if on else 'off'}: "
                       f"{json.dumps(row['on' if on else 'off'])}", flush=True)
-            out[name][kind] = row
             record(out)
     return out
+
+
+def dt_part(cfg: SimConfig, levels: list[str], device: str, record) -> dict:
+    def cell(mesh, simulate, batch, settle, on):
+        shapes, seconds = {}, {}
+        series = (cfg.substeps, 2 * cfg.substeps, 4 * cfg.substeps) if on else (cfg.substeps, 2 * cfg.substeps)
+        for substeps in series:
+            start = time.perf_counter()
+            shapes[substeps] = final_shapes(cfg, mesh, simulate, batch, settle, substeps, on, device)
+            seconds[substeps] = round(time.perf_counter() - start, 2)
+        shifts = {f"dt 1/{int(cfg.fps * a)} vs 1/{int(cfg.fps * b)}": distances_mm(shapes[a], shapes[b])
+                  for a, b in zip(series, series[1:])}
+        finest = shapes[series[-1]]
+        steps = {f"k{a:g}-k{b:g}": distances_mm([finest[DT_K.index(a)]], [finest[DT_K.index(b)]])
+                 for a, b in NEIGHBOURS}
+        return {"dt_shift_mm": shifts,
+                "class_step_mm": {key: {"mean": d["mean"], "max": d["max"]} for key, d in steps.items()},
+                "class_step_dt": f"1/{int(cfg.fps * series[-1])}", "seconds": seconds}
+
+    return each_scene(cfg, levels, "dt", record, cell)
 
 
 def floor_part(cfg: SimConfig, levels: list[str], device: str, record) -> dict:
     """How far the same folding scenes drift apart at the stage's dt when every vertex starts a distance of
     the order of ``NUDGES_M`` away (normal, seeded): what any perturbation grows to in 1 s, the floor under
     dt_shift (one step of free fall at 1/200 s already differs from the exact path by g h^2 / 2 = 0.12 mm)."""
-    out = {}
-    for name in levels:
-        mesh, simulate, scenes = folding_scenes(cfg, name)
-        out[name] = {}
-        for kind, (batch, settle) in scenes.items():
-            row = {}
-            for on in (False, True):
-                ref = final_shapes(cfg, mesh, simulate, batch, settle, cfg.substeps, on, device)
-                row["on" if on else "off"] = cell = {}
-                for nudge in NUDGES_M:
-                    rng = np.random.default_rng(0)
-                    nudged = [dataclasses.replace(s, spec=dataclasses.replace(
-                        s.spec, positions=s.spec.positions + rng.normal(0.0, nudge, s.spec.positions.shape)))
-                        for s in batch]
-                    cell[f"{nudge * 1e6:g} um"] = distances_mm(
-                        ref, final_shapes(cfg, mesh, simulate, nudged, settle, cfg.substeps, on, device))
-                print(f"floor {name} {kind} self-collision {'on' if on else 'off'}: {json.dumps(cell)}", flush=True)
-            out[name][kind] = row
-            record(out)
-    return out
+    def cell(mesh, simulate, batch, settle, on):
+        ref = final_shapes(cfg, mesh, simulate, batch, settle, cfg.substeps, on, device)
+        out = {}
+        for nudge in NUDGES_M:
+            rng = np.random.default_rng(0)
+            nudged = [dataclasses.replace(s, spec=dataclasses.replace(
+                s.spec, positions=s.spec.positions + rng.normal(0.0, nudge, s.spec.positions.shape)))
+                for s in batch]
+            out[f"{nudge * 1e6:g} um"] = distances_mm(
+                ref, final_shapes(cfg, mesh, simulate, nudged, settle, cfg.substeps, on, device))
+        return out
+
+    return each_scene(cfg, levels, "floor", record, cell)
 
 
 def main() -> None:
