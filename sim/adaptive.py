@@ -35,6 +35,7 @@ class AdaptiveResult:
     reason: str | None
     vertex_counts: list[int] = dataclasses.field(default_factory=list)
     cg: CGStats | None = None
+    collision_dropped: int | None = None
 
 
 @dataclasses.dataclass
@@ -76,13 +77,16 @@ def _solver(cloths: list[_Cloth], params: SolverParams, device: str, elapsed: fl
 
 def simulate_adaptive(scenes: list[ClipScene], base: remesh.QuadMesh, *, fps: float, frames: int,
                       substeps: int, settle_s: float, cg_iterations: int = 30,
-                      cg_tolerance: float = SolverParams.cg_tolerance, device: str = "cpu",
+                      cg_tolerance: float = SolverParams.cg_tolerance, self_collision: bool = False,
+                      collision_thickness: float = SolverParams.collision_thickness, device: str = "cpu",
                       refine_angle: float = 0.3, health=None, on_frame=None) -> list[AdaptiveResult]:
     """Settle without wind on the base mesh, then record ``frames`` frames with the wind on,
     remeshing every cloth after each frame. ``scenes`` must be built on ``cloth_mesh(base)``."""
     dt = 1.0 / (fps * substeps)
-    params = SolverParams(dt=dt, cg_iterations=cg_iterations, cg_tolerance=cg_tolerance)
+    params = SolverParams(dt=dt, cg_iterations=cg_iterations, cg_tolerance=cg_tolerance,
+                          self_collision=self_collision, collision_thickness=collision_thickness)
     cg = [CGStats() for _ in scenes]        # summed over the solvers a remeshing run rebuilds
+    dropped = [0] * len(scenes)
     cloths = [_start(s, base) for s in scenes]
     winds = np.stack([s.wind for s in scenes])
     solver = _solver(cloths, params, device, 0.0, None)
@@ -118,10 +122,12 @@ def simulate_adaptive(scenes: list[ClipScene], base: remesh.QuadMesh, *, fps: fl
                 cloth.spec = dataclasses.replace(cloth.spec, positions=pos[c], velocities=vel[c])
         if changed and t + 1 < frames:
             cg = [a.merged(b) for a, b in zip(cg, solver.cg_stats())]
+            dropped = [a + b for a, b in zip(dropped, solver.collision_dropped() or [0] * len(scenes))]
             solver = _solver(cloths, params, device, elapsed, winds)
         prev = pos
         if on_frame is not None:
             on_frame()
     cg = [a.merged(b) for a, b in zip(cg, solver.cg_stats())]
-    return [AdaptiveResult(None if r else rec, r, [len(f[0]) for f in rec], c)
-            for r, rec, c in zip(reasons, recorded, cg)]
+    dropped = [a + b for a, b in zip(dropped, solver.collision_dropped() or [0] * len(scenes))]
+    return [AdaptiveResult(None if r else rec, r, [len(f[0]) for f in rec], c, d if self_collision else None)
+            for r, rec, c, d in zip(reasons, recorded, cg, dropped)]

@@ -34,6 +34,8 @@ class SimConfig:
     settle_s: float = 0.4                           # simulated seconds before the first recorded frame
     cg_iterations: int = 30                         # the most conjugate-gradient iterations per solver step
     cg_tolerance: float = 1.0e-3                    # a cloth's CG stops at |r| <= tol |r0|; 0: run to float32's limit
+    self_collision: bool = False                    # keep non-adjacent parts of a cloth apart (sim.collision)
+    collision_thickness: float = 0.003              # m, the gap self-collision keeps; below half the finest edge
     device: str = "auto"                            # "auto", "cpu", "cuda", "cuda:N"
     batch_size: int = 512                           # cloths advanced together in one launch
     wind_nuisance: str = "full"                     # "full": pose, gathering, wind speed and direction drawn
@@ -64,9 +66,27 @@ class SimConfig:
         out += checks.number("sim.cg_iterations", self.cg_iterations, 1)
         out += checks.number("sim.cg_tolerance", self.cg_tolerance, 0, 1, hi_open=True)
         out += checks.number("sim.batch_size", self.batch_size, 1)
+        thickness = checks.number("sim.collision_thickness", self.collision_thickness, 0, lo_open=True)
+        out += thickness
+        if self.self_collision and not thickness and not out:
+            # A flat mesh has triangles not incident to a vertex 0.71 edge from it: a thickness near that
+            # pushes the resting cloth apart from itself.
+            edge = self.finest_edge_m()
+            if self.collision_thickness >= 0.5 * edge:
+                out.append(f"sim.collision_thickness={self.collision_thickness:g}: must be below half the finest "
+                           f"edge, {0.5 * edge:.4g} m ({self.grid_vertices} vertices per side on a "
+                           f"{self.cloth_size_m:g} m cloth, level {self.finest_level()})")
         out += checks.choice("sim.wind_nuisance", self.wind_nuisance, WIND_NUISANCE)
         out += checks.device("sim.device", self.device)
         return out
+
+    def finest_level(self) -> int:
+        """The finest uniform level the settings reach (adaptive remeshing refines up to level 3)."""
+        return max(3 if r == "adaptive" else int(r.removeprefix("uniform")) for r in self.remeshing)
+
+    def finest_edge_m(self) -> float:
+        """The shortest (axis-aligned) edge of the finest mesh the settings reach, metres."""
+        return self.cloth_size_m / ((self.grid_vertices - 1) * 2 ** (self.finest_level() - 1))
 
     def class_indices(self) -> tuple[int, ...]:
         return self.classes or tuple(range(54))

@@ -64,6 +64,10 @@ is the host's, a step leaves the loop once no cloth runs. ``cg_stats()`` reports
 the iterations taken per step (mean, max) and the largest final relative
 residual.
 
+Self-collision (``SolverParams.self_collision``, ``sim.collision``): after the step, point-triangle and
+edge-edge velocity impulses keep non-adjacent parts of each cloth ``collision_thickness`` apart, before the
+arm's projection (the arm, kinematic, has the last word).
+
 Batching: ``BatchSolver(specs)`` concatenates the cloths; every face, hinge and
 vertex knows its cloth id, so per-cloth materials, densities and winds are just
 per-cloth arrays.
@@ -73,12 +77,13 @@ from __future__ import annotations
 
 import math
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
 from sim import kernels
+from sim.collision import SelfCollision, unique_edges
 from sim.mesh import ClothMesh
 
 
@@ -152,6 +157,11 @@ class SolverParams:
     slip_velocity: float = 1.0e-3         # m/s, below it friction is a stiff damping (static friction's creep)
     contact_tolerance: float = 0.005      # m, beyond the contact surface a vertex still counts as touching
     contact_iterations: int = 1           # Jacobi passes of the edge-capsule contact after each step
+    self_collision: bool = False          # point-triangle and edge-edge repulsion within a cloth (sim.collision)
+    collision_thickness: float = 0.003    # m, kept between non-adjacent parts of one cloth
+    self_friction: float = 0.3            # Coulomb coefficient of cloth on itself
+    collision_passes: int = 8             # Jacobi passes of the self-collision impulses per step
+    collision_slots: int = 16             # pairs kept per vertex and per edge each step
 
 
 @dataclass(frozen=True)
@@ -293,12 +303,8 @@ class BatchSolver:
         self.arms = wp.array([self._arm_struct(s.arm) for s in specs], dtype=kernels.Arm, device=dev)
         self.clock = wp.zeros(1, dtype=float, device=dev)
         self.faces_per_cloth = [len(s.mesh.faces) for s in specs]
+        edges = [unique_edges(s.mesh.faces) + int(self.vertex_offsets[c]) for c, s in enumerate(specs)]
         if self.has_arm:          # unique edges, for edge-capsule contact
-            edges = []
-            for c, s in enumerate(specs):
-                f = s.mesh.faces
-                e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-                edges.append(np.unique(e, axis=0) + int(self.vertex_offsets[c]))
             self.edge = arr(cat(edges).astype(np.int32).reshape(-1, 2), int)
             self.contact_dx = wp.zeros(self.x.shape[0], dtype=wp.vec3, device=dev)
             self.contact_dv = wp.zeros(self.x.shape[0], dtype=wp.vec3, device=dev)
@@ -338,6 +344,15 @@ class BatchSolver:
         self.cg_iteration_sum = wp.zeros(nc, dtype=float, device=dev)  # statistics over all steps so far
         self.cg_iteration_max = wp.zeros(nc, dtype=int, device=dev)
         self.cg_residual_max = wp.zeros(nc, dtype=float, device=dev)
+        self.collision = None
+        if self.params.self_collision:
+            self.x_start = wp.zeros_like(self.x)
+            self.collision = SelfCollision(
+                x0=self.x_start, x=self.x, v=self.v, mass=cat(masses), free=cat(free),
+                vertex_cloth=self.vertex_cloth, tri=self.tri, face_cloth=self.face_cloth, edges=cat(edges),
+                edge_cloth=cat([np.full(len(e), c) for c, e in enumerate(edges)]), num_cloths=nc,
+                thickness=self.params.collision_thickness, friction=self.params.self_friction,
+                passes=self.params.collision_passes, slots=self.params.collision_slots, device=dev)
 
     @staticmethod
     def _arm_struct(arm: ArmSpec | None) -> kernels.Arm:
@@ -428,7 +443,11 @@ class BatchSolver:
                                        self.cg_iteration_max, self.cg_residual_max])
         if self.has_arm:
             launch(kernels.contact_release, nv, [self.contact_n, self.contact_rn, self.released, self.contact_jn])
+        if self.collision is not None:
+            cmds.append(lambda: wp.copy(self.x_start, self.x))
         launch(kernels.integrate, nv, [self.dv, self.free, dt, self.x, self.v])
+        if self.collision is not None:
+            self.collision.record(launch, cmds, dt)
         if self.has_arm:
             launch(kernels.contact_recovered, nv, [self.contact_recover, self.v])
             launch(kernels.advance_clock, 1, [self.clock, dt])
@@ -475,6 +494,13 @@ class BatchSolver:
         sums, maxes = self.cg_iteration_sum.numpy(), self.cg_iteration_max.numpy()
         res = self.cg_residual_max.numpy()
         return [CGStats(self._steps, float(sums[c]), int(maxes[c]), float(res[c])) for c in range(self.num_cloths)]
+
+    def collision_dropped(self) -> list[int] | None:
+        """Per cloth: the self-collision pairs dropped over every step so far (the farthest pairs of a vertex or
+        edge with more than ``collision_slots``; left unresolved); None when self-collision is off."""
+        if self.collision is None:
+            return None
+        return [int(n) for n in self.collision.dropped_pairs()]
 
     def set_wind(self, winds: np.ndarray) -> None:
         """Per-cloth wind velocities, (num_cloths, 3) m/s."""

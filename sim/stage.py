@@ -40,6 +40,7 @@ from sim import remesh
 from sim.adaptive import cloth_mesh, simulate_adaptive
 from sim.clip import SimClip
 from sim.config import REMESHING, SimConfig
+from sim.intersections import count_intersections
 from sim.materials import load_material
 from sim.mesh import ClothMesh, square_cloth, vertices_per_side
 from sim.motions import MOTIONS, ClipScene, arm_scene, view_box, wind_scene
@@ -77,6 +78,7 @@ class ClipResult:
     reason: str | None                # why it failed, else None
     frames: list | None = None        # adaptive: (positions, faces, uv) per frame when ok
     cg: CGStats | None = None         # the solver's CG work on this cloth (meta "health")
+    collision_dropped: int | None = None   # self-collision pairs dropped (beyond the slots), unresolved; None: off
 
 
 def _edges(mesh: ClothMesh) -> np.ndarray:
@@ -111,12 +113,14 @@ def _batch_health(cur: np.ndarray, prev: np.ndarray, frame_dt: float, edges: np.
 
 
 def simulate_scenes(scenes: list[ClipScene], *, fps: float, frames: int, substeps: int, settle_s: float,
-                    cg_iterations: int = 30, cg_tolerance: float = SolverParams.cg_tolerance, device: str = "cpu",
-                    on_frame: Callable[[], None] | None = None) -> list[ClipResult]:
+                    cg_iterations: int = 30, cg_tolerance: float = SolverParams.cg_tolerance,
+                    self_collision: bool = False, collision_thickness: float = SolverParams.collision_thickness,
+                    device: str = "cpu", on_frame: Callable[[], None] | None = None) -> list[ClipResult]:
     """Simulate a batch: settle without wind for ``settle_s``, then record ``frames`` frames with the wind on.
     ``on_frame`` is called after each recorded frame (progress)."""
     dt = 1.0 / (fps * substeps)
-    params = SolverParams(dt=dt, cg_iterations=cg_iterations, cg_tolerance=cg_tolerance)
+    params = SolverParams(dt=dt, cg_iterations=cg_iterations, cg_tolerance=cg_tolerance,
+                          self_collision=self_collision, collision_thickness=collision_thickness)
     solver = BatchSolver([s.spec for s in scenes], params, device)
     solver.step(int(round(settle_s / dt)))
     solver.set_wind(np.stack([s.wind for s in scenes]))
@@ -145,13 +149,15 @@ def simulate_scenes(scenes: list[ClipScene], *, fps: float, frames: int, substep
         if on_frame is not None:
             on_frame()
     cg = solver.cg_stats()
-    return [ClipResult(None, r, cg=cg[c]) if r else ClipResult(np.stack([f[c] for f in recorded]), None, cg=cg[c])
+    dropped = solver.collision_dropped() or [None] * len(scenes)
+    return [ClipResult(None if r else np.stack([f[c] for f in recorded]), r, cg=cg[c], collision_dropped=dropped[c])
             for c, r in enumerate(reasons)]
 
 
 def simulate_adaptive_scenes(scenes: list[ClipScene], base, *, fps: float, frames: int, substeps: int,
                              settle_s: float, cg_iterations: int = 30,
-                             cg_tolerance: float = SolverParams.cg_tolerance, device: str = "cpu",
+                             cg_tolerance: float = SolverParams.cg_tolerance, self_collision: bool = False,
+                             collision_thickness: float = SolverParams.collision_thickness, device: str = "cpu",
                              on_frame: Callable[[], None] | None = None) -> list[ClipResult]:
     """``simulate_scenes`` with adaptive remeshing after every frame; same health check per frame."""
     def check(cloth, x, x_prev, frame_dt):
@@ -159,9 +165,32 @@ def simulate_adaptive_scenes(scenes: list[ClipScene], base, *, fps: float, frame
         return health(x, x_prev, frame_dt, e, np.linalg.norm(cloth.quad.uv[e[:, 1]] - cloth.quad.uv[e[:, 0]], axis=1))
 
     out = simulate_adaptive(scenes, base, fps=fps, frames=frames, substeps=substeps, settle_s=settle_s,
-                            cg_iterations=cg_iterations, cg_tolerance=cg_tolerance, device=device, health=check,
-                            on_frame=on_frame)
-    return [ClipResult(None, r.reason, r.frames, r.cg) for r in out]
+                            cg_iterations=cg_iterations, cg_tolerance=cg_tolerance, self_collision=self_collision,
+                            collision_thickness=collision_thickness, device=device, health=check, on_frame=on_frame)
+    return [ClipResult(None, r.reason, r.frames, r.cg, r.collision_dropped) for r in out]
+
+
+def setting_simulator(cfg: SimConfig, setting: Setting) -> tuple[ClothMesh, Callable[..., list[ClipResult]]]:
+    """The mesh a setting's scenes are built on and the function that simulates a batch of them
+    (``simulate_scenes``, or ``simulate_adaptive_scenes`` remeshing from the level-1 quadtree)."""
+    if setting.remeshing == "adaptive":
+        base = remesh.uniform(cfg.grid_vertices, cfg.cloth_size_m, 1)
+        return cloth_mesh(base), functools.partial(simulate_adaptive_scenes, base=base)
+    return square_cloth(cfg.cloth_size_m, cfg.grid_vertices, setting.level), simulate_scenes
+
+
+def clip_health(result: ClipResult, mesh: ClothMesh) -> dict:
+    """The meta's ``health``: the CG statistics, the triangle pairs that cut through each other in the last
+    recorded frame (``sim.intersections``), and with self-collision the pairs it dropped, unresolved."""
+    out = result.cg.health() if result.cg is not None else {}
+    if result.frames is not None:
+        x, faces, _ = result.frames[-1]
+        out["self_intersections"] = count_intersections(x, faces)
+    elif result.positions is not None:
+        out["self_intersections"] = count_intersections(result.positions[-1], mesh.faces)
+    if result.collision_dropped is not None:
+        out["collision_pairs_dropped"] = result.collision_dropped
+    return out
 
 
 def clip_material(cfg: SimConfig, seed: int, index: int) -> tuple[int, float, float]:
@@ -244,13 +273,7 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
         todo = [j for j in jobs[setting.name] if not is_done(out / j.name)]
         summary["skipped"] += len(jobs[setting.name]) - len(todo)
         n = vertices_per_side(cfg.grid_vertices, setting.level)
-        if setting.remeshing == "adaptive":
-            base = remesh.uniform(cfg.grid_vertices, cfg.cloth_size_m, 1)
-            mesh = cloth_mesh(base)
-            simulate = functools.partial(simulate_adaptive_scenes, base=base)
-        else:
-            mesh = square_cloth(cfg.cloth_size_m, cfg.grid_vertices, setting.level)
-            simulate = simulate_scenes
+        mesh, simulate = setting_simulator(cfg, setting)
         # Progress in clip-frames: a GPU batch of thousands of clips finishes all at once.
         bar = tqdm(total=len(todo) * cfg.frames, desc=f"{label} {setting.name}", unit="clip-frame",
                    unit_scale=True, disable=not progress)
@@ -258,17 +281,17 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
             batch = todo[b:b + cfg.batch_size]
             built = [build_scene(cfg, run.config.seed, j.index, setting, mesh, j.fabric) for j in batch]
             scenes = [s for s, _ in built]
+            solver_options = dict(cg_iterations=cfg.cg_iterations, cg_tolerance=cfg.cg_tolerance,
+                                  self_collision=cfg.self_collision, collision_thickness=cfg.collision_thickness,
+                                  device=device)
             results = simulate(scenes, fps=cfg.fps, frames=cfg.frames, substeps=cfg.substeps,
-                               settle_s=cfg.settle_s, cg_iterations=cfg.cg_iterations,
-                               cg_tolerance=cfg.cg_tolerance, device=device,
-                               on_frame=lambda n=len(batch): bar.update(n))
+                               settle_s=cfg.settle_s, on_frame=lambda n=len(batch): bar.update(n), **solver_options)
             substeps = [cfg.substeps] * len(batch)
             failed = [j for j, r in enumerate(results) if r.reason]
             if failed:
                 summary["retried"] += len(failed)
                 retry = simulate([scenes[j] for j in failed], fps=cfg.fps, frames=cfg.frames,
-                                 substeps=2 * cfg.substeps, settle_s=cfg.settle_s,
-                                 cg_iterations=cfg.cg_iterations, cg_tolerance=cfg.cg_tolerance, device=device)
+                                 substeps=2 * cfg.substeps, settle_s=cfg.settle_s, **solver_options)
                 for j, r in zip(failed, retry):
                     if r.reason:
                         r.reason = f"{results[j].reason}; retry with {2 * cfg.substeps} substeps: {r.reason}"
@@ -294,9 +317,11 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
                         "seed": run.config.seed, "fps": cfg.fps, "frames": cfg.frames, "substeps": sub,
                         "dt": 1.0 / (cfg.fps * sub), "settle_s": cfg.settle_s, "cloth_size_m": cfg.cloth_size_m,
                         "vertices_per_side": n, "motion_params": scene.motion_params,
-                        "view_box": view_box(setting.motion, cfg.cloth_size_m)}
-                if result.cg is not None:
-                    meta["health"] = result.cg.health()
+                        "view_box": view_box(setting.motion, cfg.cloth_size_m),
+                        "self_collision": cfg.self_collision}
+                if cfg.self_collision:
+                    meta["collision_thickness_m"] = cfg.collision_thickness
+                meta["health"] = clip_health(result, mesh)
                 if result.reason:
                     atomic_write_json(folder / "FAILED", {**meta, "status": "failed", "reason": result.reason})
                     return False
