@@ -3,6 +3,7 @@
 # process so that a failure costs one row, stopping before the device's 10-minute limit.
 #   RECIPES="baseline best augment+best" MODELS=lrcn bash scripts/gpu/learn_study.sh
 #   RECIPES=auto MODELS="base1 base2 base3" ...   the recipe with the best lrcn validation accuracy so far
+#   PARALLEL=4 ...   four recipes at a time on the one GPU (windows/s then is not a solo figure)
 #   MEASURED=1 ...   then the measured-fabric set (clothgap eval measured, held-out variant) on this call's
 #                    models of the first (or chosen) recipe, which become the run's train/ models
 # The data comes first: STAGES="sim render" SPP=16 RUN=/tmp/paper_study bash scripts/gpu/paper_study.sh
@@ -38,14 +39,42 @@ PY
   echo "recipe chosen on validation accuracy: $RECIPES"
   echo "$RECIPES" > "$RUN/eval/chosen-recipe.txt"
 fi
-for r in $RECIPES; do
-  left=$(( DEADLINE - ($(date +%s) - t0) ))
-  [ $left -lt 30 ] && { echo "deadline: recipe $r and later not started"; break; }
-  margs=(); for m in $MODELS; do margs+=(--model "$m"); done
-  echo "== $r ($MODELS), $left s left"
-  timeout $(( left + 40 )) "${ABL[@]}" --recipe "$r" "${margs[@]}" --name "last-recipe" 2>&1 | tr '\r' '\n' \
-    | grep -vE "it/s\]|s/it\]|clip/s\]" | tail -5
-done
+margs=(); for m in $MODELS; do margs+=(--model "$m"); done
+if [ "${PARALLEL:-1}" -gt 1 ]; then
+  # Recipes share the GPU, PARALLEL at a time (a model at batch 64 leaves most of an H100 idle).
+  # The frame and lattice caches are built once first, so that the processes only read them.
+  python3 - "$RUN" "$SETTING" "$VARIANT" <<'PY'
+import sys
+from clothgap.runs import Run
+from learn.dataset import build_cache
+from learn.geometry import clip_lattices
+run, setting, variant = Run.open(sys.argv[1]), sys.argv[2], sys.argv[3]
+cache = build_cache(run, variant, setting, run.config.train.image_size, False)
+clip_lattices(run, setting, sorted(cache.clips), False)
+print(f"caches ready: {len(cache.clips)} clips")
+PY
+  running=0
+  for r in $RECIPES; do
+    left=$(( DEADLINE - ($(date +%s) - t0) ))
+    [ $left -lt 30 ] && { echo "deadline: recipe $r and later not started"; break; }
+    echo "== $r ($MODELS), $left s left, in parallel"
+    log="$RUN/eval/recipe-$(echo "$r" | tr '=+/' '-_-').log"; mkdir -p "$RUN/eval"
+    ( timeout $(( left + 40 )) "${ABL[@]}" --recipe "$r" "${margs[@]}" --name "recipe-$(echo "$r" | tr '=+/' '-_-')" \
+        2>&1 | tr '\r' '\n' | grep -vE "it/s\]|s/it\]|clip/s\]" > "$log"; echo "== $r exit ${PIPESTATUS[0]}" >> "$log" ) &
+    running=$((running + 1))
+    if [ $running -ge "$PARALLEL" ]; then wait -n; running=$((running - 1)); fi
+  done
+  wait
+  for r in $RECIPES; do tail -3 "$RUN/eval/recipe-$(echo "$r" | tr '=+/' '-_-').log" 2>/dev/null; done
+else
+  for r in $RECIPES; do
+    left=$(( DEADLINE - ($(date +%s) - t0) ))
+    [ $left -lt 30 ] && { echo "deadline: recipe $r and later not started"; break; }
+    echo "== $r ($MODELS), $left s left"
+    timeout $(( left + 40 )) "${ABL[@]}" --recipe "$r" "${margs[@]}" --name "last-recipe" 2>&1 | tr '\r' '\n' \
+      | grep -vE "it/s\]|s/it\]|clip/s\]" | tail -5
+  done
+fi
 done_recipes=$(finished $MODELS)
 if [ -n "$done_recipes" ]; then
   rargs=(); for r in $done_recipes; do rargs+=(--recipe "$r"); done
