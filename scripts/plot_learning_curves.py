@@ -1,0 +1,52 @@
+"""Learning curves (validation solid, training dotted) of the rows of learn result JSONs, one panel per JSON.
+
+    python scripts/plot_learning_curves.py docs/learning-curves.png \
+        benchmarks/results/learn_ablation-wind-uniform1-h100-bottleneck2.json \
+        benchmarks/results/learn_models-wind-uniform1-h100-bottleneck.json
+
+Each JSON is an `clothgap eval ablation` result (its ``recipes`` rows carry ``curves``); a panel's title
+is the JSON's file name. Rows are labelled recipe (and model where a JSON holds several models).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("out", type=Path, help="PNG to write")
+    ap.add_argument("results", type=Path, nargs="+", help="result JSONs (clothgap eval ablation)")
+    args = ap.parse_args(argv)
+    fig, axes = plt.subplots(1, len(args.results), figsize=(6.5 * len(args.results), 4.5), squeeze=False)
+    for ax, path in zip(axes[0], args.results):
+        rows = json.loads(path.read_text())["recipes"]
+        several_models = len({r["model"] for r in rows}) > 1
+        for i, row in enumerate(rows):
+            curve = row["curves"]["s0"]
+            label = f"{row['recipe']} / {row['model']}" if several_models else row["recipe"]
+            colour = f"C{i % 10}"
+            epochs = [e["epoch"] for e in curve]
+            ax.plot(epochs, [100 * e["val_acc"] for e in curve], color=colour, label=label)
+            ax.plot(epochs, [100 * e["train_acc"] for e in curve], color=colour, linestyle=":")
+        ax.set_title(path.stem, fontsize=9)
+        ax.set_xlabel("epoch")
+        ax.set_ylabel("accuracy % (validation solid, training dotted)")
+        ax.set_ylim(0, 100)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out, dpi=110)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
