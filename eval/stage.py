@@ -312,6 +312,14 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
                           f"settings/variants/models/seeds: run `clothgap train {run.root}` first")
     cells, counts, left_out = predict_all(run, models, predictor or _default_predictor, progress)
     if not cells:
+        empty = sorted({m.setting for m in models if not test_clips(run, m.setting)})
+        if empty:
+            # A split can hold no test sequence at all (too few sequences per class for the test share);
+            # rendering more would not help, so say what would.
+            raise ConfigError(f"the split of {', '.join(empty)} holds no test sequence "
+                              f"({cfg.sim.sequences_per_class} sequence(s) per class, train.test_fraction="
+                              f"{cfg.train.test_fraction:g}): raise sim.sequences_per_class or train.test_fraction "
+                              "in a new run")
         raise ConfigError(f"no rendered test clips found for any model under {run.root / 'render'}: "
                           f"run `clothgap render {run.root}` first")
     rng_for = _Rngs(cfg.seed)
