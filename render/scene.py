@@ -484,13 +484,19 @@ class ClipRenderer:
         """None when ``render_finished`` can finish this clip's frames on the device; else why not."""
         return device_unsupported(self.mi.variant(), self.variant)
 
+    @property
+    def device_finisher(self) -> DeviceFinish:
+        """The clip's ``DeviceFinish`` (made on first use: it uploads the background, waiting for its draw)."""
+        if self._device_finish is None:
+            self._device_finish = DeviceFinish(self.mi, self.variant, self.camera, self.background)
+        return self._device_finish
+
     def render_finished(self, t: int, hdr: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
         """Frame t rendered and finished on the device: (the uint8 sRGB frame ``finish`` gives, (H, W, 3);
         the linear RGBA (H, W, 4) float32 ``render_hdr`` gives when ``hdr``, else None)."""
-        if self._device_finish is None:
-            self._device_finish = DeviceFinish(self.mi, self.variant, self.camera, self.background)
+        finisher = self.device_finisher
         linear = self.render_linear(t)
-        ldr = self._device_finish.to_host(self._device_finish(linear))
+        ldr = finisher.to_host(finisher(linear))
         if not hdr:
             return ldr, None
         res = self.resolution
