@@ -17,7 +17,7 @@ the motion-blur average in float64), the curves and table are the host's own
 ``srgb8_table``), and a code depends only on which table entries a value lies
 between. Add, multiply, divide and float conversions round the same way in
 numpy and Dr.Jit (divisions by constants are kept exact through opaque values);
-on llvm_ad_rgb the frames come out byte-identical (tests/test_render_device_finish.py).
+on llvm_ad_rgb the frames come out byte-identical (tests/test_render_tonemap_device.py).
 On CUDA, ptxas may fuse a multiply and an add into one rounding (an fma), which
 moves a value by an ulp or so: a code then differs by 1 where a value sits on a
 code's step, never by more (codes are at least 1/3,300 apart).
