@@ -24,16 +24,25 @@ copied to the host:
 * ``batched_k<K>`` (with ``--k``): K frames of a clip per launch (render.batch),
   with its noise against a high-spp reference (batched frames are noisier);
 * ``phases``: host milliseconds per frame in each step of the stage's path
-  (pooled, frozen where it can be) on four clips: a new clip's setup, the
-  geometry update, the render call, the read-back (where the host waits for
-  the device), composite + tone map.
+  (pooled, frozen where it can be) on four clips, for both ways of finishing a
+  frame: ``host_finish`` (a new clip's setup, the geometry update, the render
+  call, the float32 RGBA read-back where the host waits for the device,
+  composite + tone map in numpy) and ``device_finish`` (the same, with the
+  composite + tone map + sRGB8 kernel launched on the device, ``finish``, and
+  the uint8 frame read back); ``device_over_host`` is the ratio of their
+  per-frame totals, and ``device_vs_host`` how far the two paths' frames differ
+  (the largest code difference and the share of values that differ: at most 1,
+  rarely, on CUDA; 0 on llvm_ad_rgb).
 
 With ``--write``, ``with_output`` times the stage's own ``render_clip`` (the
-stage's scene pooling and freezing, composite and tone mapping on a writer pool,
-``frames.npy`` written per clip) for each output set of ``--outputs``: ``npy``
-(the array alone, the ``paper`` preset), ``png`` (plus PNGs), ``png+exr`` (plus
-EXRs: what every clip wrote before frames.npy); each row records the files it
-wrote. ``--write-procs`` runs the same in N processes at once, as
+stage's scene pooling and freezing, frames finished on the device where the
+backend can, ``frames.npy`` written per clip) for each output set of
+``--outputs``: ``npy`` (the array alone, the ``paper`` preset), ``png`` (plus
+PNGs), ``png+exr`` (plus EXRs: what every clip wrote before frames.npy); each
+row records the files it wrote. ``<outputs>_host_finish`` is the same loop with
+frames finished on the host (``render_clip(device_finish=False)``, the stage
+before device finishing), and the device row's ``over_host_finish`` is its
+frames/s over that row's. ``--write-procs`` runs the same in N processes at once, as
 ``clothgap render --executor process`` does. Host RSS and (with nvidia-smi) GPU
 memory are sampled over each single-process loop, so a leak shows as a slope
 (``memory``: first, last, max). Writes a JSON under benchmarks/results/ with the
@@ -243,9 +252,10 @@ def processes_loop(args, spp: int, n: int, outputs: str = "") -> dict:
 
 
 def stage_loop(args, clips, spp: int, k: int, outputs: str = "png+exr", indices: list[int] | None = None,
-               written: dict | None = None) -> int:
-    """The stage's render_clip (tone mapping on a shared writer pool, frames.npy, ``outputs``) into a temporary
-    folder; ``written`` gets the number of files of each kind it wrote."""
+               written: dict | None = None, device_finish: bool = True) -> int:
+    """The stage's render_clip (frames finished on the device unless ``device_finish`` is False, a shared writer
+    pool, frames.npy, ``outputs``) into a temporary folder; ``written`` gets the number of files of each kind
+    it wrote."""
     from render.stage import render_clip
 
     write_png, write_hdr = OUTPUTS[outputs]
@@ -257,7 +267,7 @@ def stage_loop(args, clips, spp: int, k: int, outputs: str = "png+exr", indices:
             ThreadPoolExecutor(args.writer_threads) as writer:
         for index, clip in zip(indices or range(len(clips)), clips):
             meta = render_clip(clip, get_variant(args.variant), Path(tmp) / f"c{index:05d}", config=config,
-                               run_seed=0, clip_index=index, writer=writer)
+                               run_seed=0, clip_index=index, writer=writer, device_finish=device_finish)
             frames += meta["num_frames"]
         if written is not None:
             for kind in ("npy", "png", "exr"):
@@ -265,15 +275,19 @@ def stage_loop(args, clips, spp: int, k: int, outputs: str = "png+exr", indices:
     return frames
 
 
-def phases(args, clips, spp: int, mode: str) -> dict:
+def phases(args, clips, spp: int, mode: str, device: bool = False) -> dict:
     """Host milliseconds per frame in each step of the stage's one-frame path (no extra synchronisation, so a
-    wait for the device shows where it happens): geometry update, render call, read-back, composite + tone map."""
-    totals = dict.fromkeys(("clip_setup", "geometry", "render_call", "readback", "finish"), 0.0)
+    wait for the device shows where it happens): geometry update, render call, then either the float32 read-back
+    and composite + tone map on the host, or (``device``) the finishing kernel's launch and the uint8 read-back."""
+    steps = ("geometry", "render_call", "finish", "readback") if device else \
+        ("geometry", "render_call", "readback", "finish")
+    totals = dict.fromkeys(("clip_setup", *steps), 0.0)
     frames = 0
     for index, clip in enumerate(clips):
         t0 = time.perf_counter()
         r = make_renderer(args, clip, index, spp, mode)
         r.background                                    # the clip's background draw, on its helper thread
+        finisher = r.device_finisher if device else None
         totals["clip_setup"] += time.perf_counter() - t0
         for t in range(clip.num_frames):
             t0 = time.perf_counter()
@@ -281,14 +295,36 @@ def phases(args, clips, spp: int, mode: str) -> dict:
             t1 = time.perf_counter()
             image = r._render(spp, (r.sampler_seed + t) & 0xFFFFFFFF)
             t2 = time.perf_counter()
-            hdr = np.array(image, np.float32)
-            t3 = time.perf_counter()
-            r.finish(hdr, t)
+            if device:
+                codes = finisher(image.array)
+                t3 = time.perf_counter()
+                finisher.to_host(codes)
+            else:
+                hdr = np.array(image, np.float32)
+                t3 = time.perf_counter()
+                r.finish(hdr, t)
             t4 = time.perf_counter()
-            for key, dt in zip(("geometry", "render_call", "readback", "finish"), (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
+            for key, dt in zip(steps, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
                 totals[key] += dt
             frames += 1
-    return {"mode": mode, "frames": frames, **{f"ms_{k}": round(1e3 * v / frames, 3) for k, v in totals.items()}}
+    return {"mode": mode, "frames": frames, **{f"ms_{k}": round(1e3 * v / frames, 3) for k, v in totals.items()},
+            "ms_per_frame": round(1e3 * sum(totals.values()) / frames, 3)}
+
+
+def device_vs_host(args, clips, spp: int, mode: str) -> dict:
+    """How far frames finished on the device are from the host's finish of the same render (same scene, frame
+    and seed): the largest code difference and the share of values that differ, over every frame of ``clips``."""
+    largest, differing, values = 0, 0, 0
+    for index, clip in enumerate(clips):
+        r = make_renderer(args, clip, index, spp, mode)
+        for t in range(clip.num_frames):
+            host = r.finish(r.render_hdr(t), t).astype(np.int16)
+            device, _ = r.render_finished(t)
+            largest = max(largest, int(np.abs(device - host).max()))
+            differing += int(np.count_nonzero(device != host))
+            values += host.size
+    return {"frames": sum(c.num_frames for c in clips), "max_code_difference": largest,
+            "share_differing": differing / values}
 
 
 def ceiling(args, clips, spp: int) -> dict:
@@ -374,7 +410,16 @@ def main(argv: list[str] | None = None) -> dict:
         for mode in modes:
             result["render_only"][mode] = timed(render_loop, args, clips, spp, 1, mode)
             print(mode, json.dumps(result["render_only"][mode]), flush=True)
-        result["phases"] = phases(args, clips[:4], spp, modes[-1])
+        result["phases"] = {"host_finish": phases(args, clips[:4], spp, modes[-1])}
+        unsupported = make_renderer(args, clips[0], 0, spp).device_finish_unsupported
+        if unsupported:
+            result["phases"]["device_finish"] = {"skipped": unsupported}
+        else:
+            phases(args, clips[:1], spp, modes[-1], device=True)     # untimed: the finishing kernel compiles
+            result["phases"]["device_finish"] = device_row = phases(args, clips[:4], spp, modes[-1], device=True)
+            device_row["device_over_host"] = round(
+                device_row["ms_per_frame"] / result["phases"]["host_finish"]["ms_per_frame"], 3)
+            result["phases"]["device_vs_host"] = device_vs_host(args, clips[:2], spp, modes[-1])
         print("phases", json.dumps(result["phases"]), flush=True)
         if "pooled_frozen" in modes:
             result["frozen_rel_error"] = frozen_error(args, clips, spp)
@@ -399,11 +444,16 @@ def main(argv: list[str] | None = None) -> dict:
         if args.write and _stage_importable(result):
             result["with_output"] = {}
             for outputs in args.outputs:
-                written: dict = {}
-                stage_loop(args, warm, spp, 1, outputs)          # untimed: the stage's own kernels (freeze)
-                row = timed(stage_loop, args, clips, spp, 1, outputs, None, written)
-                result["with_output"][outputs] = {"outputs": written, **row}
-                print(f"with_output {outputs}", json.dumps(result["with_output"][outputs]), flush=True)
+                for device in (True, False):
+                    name = outputs if device else f"{outputs}_host_finish"
+                    written: dict = {}
+                    stage_loop(args, warm, spp, 1, outputs, None, None, device)  # untimed: the stage's kernels
+                    row = timed(stage_loop, args, clips, spp, 1, outputs, None, written, device)
+                    result["with_output"][name] = {"outputs": written, **row}
+                    print(f"with_output {name}", json.dumps(result["with_output"][name]), flush=True)
+                result["with_output"][outputs]["over_host_finish"] = round(
+                    result["with_output"][outputs]["frames_per_s"]
+                    / result["with_output"][f"{outputs}_host_finish"]["frames_per_s"], 3)
                 for n in args.write_procs:
                     row = processes_loop(args, spp, n, outputs)
                     result["with_output"][f"{outputs}_processes_{n}"] = row

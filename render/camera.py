@@ -38,17 +38,29 @@ def adds_noise(variant: RenderVariant) -> bool:
     return variant.shot_noise > 0 or variant.read_noise > 0
 
 
+def camera_gain(state: CameraState) -> np.ndarray:
+    """The clip's exposure times white balance per channel, (3,) float32: the factor a composited frame gets."""
+    return state.gain * np.asarray(state.white_balance, np.float32)
+
+
+def vignette(variant: RenderVariant, h: int, w: int) -> np.ndarray | None:
+    """The lens falloff per pixel, (h, w) float64, cos^4-like (corners lose the most); None without vignetting."""
+    if variant.vignetting <= 0:
+        return None
+    y, x = np.mgrid[0:h, 0:w]
+    r2 = ((x + 0.5) / w - 0.5) ** 2 + ((y + 0.5) / h - 0.5) ** 2
+    return 1.0 - variant.vignetting * (r2 / 0.5)
+
+
 def apply_camera(linear: np.ndarray, variant: RenderVariant, state: CameraState,
                  noise_rng: np.random.Generator | None) -> np.ndarray:
     """Linear RGB (H, W, 3) as the camera records it: exposure, white balance, vignetting, noise.
 
     ``noise_rng`` is the frame's noise stream; it may be None when the variant adds no noise."""
-    image = linear * (state.gain * np.asarray(state.white_balance, np.float32))
-    if variant.vignetting > 0:
-        h, w = image.shape[:2]
-        y, x = np.mgrid[0:h, 0:w]
-        r2 = ((x + 0.5) / w - 0.5) ** 2 + ((y + 0.5) / h - 0.5) ** 2
-        image = image * (1.0 - variant.vignetting * (r2 / 0.5))[..., None]  # cos^4-like falloff, corners lose the most
+    image = linear * camera_gain(state)
+    falloff = vignette(variant, *image.shape[:2])
+    if falloff is not None:
+        image = image * falloff[..., None]
     if adds_noise(variant):
         variance = variant.shot_noise * np.maximum(image, 0.0) + variant.read_noise ** 2
         image = image + noise_rng.normal(size=image.shape) * np.sqrt(variance)

@@ -28,6 +28,11 @@ A frame comes back twice: the cloth's linear RGBA radiance (what goes to EXR,
 alpha = coverage, the background not in it) and the 8-bit sRGB image the
 network reads: cloth composited over the background under its alpha in linear
 light, passed through the camera effects and the variant's tone-mapping operator.
+``finish`` makes that image on the host from the read-back RGBA;
+``render_finished`` makes it on the backend (``render.device_finish``) and reads
+back only the uint8 image (and the RGBA when asked), the same bytes.
+``device_finish_unsupported`` says when a variant or backend cannot (sensor
+noise, scalar_rgb); callers then take the host path.
 """
 
 from __future__ import annotations
@@ -44,6 +49,7 @@ from clothgap import seeding
 from render.backend import load_mitsuba
 from render.backgrounds import Backgrounds
 from render.camera import adds_noise, apply_camera, draw_camera
+from render.device_finish import DeviceFinish, unsupported as device_unsupported
 from render.lighting import Framing, emitters, room_shapes
 from render.materials import cloth_bsdf
 from render.textures import make_texture
@@ -230,6 +236,7 @@ class ClipRenderer:
         self.freeze = bool(freeze) and reuse_scenes and self.mi.variant().startswith("cuda")
         self._pooled: PooledScene | None = None
         self._capacity: tuple[int, int] | None = None
+        self._device_finish: DeviceFinish | None = None  # made on the first render_finished (needs the background)
 
     # ---------------------------------------------------------------- scene
 
@@ -451,6 +458,49 @@ class ClipRenderer:
             seed = (self.sampler_seed + t * n + k) & 0xFFFFFFFF
             total += np.asarray(self._render(spp, seed), np.float64)
         return (total / n).astype(np.float32)
+
+    def render_linear(self, t: int):
+        """Frame t's linear cloth RGBA left on the device: a flat Float (H*W*4) of Mitsuba's JIT variant.
+
+        The same float32 values as ``render_hdr`` (the motion-blur average in float64, as there)."""
+        n = self.variant.motion_blur_subframes
+        spp = max(1, self.spp // n)
+        if n == 1:
+            self._set_geometry(t)
+            return self._render(spp, (self.sampler_seed + t) & 0xFFFFFFFF).array
+        import drjit as dr
+
+        float64 = dr.float64_array_t(self.mi.Float)
+        total = None
+        for k in range(n):
+            self._set_geometry(t + k / n)
+            sub = float64(self._render(spp, (self.sampler_seed + t * n + k) & 0xFFFFFFFF).array)
+            total = sub if total is None else total + sub
+            dr.eval(total)  # the sum is taken before the next subframe moves the cloth
+        return self.mi.Float(total / dr.opaque(float64, n))  # an opaque divisor: an exact division, as numpy's
+
+    @property
+    def device_finish_unsupported(self) -> str | None:
+        """None when ``render_finished`` can finish this clip's frames on the device; else why not."""
+        return device_unsupported(self.mi.variant(), self.variant)
+
+    @property
+    def device_finisher(self) -> DeviceFinish:
+        """The clip's ``DeviceFinish`` (made on first use: it uploads the background, waiting for its draw)."""
+        if self._device_finish is None:
+            self._device_finish = DeviceFinish(self.mi, self.variant, self.camera, self.background)
+        return self._device_finish
+
+    def render_finished(self, t: int, hdr: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+        """Frame t rendered and finished on the device: (the uint8 sRGB frame ``finish`` gives, (H, W, 3);
+        the linear RGBA (H, W, 4) float32 ``render_hdr`` gives when ``hdr``, else None)."""
+        finisher = self.device_finisher
+        linear = self.render_linear(t)
+        ldr = finisher.to_host(finisher(linear))
+        if not hdr:
+            return ldr, None
+        res = self.resolution
+        return ldr, np.array(linear, np.float32).reshape(res, res, 4)
 
     def _render(self, spp: int, seed: int):
         mi = self.mi

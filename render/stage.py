@@ -4,9 +4,14 @@
 folders that are already finished (``DONE``), and renders the rest, one Mitsuba
 scene per clip (``render.scene.ClipRenderer``), ``render.frames_per_launch`` frames
 per Mitsuba launch (``render.batch``; one per launch for lightings it cannot
-batch). A pool of ``render.writer_threads`` threads composites and tone-maps
-each frame (and writes its EXR/PNG when asked) while the next ones render.
-Each clip folder gets::
+batch). At one frame per launch on cuda_ad_rgb and llvm_ad_rgb, each frame is
+composited, tone-mapped and encoded to 8-bit sRGB on the device
+(``render.device_finish``) and only the uint8 frame is read back (the linear
+RGBA too when EXRs are written); otherwise (scalar_rgb, sensor noise, batched
+launches) the host does it from the read-back RGBA, with the same bytes. A
+pool of ``render.writer_threads`` threads does the host's part (composite and
+tone map on the host path, EXR/PNG writes when asked) while the next frames
+render. Each clip folder gets::
 
     frames.npy         (T, H, W, 3) uint8 sRGB, composited and tone-mapped: what the network reads
                        (render.frames; the learn stage packs these arrays into its frame cache)
@@ -63,13 +68,17 @@ def clip_index_of(clip: SimClip, clip_dir: Path) -> int:
 
 
 def render_clip(clip: SimClip, variant: RenderVariant, out_dir: Path, *, config: RenderConfig, run_seed: int,
-                clip_index: int, backgrounds: Backgrounds | None = None, writer: Executor | None = None) -> dict:
+                clip_index: int, backgrounds: Backgrounds | None = None, writer: Executor | None = None,
+                device_finish: bool = True) -> dict:
     """Render all frames of ``clip`` into ``out_dir`` (frames.npy, ldr/, hdr/, meta.json); returns the meta written.
 
-    ``writer`` runs the per-frame host work (composite, tone map, EXR and PNG
-    writes) beside the renderer; without one, a pool of ``config.writer_threads``
-    lives for this clip. All of the clip's writes have finished when this returns.
-    Does not write ``DONE``: the caller marks the folder finished once it is satisfied.
+    ``writer`` runs the per-frame host work (composite and tone map on the host
+    path, EXR and PNG writes) beside the renderer; without one, a pool of
+    ``config.writer_threads`` lives for this clip. All of the clip's writes have
+    finished when this returns. Frames are finished on the device where it can
+    (see the module's docstring); ``device_finish=False`` keeps the host path
+    (the benchmark's reference). Does not write ``DONE``: the caller marks the
+    folder finished once it is satisfied.
     """
     start = time.perf_counter()
     renderer = ClipRenderer(clip, variant, resolution=config.resolution, spp=config.spp, run_seed=run_seed,
@@ -77,19 +86,23 @@ def render_clip(clip: SimClip, variant: RenderVariant, out_dir: Path, *, config:
                             reuse_scenes=config.reuse_scenes, freeze=config.freeze)
     per_launch = frames_per_launch(config, renderer.mi.variant())
     unbatched = batchable(renderer) if per_launch > 1 else None
+    on_host = (renderer.device_finish_unsupported if device_finish else "device_finish=False") \
+        or ("several frames per launch" if per_launch > 1 and unbatched is None else None)
     if per_launch > 1 and unbatched is None:
         batch = BatchRenderer(renderer, per_launch)
-        hdr_frames, per_launch = batch.hdr_frames(), batch.k
+        frames, per_launch = ((t, hdr, None) for t, hdr in batch.hdr_frames()), batch.k
+    elif on_host:
+        frames, per_launch = ((t, renderer.render_hdr(t), None) for t in range(clip.num_frames)), 1
     else:
-        hdr_frames, per_launch = ((t, renderer.render_hdr(t)) for t in range(clip.num_frames)), 1
+        frames, per_launch = _finished_on_device(renderer, config.write_hdr), 1
     compress = variant.video_crf > 0
     png = config.write_png
     (out_dir / LDR_DIR if png else out_dir).mkdir(parents=True, exist_ok=True)
     res = config.resolution
     ldr = np.empty((clip.num_frames, res, res, 3), np.uint8)
 
-    def finish(t: int, hdr: np.ndarray) -> None:
-        ldr[t] = renderer.finish(hdr, t)
+    def finish(t: int, hdr: np.ndarray | None, frame: np.ndarray | None) -> None:
+        ldr[t] = renderer.finish(hdr, t) if frame is None else frame
         if config.write_hdr:
             write_exr(out_dir / "hdr" / f"{t:04d}.exr", hdr)
         if png and not compress:
@@ -98,7 +111,12 @@ def render_clip(clip: SimClip, variant: RenderVariant, out_dir: Path, *, config:
     own = writer is None
     pool = ThreadPoolExecutor(max(1, config.writer_threads), thread_name_prefix="render-writer") if own else writer
     try:
-        pending = [pool.submit(finish, t, hdr) for t, hdr in hdr_frames]
+        pending = []
+        for t, hdr, frame in frames:
+            if frame is not None and not config.write_hdr and not (png and not compress):
+                ldr[t] = frame      # nothing left to do on the host: no round trip through the pool
+            else:
+                pending.append(pool.submit(finish, t, hdr, frame))
         for f in pending:
             f.result()  # re-raises a failed write; the clip is then FAILED
     finally:
@@ -116,12 +134,21 @@ def render_clip(clip: SimClip, variant: RenderVariant, out_dir: Path, *, config:
         "render": {**variant.settings(), "resolution": config.resolution, "spp": config.spp,
                    "write_hdr": config.write_hdr, "write_png": png, **renderer.info,
                    "scene_builds": renderer.rebuilds, "frames_per_launch": per_launch,
+                   "finished_on": "host" if on_host else "device",
+                   **({"host_finish_because": on_host} if on_host else {}),
                    **({"unbatched_because": unbatched} if unbatched else {}),
                    "seconds": round(time.perf_counter() - start, 3)},
         "num_frames": clip.num_frames,
     })
     atomic_write_json(out_dir / "meta.json", meta)
     return meta
+
+
+def _finished_on_device(renderer: ClipRenderer, hdr: bool):
+    """``(t, linear RGBA or None, uint8 frame)`` for every frame, finished on the device (RGBA only with ``hdr``)."""
+    for t in range(renderer.clip.num_frames):
+        frame, linear = renderer.render_finished(t, hdr=hdr)
+        yield t, linear, frame
 
 
 def run_render(run: Run, progress: bool = True, indices: Sequence[int] | None = None) -> dict:

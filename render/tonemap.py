@@ -16,6 +16,7 @@ with colour-science and rounding, 5x faster (about 0.2 ms for a 112 px frame).
 from __future__ import annotations
 
 from functools import lru_cache
+from types import SimpleNamespace
 from typing import Callable
 
 import colour
@@ -26,29 +27,42 @@ FILMIC_WHITE = 11.2         # Hable's linear white point
 FILMIC_EXPOSURE_BIAS = 2.0  # Hable's usual pre-scale, so mid-grey stays mid-grey
 
 
-def srgb_clip(x: np.ndarray) -> np.ndarray:
+# The array functions an operator may use: numpy's here, Dr.Jit's from ``device_ops``. A division by a
+# constant goes through ``const``: Dr.Jit turns a division by a literal into a multiplication by its
+# reciprocal (not the same float), so on the device the divisor is an opaque value and the division exact.
+NUMPY_OPS = SimpleNamespace(maximum=np.maximum, clip=np.clip, const=np.float64)
+
+
+def device_ops(float64_type: type) -> SimpleNamespace:
+    """The array functions of ``NUMPY_OPS`` for Dr.Jit arrays of ``float64_type`` (e.g. ``mi.Float64``)."""
+    import drjit as dr  # imported here: render.backend picks libLLVM before drjit is first imported
+
+    return SimpleNamespace(maximum=dr.maximum, clip=dr.clip, const=lambda v: dr.opaque(float64_type, v))
+
+
+def srgb_clip(x, ops=NUMPY_OPS):
     """No compression: everything above 1 clips (what the paper's renders did)."""
-    return np.clip(x, 0.0, 1.0)
+    return ops.clip(x, 0.0, 1.0)
 
 
-def reinhard(x: np.ndarray) -> np.ndarray:
+def reinhard(x, ops=NUMPY_OPS):
     """Extended Reinhard per channel, x (1 + x / w^2) / (1 + x): smooth roll-off reaching 1 at ``REINHARD_WHITE``."""
-    x = np.maximum(x, 0.0)
-    return np.clip(x * (1.0 + x / REINHARD_WHITE ** 2) / (1.0 + x), 0.0, 1.0)
+    x = ops.maximum(x, 0.0)
+    return ops.clip(x * (1.0 + x / ops.const(REINHARD_WHITE ** 2)) / (1.0 + x), 0.0, 1.0)
 
 
-def _hable(x: np.ndarray) -> np.ndarray:
+def _hable(x):
     a, b, c, d, e, f = 0.15, 0.50, 0.10, 0.20, 0.02, 0.30
     return (x * (a * x + c * b) + d * e) / (x * (a * x + b) + d * f) - e / f
 
 
-def filmic(x: np.ndarray) -> np.ndarray:
+def filmic(x, ops=NUMPY_OPS):
     """Hable's filmic curve (Uncharted 2) per channel: a toe in the shadows and a shoulder in the highlights."""
-    x = np.maximum(x, 0.0)
-    return np.clip(_hable(FILMIC_EXPOSURE_BIAS * x) / _hable(np.float64(FILMIC_WHITE)), 0.0, 1.0)
+    x = ops.maximum(x, 0.0)
+    return ops.clip(_hable(FILMIC_EXPOSURE_BIAS * x) / ops.const(_hable(FILMIC_WHITE)), 0.0, 1.0)
 
 
-OPERATORS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
+OPERATORS: dict[str, Callable] = {
     "srgb_clip": srgb_clip, "reinhard": reinhard, "filmic": filmic,
 }
 
@@ -106,3 +120,34 @@ def encode_srgb8(display: np.ndarray) -> np.ndarray:
     d = np.fmin(np.fmax(np.asarray(display), 0.0), 1.0)      # fmax/fmin, unlike clip, send NaN to 0
     bins = (d * LUT_BINS).astype(np.intp)
     return base[bins] + (d >= inside[bins])
+
+
+@lru_cache(maxsize=2)
+def srgb8_table(dtype: type = np.float64) -> tuple[np.ndarray, np.ndarray]:
+    """``encode_srgb8``'s table for values of ``dtype``: per bin, the code at its left edge (uint8) and the
+    least value of ``dtype`` inside the bin whose code is one higher (+inf if none).
+
+    For float32 each float64 step is rounded up to the least float32 not below it: a float32 value is
+    >= the step exactly when it is >= that float32, so float32 comparisons give the float64 table's codes.
+    """
+    base, inside = _srgb8_table()
+    if np.dtype(dtype) == np.float64:
+        return base, inside
+    up = inside.astype(np.float32)
+    up = np.where(up < inside, np.nextafter(up, np.float32(np.inf)), up)
+    return base, up
+
+
+def encode_srgb8_device(display, base, inside):
+    """``encode_srgb8`` on Dr.Jit arrays: display-linear values (Float or Float64) -> codes (UInt32).
+
+    ``base`` and ``inside`` are ``srgb8_table(dtype)`` uploaded as UInt32 and as the display's type. The
+    steps are the same: clip to [0, 1] with NaN -> 0, the bin is floor(d * LUT_BINS) (exact: a power of
+    two, and a float -> int conversion truncates as numpy's does), then one comparison inside the bin.
+    """
+    import drjit as dr
+
+    d = dr.minimum(dr.select(display > 0.0, display, 0.0), 1.0)     # NaN > 0 is false: NaN -> 0 as fmax
+    uint32 = dr.uint32_array_t(type(d))
+    bins = uint32(d * LUT_BINS)
+    return dr.gather(uint32, base, bins) + dr.select(d >= dr.gather(type(d), inside, bins), uint32(1), uint32(0))

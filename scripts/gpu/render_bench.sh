@@ -19,7 +19,9 @@ print("ceiling", r["ceiling"])
 for group in ("render_only", "with_output"):
     for name, row in r.get(group, {}).items():
         print(f"{group:12s} {name:24s} {row['frames_per_s']:9.1f} frames/s  {row.get('ceiling_ratio')} of ceiling",
-              row.get("outputs", ""))
+              row.get("outputs", ""), f"x{row['over_host_finish']} over the host finish" if "over_host_finish" in row else "")
+for name, row in r["phases"].items():
+    print("phases", name, row)
 PY
   ok=$(python3 -c "import json; d=json.load(open('$OUT/render_throughput-cuda-$res.json')); print(str(d['rounds'][0].get('frozen_rel_error', 1) < 1e-4).lower())")
   echo "frozen exact at $res: $ok"; echo $ok > /tmp/keep/freeze_ok_$res
