@@ -21,10 +21,13 @@ run loses nothing that was finished.
 from __future__ import annotations
 
 import errno
+import fnmatch
+import glob
 import hashlib
 import json
 import os
 import shutil
+import signal
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,14 +55,55 @@ def storage_error(err: OSError, path: Path | str | None = None) -> StorageError 
 
 def atomic_write_text(path: Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale_temps(path)
     tmp = path.with_name(path.name + f".tmp{os.getpid()}")
     try:
         tmp.write_text(text)
+        kill_point(path)
         tmp.replace(path)
     except BaseException:
         # A full disk must not leave a half-written temporary file behind (nor replace the old file).
         tmp.unlink(missing_ok=True)
         raise
+
+
+def _remove_stale_temps(path: Path) -> None:
+    """Delete ``path``'s temporary files left by a killed process (``<name>.tmp<pid>`` of a pid that is gone), so
+    a resumed run that writes the same file again leaves none behind."""
+    for old in path.parent.glob(glob.escape(path.name) + ".tmp*"):
+        pid = old.name[len(path.name) + 4:]
+        if pid.isdigit() and int(pid) != os.getpid() and not _alive(int(pid)):
+            old.unlink(missing_ok=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True     # exists, owned by someone else
+    return True
+
+
+# Test-only fault injection (tests/test_kill_resume.py); never set in normal use.
+KILL_AT_ENV = "CLOTHGAP_KILL_AT"
+_kill_count = 0
+
+
+def kill_point(path: Path) -> None:
+    """Test only: with ``$CLOTHGAP_KILL_AT=GLOB:N`` the process SIGKILLs itself at the N-th atomic write of a
+    file whose path matches GLOB (fnmatch, e.g. ``*/render/*/DONE:3``), its temporary file written and not yet
+    in place: the worst moment for a ``kill -9``, reached at the same point of the work on every run."""
+    spec = os.environ.get(KILL_AT_ENV)
+    if not spec:
+        return
+    pattern, _, count = spec.rpartition(":")
+    if fnmatch.fnmatch(str(path), pattern):
+        global _kill_count
+        _kill_count += 1
+        if _kill_count >= int(count):
+            os.kill(os.getpid(), signal.SIGKILL)
 
 
 def atomic_write_json(path: Path, data: Any) -> None:
