@@ -21,17 +21,21 @@ run loses nothing that was finished.
 from __future__ import annotations
 
 import errno
+import fnmatch
+import glob
 import hashlib
 import json
 import os
 import shutil
+import signal
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from clothgap.config import (STAGES, ConfigError, StudyConfig, changed_settings, invalidating_settings, load_config,
-                             save_config, shown, to_dict, validate)
+from clothgap.config import (EXECUTION_SETTINGS, STAGES, ConfigError, StudyConfig, changed_settings,
+                             invalidating_settings, load_config, save_config, shown, to_dict, validate)
 from clothgap.errors import InputError, MissingInputError, StorageError
 
 DONE = "DONE"
@@ -52,14 +56,55 @@ def storage_error(err: OSError, path: Path | str | None = None) -> StorageError 
 
 def atomic_write_text(path: Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale_temps(path)
     tmp = path.with_name(path.name + f".tmp{os.getpid()}")
     try:
         tmp.write_text(text)
+        kill_point(path)
         tmp.replace(path)
     except BaseException:
         # A full disk must not leave a half-written temporary file behind (nor replace the old file).
         tmp.unlink(missing_ok=True)
         raise
+
+
+def _remove_stale_temps(path: Path) -> None:
+    """Delete ``path``'s temporary files left by a killed process (``<name>.tmp<pid>`` of a pid that is gone), so
+    a resumed run that writes the same file again leaves none behind."""
+    for old in path.parent.glob(glob.escape(path.name) + ".tmp*"):
+        pid = old.name[len(path.name) + 4:]
+        if pid.isdigit() and int(pid) != os.getpid() and not _alive(int(pid)):
+            old.unlink(missing_ok=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True     # exists, owned by someone else
+    return True
+
+
+# Test-only fault injection (tests/test_kill_resume.py); never set in normal use.
+KILL_AT_ENV = "CLOTHGAP_KILL_AT"
+_kill_count = 0
+
+
+def kill_point(path: Path) -> None:
+    """Test only: with ``$CLOTHGAP_KILL_AT=GLOB:N`` the process SIGKILLs itself at the N-th atomic write of a
+    file whose path matches GLOB (fnmatch, e.g. ``*/render/*/DONE:3``), its temporary file written and not yet
+    in place: the worst moment for a ``kill -9``, reached at the same point of the work on every run."""
+    spec = os.environ.get(KILL_AT_ENV)
+    if not spec:
+        return
+    pattern, _, count = spec.rpartition(":")
+    if fnmatch.fnmatch(str(path), pattern):
+        global _kill_count
+        _kill_count += 1
+        if _kill_count >= int(count):
+            os.kill(os.getpid(), signal.SIGKILL)
 
 
 def atomic_write_json(path: Path, data: Any) -> None:
@@ -137,6 +182,82 @@ def finished_stages(root: Path) -> set[str]:
     return {stage for stage, globs in patterns.items() if any(next(root.glob(g), None) for g in globs)}
 
 
+def _key_differences(data: dict, known: dict, prefix: str = "") -> tuple[list[str], list[str]]:
+    """``(unknown, missing)`` dotted settings of ``data`` against ``known`` (a missing section is named whole)."""
+    unknown = [f"{prefix}{k}" for k in data if k not in known]
+    missing = []
+    for key, default in known.items():
+        if key not in data:
+            missing.append(f"{prefix}{key}")
+        elif isinstance(default, dict) and isinstance(data[key], dict):
+            more_unknown, more_missing = _key_differences(data[key], default, f"{prefix}{key}.")
+            unknown += more_unknown
+            missing += more_missing
+    return unknown, missing
+
+
+def load_run_config(root: Path, check: bool = True) -> StudyConfig:
+    """A run folder's config.json, every setting of the current code in it.
+
+    A setting the code does not know is a ConfigError naming it (a run made by another version). A setting
+    the file lacks is a ConfigError naming it and its default when finished work depends on it (its stage or a
+    later one has finished work): that work may have been made with another value. Otherwise (execution and
+    eval settings, stages not started) the default is taken with a warning and recorded in config.json.
+    ``check=False`` (a generation worker, whose driver checked the file) only parses it.
+    """
+    path = Path(root) / "config.json"
+    if not check:
+        return load_config(path, check)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        data = None             # load_config says what is wrong with the file
+    if not isinstance(data, dict):
+        return load_config(path)
+    default = to_dict(StudyConfig())
+    unknown, missing = _key_differences(data, default)
+    if unknown:
+        raise ConfigError(f"{path}: unknown setting(s) {', '.join(unknown)}: this clothgap does not have them (was "
+                          "the run made by another version?); remove them from the file, or use the clothgap that "
+                          "made the run")
+    cfg = load_config(path)
+    if not missing:
+        return cfg
+    values = to_dict(cfg)
+
+    def value_of(key: str) -> object:
+        node: object = values
+        for part in key.split("."):
+            node = node[part]   # type: ignore[index]
+        return node
+
+    def stage_of(key: str) -> str | None:
+        """The first stage a setting shapes; None: no result depends on it."""
+        section = key.partition(".")[0]
+        if key in EXECUTION_SETTINGS or section in ("name", "eval"):
+            return None
+        return section if section in STAGES else "sim"
+
+    done = finished_stages(root)
+    shaping = {key: [s for s in STAGES[STAGES.index(stage):] if s in done]
+               for key in missing if (stage := stage_of(key)) is not None}
+    blocked = {key: stages for key, stages in shaping.items() if stages}
+    if blocked:
+        named = "; ".join(f"{key} (default {shown(value_of(key))}; {', '.join(stages)} work is done)"
+                          for key, stages in blocked.items())
+        raise ConfigError(f"{path} lacks setting(s) that finished work depends on: {named}. Add each to the file "
+                          "with the value the run was made with (the default, if the run was made by a clothgap "
+                          "without that setting)")
+    shown_keys = ", ".join(missing[:8]) + (f" and {len(missing) - 8} more" if len(missing) > 8 else "")
+    warnings.warn(f"{path} lacks setting(s) {shown_keys}; no finished work depends on them: taking the defaults, "
+                  "recorded in the file", stacklevel=3)
+    try:
+        save_config(cfg, path)
+    except OSError:
+        pass                    # a read-only run folder still opens; the warning stays
+    return cfg
+
+
 def clip_id(index: int) -> str:
     return f"c{index:05d}"
 
@@ -171,7 +292,7 @@ class Run:
             raise ConfigError(f"run folder {root} is a file, not a folder")
         if not root.is_dir():
             raise ConfigError(f"run folder {root} does not exist")
-        return cls(root, load_config(root / "config.json", check))
+        return cls(root, load_run_config(root, check))
 
     @classmethod
     def create_or_resume(cls, root: Path | str, config: StudyConfig) -> "Run":
@@ -188,7 +309,7 @@ class Run:
         if root.exists() and not root.is_dir():
             raise ConfigError(f"--out {root} is a file, not a folder: choose another --out folder")
         if path.is_file():
-            existing = load_config(path)
+            existing = load_run_config(root)
             if to_dict(existing) == to_dict(config):
                 return cls(root, existing)
             done = finished_stages(root)

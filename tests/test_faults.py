@@ -140,6 +140,43 @@ def test_garbled_config_json_and_out_that_is_a_file(tmp_path):
     assert_error(clothgap("render", run, "--out", tmp_path / "other"), 2, "RUN_DIR", "--out")
 
 
+def test_config_json_with_unknown_or_missing_settings_is_never_silently_defaulted(tmp_path, capsys, monkeypatch):
+    run = Run.create_or_resume(tmp_path / "r", preset("smoke"))
+    path = run.root / "config.json"
+    full = json.loads(path.read_text())
+
+    def write(edit) -> None:
+        data = json.loads(json.dumps(full))
+        edit(data)
+        path.write_text(json.dumps(data))
+
+    write(lambda d: d["sim"].update(gravity=3) or d.update(colour="red"))
+    assert_error(clothgap_here(capsys, monkeypatch, "render", run.root), 2, str(path), "colour, sim.gravity",
+                 "another version")
+
+    # Nothing finished yet: the defaults are taken, with a warning, and recorded in the file.
+    write(lambda d: d["sim"].pop("substeps") and d["train"].pop("lr"))
+    with pytest.warns(UserWarning, match="lacks setting.*sim.substeps, train.lr.*taking the defaults"):
+        assert Run.open(run.root).config == apply_overrides(preset("smoke"), ["train.lr=0.001"])  # the code's default
+    recorded = json.loads(path.read_text())
+    assert recorded["train"]["lr"] == 0.001 and recorded["sim"]["substeps"] == 8
+
+    # Finished sim work: a missing sim setting is an error naming it and its default; missing
+    # train, eval and execution settings still take their defaults.
+    folder = run.sim_dir(SETTING) / clip_id(0)
+    folder.mkdir(parents=True)
+    mark_done(folder)
+    write(lambda d: d["sim"].pop("substeps") and d["train"].pop("lr"))
+    r = clothgap_here(capsys, monkeypatch, "render", run.root)
+    assert_error(r, 2, str(path), "sim.substeps (default 8; sim work is done)", "the value the run was made with")
+    assert "train.lr" not in r.stderr          # no finished work depends on it yet
+    with pytest.raises(ConfigError, match="sim.substeps"):
+        Run.create_or_resume(run.root, preset("smoke"))
+    write(lambda d: d["eval"].pop("bootstrap") and d["sim"].pop("device"))
+    with pytest.warns(UserWarning, match="sim.device, eval.bootstrap"):
+        assert Run.open(run.root).config.sim.device == "auto"
+
+
 @pytest.mark.skipif(not can_mount_tmpfs(), reason="needs unshare and tmpfs for a real read-only folder")
 def test_read_only_out_is_one_error_line(tmp_path):
     mount = tmp_path / "ro"
