@@ -71,8 +71,14 @@ def atomic_write_text(path: Path, text: str) -> None:
 def _remove_stale_temps(path: Path) -> None:
     """Delete ``path``'s temporary files left by a killed process (``<name>.tmp<pid>`` of a pid that is gone), so
     a resumed run that writes the same file again leaves none behind."""
-    for old in path.parent.glob(glob.escape(path.name) + ".tmp*"):
-        pid = old.name[len(path.name) + 4:]
+    remove_stale_temps(path.parent, path.name + ".tmp")
+
+
+def remove_stale_temps(folder: Path, prefix: str, suffix: str = "") -> None:
+    """Delete the files ``<prefix><pid><suffix>`` in ``folder`` whose process is gone: temporaries a killed
+    writer left (``kill -9`` runs no cleanup), e.g. a multi-GB frame cache being built."""
+    for old in Path(folder).glob(glob.escape(prefix) + "*" + glob.escape(suffix)):
+        pid = old.name[len(prefix):len(old.name) - len(suffix)]
         if pid.isdigit() and int(pid) != os.getpid() and not _alive(int(pid)):
             old.unlink(missing_ok=True)
 

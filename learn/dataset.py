@@ -29,7 +29,7 @@ import torch
 from tqdm import tqdm
 
 from clothgap.errors import MissingInputError, StorageError
-from clothgap.runs import Run, atomic_write_json, read_meta
+from clothgap.runs import Run, atomic_write_json, read_meta, remove_stale_temps
 from render.frames import FrameError, frame_count, open_clip_frames, read_clip_frames, resize_frames
 
 CACHE_VERSION = 1
@@ -116,6 +116,7 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
     if need > free:
         raise StorageError(f"the frame cache {array_path} needs {need / 2**30:.2f} GiB but {array_path.parent} "
                            f"has {free / 2**30:.2f} GiB free: free some space and run the same command again")
+    remove_stale_temps(array_path.parent, f"{array_path.stem}.tmp", ".npy")   # a killed build's array
     tmp = array_path.with_name(f"{array_path.stem}.tmp{os.getpid()}.npy")
     array = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=(max(total, 1), size, size, 3))
     clips, skipped, offset = [], {}, 0

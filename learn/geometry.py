@@ -27,7 +27,7 @@ import numpy as np
 from tqdm import tqdm
 
 from clothgap.errors import MissingInputError
-from clothgap.runs import Run
+from clothgap.runs import Run, remove_stale_temps
 from learn.dataset import FrameCache
 from learn.models import GEOMETRY_DIM
 from sim.lattice import LATTICE, clip_lattice
@@ -57,6 +57,7 @@ def clip_lattices(run: Run, setting: str, clip_ids: list[str], progress: bool = 
         stored[cid] = clip_lattice(folder)
     if missing:
         path.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_temps(path.parent, f"{path.stem}.tmp", ".npz")    # a killed writer's leftover
         tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.npz")
         np.savez(tmp, **stored)
         tmp.replace(path)

@@ -127,3 +127,19 @@ def test_a_cache_that_would_not_fit_on_disk_is_refused_by_name(run, monkeypatch)
     assert not list(folder.iterdir())                      # no temporary array, no index
     monkeypatch.setattr(shutil, "disk_usage", real)
     assert build_cache(run, VARIANT, SETTING, 32, progress=False).frames.shape[0] == 4 * 12
+
+
+def test_a_killed_cache_build_leaves_no_temporary_after_the_next_build(run):
+    import subprocess
+    import sys
+
+    folder = cache_path(run, VARIANT, SETTING, 32).parent
+    folder.mkdir(parents=True, exist_ok=True)
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True).stdout.strip()          # a pid whose process has exited
+    stem = cache_path(run, VARIANT, SETTING, 32).stem
+    (folder / f"{stem}.tmp{gone}.npy").write_bytes(b"half a cache")     # what kill -9 mid-build leaves
+    alive = folder / f"{stem}.tmp1.npy"                                  # pid 1 exists: another build, kept
+    alive.write_bytes(b"in progress")
+    build_cache(run, VARIANT, SETTING, 32, progress=False)
+    assert sorted(p.name for p in folder.iterdir() if ".tmp" in p.name) == [alive.name]
