@@ -1,0 +1,106 @@
+"""How much of the class the shape bottleneck's reader gets from the TRUE lattice: its ceiling.
+
+The `train.bottleneck` model reads classes only from the lattice its CNN predicts (learn.models). This
+trains the same reader (per-frame MLP on the shape and its change, LSTM, per-step class head, mean
+readout as in training) on the simulator's own 8 x 8 lattices of a run's sim clips, split by sequence with
+the run's seed, and prints top-1 and within-one-bin on the test windows. ``--noise`` adds Gaussian noise
+(standardised units) to train and test lattices: what white regression error of that size alone costs.
+
+    python scripts/reader_ceiling.py RUN_DIR --setting wind-uniform1 [--noise 0.18] [--per-coordinate]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+import torch
+from torch import nn
+
+from clothgap.runs import Run
+from eval import metrics
+from learn.split import split_sequences
+from sim.lattice import clip_lattice
+
+CLIP_LEN, STRIDE = 10, 5
+
+
+def windows(lattices, labels, clips, centre, scale):
+    x, y = [], []
+    for c in clips:
+        lat = np.clip((lattices[c] - centre) / scale, -10, 10)
+        for s in range(0, len(lat) - CLIP_LEN + 1, STRIDE):
+            x.append(lat[s:s + CLIP_LEN])
+            y.append(labels[c])
+    return torch.tensor(np.array(x), dtype=torch.float32), torch.tensor(y)
+
+
+class Reader(nn.Module):
+    """learn.models' bottleneck reader: MLP on [shape, change] per frame, LSTM, a class head per step."""
+
+    def __init__(self, dim: int = 192, hidden: int = 256):
+        super().__init__()
+        self.mlp = nn.Sequential(nn.Linear(2 * dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU())
+        self.lstm = nn.LSTM(hidden, hidden, batch_first=True)
+        self.head = nn.Linear(hidden, 54)
+
+    def forward(self, x):               # (B, T, dim) -> per-step logits (B, T, 54)
+        change = x - torch.cat([x[:, :1], x[:, :-1]], 1)
+        return self.head(self.lstm(self.mlp(torch.cat([x, change], -1)))[0])
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("run", help="a run folder with finished sim clips")
+    ap.add_argument("--setting", required=True)
+    ap.add_argument("--noise", type=float, default=0.0, help="std of noise on the lattices (standardised units)")
+    ap.add_argument("--per-coordinate", action="store_true", help="standardise each coordinate on its own")
+    ap.add_argument("--epochs", type=int, default=30)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    run = Run.open(args.run)
+    folder = run.sim_dir(args.setting)
+    ids = run.done_clips(folder)
+    lattices = {c: clip_lattice(folder / c).reshape(-1, 192) for c in ids}
+    labels = {c: int(json.loads((folder / c / "meta.json").read_text())["class_index"]) for c in ids}
+    split = split_sequences(labels, run.config.train.val_fraction, run.config.train.test_fraction, run.config.seed)
+    # Scaled as learn.geometry does (median centre, the median clip's RMS spread), or per coordinate.
+    every = np.concatenate([lattices[c] for c in split["train"]])
+    centre = np.median(every, 0)
+    scale = ((every - centre).std(0) + 1e-9 if args.per_coordinate else
+             float(np.sqrt(np.median([((lattices[c] - centre) ** 2).mean() for c in split["train"]]))))
+    xtr, ytr = windows(lattices, labels, split["train"], centre, scale)
+    xte, yte = windows(lattices, labels, split["test"], centre, scale)
+    torch.manual_seed(args.seed)
+    model = Reader()
+    opt = torch.optim.AdamW(model.parameters(), 1e-3, weight_decay=1e-4)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, args.epochs)
+    for _ in range(args.epochs):
+        model.train()
+        order = torch.randperm(len(xtr))
+        for i in range(0, len(order), 64):
+            b = order[i:i + 64]
+            x = xtr[b] + args.noise * torch.randn_like(xtr[b])
+            z = model(x)
+            loss = nn.functional.cross_entropy(z.flatten(0, 1), ytr[b][:, None].expand(-1, CLIP_LEN).flatten())
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        sched.step()
+    model.eval()
+    with torch.no_grad():
+        pred = model(xte + args.noise * torch.randn_like(xte)).softmax(-1).mean(1).argmax(1).numpy()
+    truth = yte.numpy()
+    print(json.dumps({"run": str(run.root), "setting": args.setting, "clips": len(ids),
+                      "test_sequences": len(split["test"]), "test_windows": int(len(truth)),
+                      "noise": args.noise, "per_coordinate": args.per_coordinate, "epochs": args.epochs,
+                      "top1": round(float((pred == truth).mean()), 4),
+                      "within_one": round(float(metrics.within_one_bin(truth, pred).mean()), 4),
+                      "seconds": round(time.perf_counter() - t0, 1)}))
+
+
+if __name__ == "__main__":
+    main()
