@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from clothgap.config import (EXECUTION_SETTINGS, STAGES, ConfigError, StudyConfig, changed_settings,
+from clothgap.config import (DEFAULT_KEEPS_OLD_BEHAVIOUR, EXECUTION_SETTINGS, STAGES, ConfigError, StudyConfig, changed_settings,
                              invalidating_settings, load_config, save_config, shown, to_dict, validate)
 from clothgap.errors import InputError, MissingInputError, StorageError
 
@@ -238,9 +238,10 @@ def load_run_config(root: Path, check: bool = True) -> StudyConfig:
         return node
 
     def stage_of(key: str) -> str | None:
-        """The first stage a setting shapes; None: no result depends on it."""
+        """The first stage a setting shapes; None: no result depends on it, or its default is what runs made
+        before it existed did."""
         section = key.partition(".")[0]
-        if key in EXECUTION_SETTINGS or section in ("name", "eval"):
+        if key in EXECUTION_SETTINGS or key in DEFAULT_KEEPS_OLD_BEHAVIOUR or section in ("name", "eval"):
             return None
         return section if section in STAGES else "sim"
 

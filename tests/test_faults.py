@@ -175,6 +175,11 @@ def test_config_json_with_unknown_or_missing_settings_is_never_silently_defaulte
     write(lambda d: d["eval"].pop("bootstrap") and d["sim"].pop("device"))
     with pytest.warns(UserWarning, match="sim.device, eval.bootstrap"):
         assert Run.open(run.root).config.sim.device == "auto"
+    # A run made before a setting existed whose default is the old behaviour opens (an older clothgap's run).
+    write(lambda d: d["sim"].pop("self_collision") is False and d["train"].pop("bottleneck"))
+    with pytest.warns(UserWarning, match="sim.self_collision, train.bottleneck"):
+        assert Run.open(run.root).config.sim.self_collision is False
+    assert json.loads(path.read_text())["sim"]["self_collision"] is False
 
 
 @pytest.mark.skipif(not can_mount_tmpfs(), reason="needs unshare and tmpfs for a real read-only folder")
