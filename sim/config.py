@@ -14,6 +14,7 @@ from clothgap import checks
 MOTIONS = ("wind", "arm")
 REMESHING = ("uniform1", "uniform2", "uniform3", "adaptive")    # uniform<level>; adaptive refines 1..3
 WIND_NUISANCE = ("full", "speed")                               # what a wind clip draws (sim.motions.wind_scene)
+ARM_NUISANCE = ("full", "speed")                                # what an arm clip draws (sim.motions.arm_scene)
 
 
 @dataclass(frozen=True)
@@ -41,6 +42,8 @@ class SimConfig:
     wind_nuisance: str = "full"                     # "full": pose, gathering, wind speed and direction drawn
                                                     # per clip; "speed": only the wind speed (the paper varies
                                                     # "the external force magnitude"); rod pose, fixed gathering
+    arm_nuisance: str = "full"                      # "full": the cloth's place on the arm and the forearm's speed
+                                                    # drawn per clip; "speed": only the speed, the cloth centred
 
     def problems(self) -> list[str]:
         """What is wrong with these settings, one message each (empty when they are valid)."""
@@ -77,6 +80,7 @@ class SimConfig:
                            f"edge, {0.5 * edge:.4g} m ({self.grid_vertices} vertices per side on a "
                            f"{self.cloth_size_m:g} m cloth, level {self.finest_level()})")
         out += checks.choice("sim.wind_nuisance", self.wind_nuisance, WIND_NUISANCE)
+        out += checks.choice("sim.arm_nuisance", self.arm_nuisance, ARM_NUISANCE)
         out += checks.device("sim.device", self.device)
         return out
 

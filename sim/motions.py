@@ -123,11 +123,19 @@ def wind_scene(mesh: ClothMesh, size_m: float, material: Material, rng: np.rando
 
 
 def arm_scene(mesh: ClothMesh, size_m: float, material: Material, rng: np.random.Generator,
-              start_s: float, fps: float, frames: int) -> ClipScene:
+              start_s: float, fps: float, frames: int, nuisance: str = "full") -> ClipScene:
     """A cloth laid flat over a capsule arm, draping during settling; the forearm starts turning at ``start_s``
-    (the first recorded frame). All draws come from ``rng`` (the clip's motion stream)."""
+    (the first recorded frame). All draws come from ``rng`` (the clip's motion stream).
+
+    ``nuisance="speed"`` keeps only the forearm's speed random and centres the cloth on the elbow (the
+    placement hides the material from the geometry: docs/learnability.md, section 4); the placement is
+    still drawn, so a clip's speed is the same under both."""
     speed = math.radians(rng.uniform(*ARM_SPEED_DEG_S))
     along, across = rng.uniform(-1.0, 1.0, size=2) * (ARM_ALONG_M, ARM_ACROSS_M)
+    if nuisance == "speed":
+        along, across = 0.0, 0.0
+    elif nuisance != "full":
+        raise ValueError(f"nuisance={nuisance!r}: expected 'full' or 'speed'")
     uv = mesh.uv
     height = ARM_RADIUS_M + 0.01
     pos = np.stack([uv[:, 0] - 0.5 * size_m + along, uv[:, 1] - 0.5 * size_m + across,

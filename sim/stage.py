@@ -226,7 +226,8 @@ def build_scene(cfg: SimConfig, seed: int, index: int, setting: Setting, mesh: C
     if setting.motion == "wind":
         scene = wind_scene(mesh, cfg.cloth_size_m, material, motion_rng, cfg.wind_nuisance)
     else:
-        scene = arm_scene(mesh, cfg.cloth_size_m, material, motion_rng, cfg.settle_s, cfg.fps, cfg.frames)
+        scene = arm_scene(mesh, cfg.cloth_size_m, material, motion_rng, cfg.settle_s, cfg.fps, cfg.frames,
+                          cfg.arm_nuisance)
     return scene, meta
 
 

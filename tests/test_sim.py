@@ -439,3 +439,18 @@ def test_wind_nuisance_speed_keeps_only_the_wind_speed_random():
         assert s.motion_params["wind_speed_mps"] == f.motion_params["wind_speed_mps"]
         assert np.allclose(s.wind, [0, f.motion_params["wind_speed_mps"], 0])
     assert SimConfig(wind_nuisance="gusts").problems()
+
+
+def test_arm_nuisance_speed_centres_the_cloth_and_keeps_the_speed():
+    from sim.config import SimConfig
+    from sim.materials import load_material
+    from sim.motions import arm_scene
+
+    mesh, material = square_cloth(0.5, 8), load_material("camel-ponte-roma")
+    full = [arm_scene(mesh, 0.5, material, np.random.default_rng(s), 0.4, 25.0, 4) for s in range(6)]
+    speed = [arm_scene(mesh, 0.5, material, np.random.default_rng(s), 0.4, 25.0, 4, "speed") for s in range(6)]
+    assert len({tuple(c.motion_params["cloth_offset_m"]) for c in full}) == 6
+    assert {tuple(c.motion_params["cloth_offset_m"]) for c in speed} == {(0.0, 0.0)}
+    for f, s in zip(full, speed):      # the same clip stream gives the same forearm speed under both
+        assert s.motion_params["arm_speed_deg_s"] == f.motion_params["arm_speed_deg_s"]
+    assert SimConfig(arm_nuisance="wobble").problems()
