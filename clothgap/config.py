@@ -63,14 +63,17 @@ def _paper() -> StudyConfig:
     # The paper's scale for one GPU: 2,592 sequences per setting (Section 7.1). Wind clips vary
     # only the wind speed, as the paper varies "the external force magnitude" (docs/learnability.md:
     # with pose, gathering and direction drawn too, the geometry of new simulations tells a plain MLP
-    # 27 % of the classes; with speed alone, 84 %). The best recipe of docs/learning.md, chosen on
-    # validation clips: the CNN regresses the cloth's lattice from each frame and its difference from
-    # the previous one, the classes are read from that lattice alone (bottleneck), fc6 without dropout
-    # (with AlexNet's 0.5 the regressor barely leaves the mean shape), best validation epoch kept.
+    # 27 % of the classes; with speed alone, 84 %); arm clips likewise draw only the forearm's speed
+    # (placement drawn too: 27 % on 864 clips; speed alone: 50 %, docs/learnability.md section 4).
+    # The best recipe of docs/learning.md, chosen on validation clips: the CNN regresses the cloth's
+    # lattice from each frame and its difference from the previous one, the classes are read from that
+    # lattice alone (bottleneck), fc6 without dropout (with AlexNet's 0.5 the regressor barely leaves
+    # the mean shape), best validation epoch kept.
     return StudyConfig(
         name="paper",
         sim=SimConfig(motions=("wind", "arm"), remeshing=("uniform1", "uniform2", "uniform3", "adaptive"),
-                      sequences_per_class=48, frames=40, device="cuda", wind_nuisance="speed"),
+                      sequences_per_class=48, frames=40, device="cuda", wind_nuisance="speed",
+                      arm_nuisance="speed"),
         # frames.npy only: PNG and EXR cost more host time than the path tracer at 112 px (render.frames)
         render=RenderConfig(variants=("paper",), resolution=112, spp=16, backend="cuda_ad_rgb",
                             write_png=False, write_hdr=False),
