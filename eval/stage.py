@@ -312,7 +312,7 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
                           f"settings/variants/models/seeds: run `clothgap train {run.root}` first")
     cells, counts, left_out = predict_all(run, models, predictor or _default_predictor, progress)
     if not cells:
-        empty = sorted({m.setting for m in models if not test_clips(run, m.setting)})
+        empty = [s for s in sorted({m.setting for m in models}) if not test_clips(run, s)]
         if empty:
             # A split can hold no test sequence at all (too few sequences per class for the test share);
             # rendering more would not help, so say what would.

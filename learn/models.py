@@ -156,16 +156,26 @@ class ClipClassifier(nn.Module):
                 # Training clips' shapes come out cleaner than new clips' (the CNN has seen them):
                 # noise keeps the readers from relying on precision they will not get.
                 shape = shape + self.bottleneck_noise * torch.randn_like(shape)
-            change = shape - torch.cat([shape[:, :1], shape[:, :-1]], dim=1)
-            feats = self.reader(torch.cat([shape, change], dim=-1))
+            out = self.read_lattice(shape)
+        else:
+            out = self._classify(feats)
+        if geometry is not None:
+            out["geometry"] = geometry
+        return out
+
+    def read_lattice(self, shape: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The bottleneck's classes from a (B, T, geometry_dim) lattice sequence: the reader MLP on each
+        frame's shape and its change since the previous frame, then the recurrent layer and heads."""
+        change = shape - torch.cat([shape[:, :1], shape[:, :-1]], dim=1)
+        return self._classify(self.reader(torch.cat([shape, change], dim=-1)))
+
+    def _classify(self, feats: torch.Tensor) -> dict[str, torch.Tensor]:
         if self.temporal is not None:
             feats, _ = self.temporal(feats)
         out = {"logits": self.head(feats)}
         if self.factored:
             out["stretch"] = self.head_stretch(feats)
             out["bend"] = self.head_bend(feats)
-        if geometry is not None:
-            out["geometry"] = geometry
         return out
 
     def _steps(self, z: torch.Tensor) -> torch.Tensor:

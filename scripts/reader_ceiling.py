@@ -1,8 +1,8 @@
 """How much of the class the shape bottleneck's reader gets from the TRUE lattice: its ceiling.
 
 The `train.bottleneck` model reads classes only from the lattice its CNN predicts (learn.models). This
-trains the same reader (per-frame MLP on the shape and its change, LSTM, per-step class head, mean
-readout as in training) on the simulator's own 8 x 8 lattices of a run's sim clips, split by sequence with
+trains the same model's reader (``ClipClassifier.read_lattice``: per-frame MLP on the shape and its change,
+LSTM, per-step heads; its loss and readout) on the simulator's own 8 x 8 lattices of a run's sim clips, split by sequence with
 the run's seed, and prints top-1 and within-one-bin on the test windows. ``--noise`` adds Gaussian noise
 (standardised units) to train and test lattices: what white regression error of that size alone costs.
 
@@ -15,12 +15,14 @@ import argparse
 import json
 import time
 
+import dataclasses
+
 import numpy as np
 import torch
-from torch import nn
 
 from clothgap.runs import Run
 from eval import metrics
+from learn.models import build_model, model_args
 from learn.split import split_sequences
 from sim.lattice import clip_lattice
 
@@ -35,20 +37,6 @@ def windows(lattices, labels, clips, centre, scale):
             x.append(lat[s:s + CLIP_LEN])
             y.append(labels[c])
     return torch.tensor(np.array(x), dtype=torch.float32), torch.tensor(y)
-
-
-class Reader(nn.Module):
-    """learn.models' bottleneck reader: MLP on [shape, change] per frame, LSTM, a class head per step."""
-
-    def __init__(self, dim: int = 192, hidden: int = 256):
-        super().__init__()
-        self.mlp = nn.Sequential(nn.Linear(2 * dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU())
-        self.lstm = nn.LSTM(hidden, hidden, batch_first=True)
-        self.head = nn.Linear(hidden, 54)
-
-    def forward(self, x):               # (B, T, dim) -> per-step logits (B, T, 54)
-        change = x - torch.cat([x[:, :1], x[:, :-1]], 1)
-        return self.head(self.lstm(self.mlp(torch.cat([x, change], -1)))[0])
 
 
 def main(argv=None):
@@ -75,7 +63,8 @@ def main(argv=None):
     xtr, ytr = windows(lattices, labels, split["train"], centre, scale)
     xte, yte = windows(lattices, labels, split["test"], centre, scale)
     torch.manual_seed(args.seed)
-    model = Reader()
+    # The run's lrcn with the bottleneck on (its CNN is built but never used here).
+    model = build_model("lrcn", **model_args(dataclasses.replace(run.config.train, bottleneck=True)))
     opt = torch.optim.AdamW(model.parameters(), 1e-3, weight_decay=1e-4)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, args.epochs)
     for _ in range(args.epochs):
@@ -83,16 +72,14 @@ def main(argv=None):
         order = torch.randperm(len(xtr))
         for i in range(0, len(order), 64):
             b = order[i:i + 64]
-            x = xtr[b] + args.noise * torch.randn_like(xtr[b])
-            z = model(x)
-            loss = nn.functional.cross_entropy(z.flatten(0, 1), ytr[b][:, None].expand(-1, CLIP_LEN).flatten())
+            loss = model.loss(model.read_lattice(xtr[b] + args.noise * torch.randn_like(xtr[b])), ytr[b])
             opt.zero_grad()
             loss.backward()
             opt.step()
         sched.step()
     model.eval()
     with torch.no_grad():
-        pred = model(xte + args.noise * torch.randn_like(xte)).softmax(-1).mean(1).argmax(1).numpy()
+        pred = model.probs(model.read_lattice(xte + args.noise * torch.randn_like(xte))).argmax(1).numpy()
     truth = yte.numpy()
     print(json.dumps({"run": str(run.root), "setting": args.setting, "clips": len(ids),
                       "test_sequences": len(split["test"]), "test_windows": int(len(truth)),

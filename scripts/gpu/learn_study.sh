@@ -53,19 +53,20 @@ cache = build_cache(run, variant, setting, run.config.train.image_size, False)
 clip_lattices(run, setting, sorted(cache.clips), False)
 print(f"caches ready: {len(cache.clips)} clips")
 PY
+  tag() { echo "recipe-$(echo "$1" | tr '=+/' '-_-')"; }     # a recipe's log and table name
   running=0
   for r in $RECIPES; do
     left=$(( DEADLINE - ($(date +%s) - t0) ))
     [ $left -lt 30 ] && { echo "deadline: recipe $r and later not started"; break; }
     echo "== $r ($MODELS), $left s left, in parallel"
-    log="$RUN/eval/recipe-$(echo "$r" | tr '=+/' '-_-').log"; mkdir -p "$RUN/eval"
-    ( timeout $(( left + 40 )) "${ABL[@]}" --recipe "$r" "${margs[@]}" --name "recipe-$(echo "$r" | tr '=+/' '-_-')" \
+    log="$RUN/eval/$(tag "$r").log"; mkdir -p "$RUN/eval"
+    ( timeout $(( left + 40 )) "${ABL[@]}" --recipe "$r" "${margs[@]}" --name "$(tag "$r")" \
         2>&1 | tr '\r' '\n' | grep -vE "it/s\]|s/it\]|clip/s\]" > "$log"; echo "== $r exit ${PIPESTATUS[0]}" >> "$log" ) &
     running=$((running + 1))
     if [ $running -ge "$PARALLEL" ]; then wait -n; running=$((running - 1)); fi
   done
   wait
-  for r in $RECIPES; do tail -3 "$RUN/eval/recipe-$(echo "$r" | tr '=+/' '-_-').log" 2>/dev/null; done
+  for r in $RECIPES; do tail -3 "$RUN/eval/$(tag "$r").log" 2>/dev/null; done
 else
   for r in $RECIPES; do
     left=$(( DEADLINE - ($(date +%s) - t0) ))
