@@ -57,6 +57,8 @@ class TrainConfig:
     bottleneck: bool = False                # classes read only the CNN's predicted lattice (learn.models);
                                             # the lattice loss weighs aux_geometry (1 when left at 0)
     bottleneck_noise: float = 0.0           # std of noise on that lattice while training (standardised units)
+    reader_truth: float = 0.0               # weight of the bottleneck readers' class loss on the simulation's
+                                            # own lattice (noised by bottleneck_noise), beside the predicted one
 
     @property
     def geometry_weight(self) -> float:
@@ -103,6 +105,9 @@ class TrainConfig:
         out += checks.number("train.bottleneck_noise", self.bottleneck_noise, 0)
         if self.bottleneck_noise and not self.bottleneck:
             out.append("train.bottleneck_noise is set but train.bottleneck is off; set train.bottleneck=true")
+        out += checks.number("train.reader_truth", self.reader_truth, 0)
+        if self.reader_truth and not self.bottleneck:
+            out.append("train.reader_truth is set but train.bottleneck is off; set train.bottleneck=true")
         if self.keep == "best" and self.val_fraction <= 0:
             out.append("train.keep=best needs validation clips: set train.val_fraction > 0")
         return out

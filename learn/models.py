@@ -139,9 +139,12 @@ class ClipClassifier(nn.Module):
             self.cnn.eval()  # a frozen CNN also keeps its dropout off
         return self
 
-    def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+    def forward(self, x: torch.Tensor, lattice: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """(B, T, 3, H, W) -> {"logits": (B, T, 54)[, "stretch": (B, T, 6), "bend": (B, T, 9)]
-        [, "geometry": (B, T, geometry_dim)]}."""
+        [, "geometry": (B, T, geometry_dim)][, "truth_logits": (B, T, 54)]}.
+
+        ``lattice``, the simulation's own (B, T, geometry_dim) lattice, is read by the bottleneck's
+        readers as well while training (``truth_logits``, weighed by ``train.reader_truth``)."""
         b, t = x.shape[:2]
         if self.motion:
             x = torch.cat([x, x - torch.cat([x[:, :1], x[:, :-1]], dim=1)], dim=2)
@@ -157,6 +160,13 @@ class ClipClassifier(nn.Module):
                 # noise keeps the readers from relying on precision they will not get.
                 shape = shape + self.bottleneck_noise * torch.randn_like(shape)
             out = self.read_lattice(shape)
+            if self.training and lattice is not None:
+                # The readers also learn from the true shape, which carries the material more
+                # precisely than any prediction, noised like the predicted one.
+                truth = lattice.float()
+                if self.bottleneck_noise:
+                    truth = truth + self.bottleneck_noise * torch.randn_like(truth)
+                out["truth_logits"] = self.read_lattice(truth)["logits"]
         else:
             out = self._classify(feats)
         if geometry is not None:
@@ -182,9 +192,10 @@ class ClipClassifier(nn.Module):
         return z if self.readout == "mean" else z[:, -1:]
 
     def loss(self, out: dict[str, torch.Tensor], labels: torch.Tensor, *, geometry: torch.Tensor | None = None,
-             geometry_weight: float = 0.0, label_smoothing: float = 0.0) -> torch.Tensor:
+             geometry_weight: float = 0.0, label_smoothing: float = 0.0, truth_weight: float = 0.0) -> torch.Tensor:
         """Cross-entropy on the steps the readout uses (and on both factors when factored), plus
-        ``geometry_weight`` x the smooth-L1 error of the geometry head on every frame when a target is given."""
+        ``geometry_weight`` x the smooth-L1 error of the geometry head on every frame when a target is given,
+        plus ``truth_weight`` x the cross-entropy of the readers on the true lattice when ``out`` has it."""
         def ce(z: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
             z = self._steps(z).float()
             return F.cross_entropy(z.flatten(0, 1), y[:, None].expand(-1, z.shape[1]).flatten(),
@@ -195,6 +206,8 @@ class ClipClassifier(nn.Module):
             total = total + ce(out["stretch"], labels // NUM_BEND) + ce(out["bend"], labels % NUM_BEND)
         if geometry is not None and geometry_weight and "geometry" in out:
             total = total + geometry_weight * F.smooth_l1_loss(out["geometry"].float(), geometry)
+        if truth_weight and "truth_logits" in out:
+            total = total + truth_weight * ce(out["truth_logits"], labels)
         return total
 
     def probs(self, out: dict[str, torch.Tensor]) -> torch.Tensor:

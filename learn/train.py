@@ -87,7 +87,7 @@ class TrainingDiverged(UserError, RuntimeError):
 
 def run_epoch(net: torch.nn.Module, model: ClipClassifier, batches, device: torch.device, optimizer=None,
               amp: bool = False, progress: bool = False, desc: str = "", total: int | None = None,
-              geometry_weight: float = 0.0, label_smoothing: float = 0.0) -> torch.Tensor:
+              geometry_weight: float = 0.0, label_smoothing: float = 0.0, truth_weight: float = 0.0) -> torch.Tensor:
     """One pass over ``batches`` (``WindowSet.batches``), training when given an optimizer, else evaluating.
 
     ``net`` is what runs the forward pass (``model`` itself, or it wrapped by
@@ -101,9 +101,10 @@ def run_epoch(net: torch.nn.Module, model: ClipClassifier, batches, device: torc
     with torch.set_grad_enabled(training):
         for x, y, target in tqdm(batches, desc=desc, disable=not progress, leave=False, total=total):
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
-                out = net(x)
+                out = net(x, target) if training and truth_weight and target is not None else net(x)
             loss = model.loss(out, y, geometry=target, geometry_weight=geometry_weight,
-                              label_smoothing=label_smoothing if training else 0.0)
+                              label_smoothing=label_smoothing if training else 0.0,
+                              truth_weight=truth_weight if training else 0.0)
             if training:
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
@@ -376,7 +377,7 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
         steps = len(order) // cfg.batch_size if len(order) >= cfg.batch_size else 1
         batches = train_set.batches(cfg.batch_size, order=order, augment=augment, drop_last=True)
         sums = run_epoch(net, model, batches, device, optimizer, amp, progress, f"epoch {epoch}", steps,
-                         cfg.geometry_weight, cfg.label_smoothing)
+                         cfg.geometry_weight, cfg.label_smoothing, cfg.reader_truth)
         train_loss, train_acc, train_shape = _epoch_scores(sums, all_ranks=True)
         _check_finite(model, train_loss, cfg, str(out), epoch)
         # Every rank scores the whole (small) val set with its own copy of the same weights.

@@ -122,6 +122,24 @@ def test_bottleneck_classes_read_only_the_predicted_shape():
         build_model("lrcn", image_size=32, bottleneck=True, **TINY)
 
 
+def test_reader_truth_trains_the_readers_on_the_true_lattice_only():
+    torch.manual_seed(0)
+    model = build_model("lrcn", image_size=32, geometry_dim=192, bottleneck=True, **TINY)
+    x, y, lattice = torch.rand(2, 4, 3, 32, 32), torch.tensor([3, 40]), torch.randn(2, 4, 192)
+    out = model(x, lattice)
+    # The true-lattice logits are what the same readers make of the true lattice.
+    assert torch.allclose(out["truth_logits"], model.read_lattice(lattice)["logits"])
+    plain = model.loss(out, y)
+    with_truth = model.loss(out, y, truth_weight=0.5)
+    assert float(with_truth) > float(plain)
+    model.zero_grad()
+    (with_truth - plain).backward()                  # the true-lattice term alone
+    assert float(model.reader[0].weight.grad.abs().max()) > 0
+    assert all(p.grad is None or float(p.grad.abs().max()) == 0 for p in model.cnn.parameters())
+    model.eval()
+    assert "truth_logits" not in model(x, lattice)   # prediction reads pixels only
+
+
 @pytest.mark.parametrize("name", MODEL_NAMES)
 def test_each_model_builds_with_the_bottleneck(name):
     model = build_model(name, image_size=32, geometry_dim=192, bottleneck=True, **TINY)

@@ -194,6 +194,20 @@ def test_geometry_targets_follow_the_frame_cache_and_train_an_auxiliary_head(tmp
     assert shape.notna().all().all() and (shape > 0).all().all()   # how well the lattice is read, per epoch
 
 
+def test_reader_truth_reaches_the_readers_through_training(tmp_path):
+    readers = {}
+    for weight in (0.0, 1.0):
+        cfg = tiny_config(bottleneck=True, dropout=0.0, reader_truth=weight, epochs=1)
+        run = synthetic_run(tmp_path / f"run{weight}", cfg)
+        _sim_clips_for(run, cfg.sim.frames)
+        out = train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
+        state = torch.load(out / "checkpoint.pt", weights_only=True)["model"]
+        readers[weight] = state["reader.0.weight"]
+        assert torch.isfinite(readers[weight]).all()
+    # Same seed, same clips: only the true-lattice loss can make the readers differ.
+    assert not torch.equal(readers[0.0], readers[1.0])
+
+
 def test_a_clip_gone_astray_does_not_flatten_every_other_target(tmp_path):
     import numpy as np
 
