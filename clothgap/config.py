@@ -1,28 +1,30 @@
-"""The study config: one frozen dataclass per stage, composed, with named presets.
+"""The study config: the four stages' configs composed, with named presets (top floor: it knows every stage).
 
 A run writes its resolved config as ``config.json`` at the top of its folder;
 ``load_config`` reads it back, so every stage (and a resumed run) sees exactly
-the settings the run started with.
+the settings the run started with. The generic reading, writing and overriding
+lives in ``clothgap.settings`` (ground floor); importing this module registers
+``StudyConfig`` there as the config a run folder holds.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import json
-import math
 import tomllib
 import typing
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import ClassVar
 
 from clothgap.errors import ConfigError
+from clothgap.settings import (apply_overrides, apply_settings, changed_settings, from_dict, load_config,  # noqa: F401
+                               save_config, shown, to_dict, use_study_config, validate)
 from eval.config import EvalConfig
 from learn.config import TrainConfig
 from render.config import RenderConfig
 from sim.config import SimConfig
 
 
+@use_study_config
 @dataclass(frozen=True)
 class StudyConfig:
     name: str = "study"
@@ -31,6 +33,70 @@ class StudyConfig:
     render: RenderConfig = field(default_factory=RenderConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+
+    # The stages in order; a setting shapes the work of its own stage and of every stage after it.
+    STAGES: ClassVar[tuple[str, ...]] = ("sim", "render", "train", "eval")
+
+    def pairs(self) -> list[tuple[str, str]]:
+        """(setting, variant) pairs the run renders, trains and evaluates, setting-major."""
+        settings = self.sim.settings()
+        return [(setting, variant) for setting in settings for variant in self.render.variants
+                if setting in self.render.settings_of(variant, settings)]
+
+    def problems(self) -> list[str]:
+        """Everything wrong with a resolved config: its own settings', then each stage's."""
+        out = []
+        if not self.name or "/" in self.name or "\\" in self.name:
+            out.append(f"name={self.name!r}: must be a non-empty folder name")
+        if self.seed < 0:
+            out.append(f"seed={self.seed}: must be >= 0")
+        for stage in (self.sim, self.render, self.train, self.eval):
+            out += stage.problems()
+        if self.sim.frames < self.train.clip_len:
+            # Found here, not after sim and render ran: a clip shorter than one window gives no training item.
+            out.append(f"sim.frames={self.sim.frames} is shorter than train.clip_len={self.train.clip_len}: "
+                       "every clip must hold at least one sub-sequence")
+        settings = self.sim.settings()
+        for pair in self.render.variant_settings:
+            setting = pair.partition(":")[2]
+            if setting and setting not in settings:
+                out.append(f"render.variant_settings: {pair!r} names setting {setting!r}, which the run does not "
+                           f"simulate ({', '.join(settings)})")
+        return out
+
+    def invalidating_settings(self, old: StudyConfig) -> dict[str, str]:
+        """The settings changed from ``old`` that would make a stage's finished work disagree with this config:
+        ``{"section.key": first stage it shapes}``.
+
+        Not listed: execution settings (``EXECUTION_SETTINGS``), lists that only grow (``GROWING_SETTINGS``: more
+        settings, variants, models or seeds), ``render.variant_settings`` when every variant keeps the settings it
+        had, and ``eval.*`` (``clothgap eval`` recomputes its tables and checks what it reuses). The run seed shapes
+        the simulations, hence everything.
+        """
+        out = {}
+        for key, (before, after) in changed_settings(old, self).items():
+            section = key.partition(".")[0]
+            if key in EXECUTION_SETTINGS or section == "eval":
+                continue
+            if key in GROWING_SETTINGS and set(before) <= set(after):
+                continue
+            if key == "render.variant_settings":
+                settings = self.sim.settings()
+                if all(set(old.render.settings_of(v, settings)) <= set(self.render.settings_of(v, settings))
+                       for v in old.render.variants):
+                    continue
+            out[key] = section if section in self.STAGES else "sim"
+        return out
+
+    @classmethod
+    def missing_setting_stage(cls, key: str) -> str | None:
+        """The first stage whose finished work depends on a setting that a run's config.json lacks; None when no
+        result depends on it (execution and eval settings), or its default is what runs made before it existed
+        did (``DEFAULT_KEEPS_OLD_BEHAVIOUR``): the default may then be filled in."""
+        section = key.partition(".")[0]
+        if key in EXECUTION_SETTINGS or key in DEFAULT_KEEPS_OLD_BEHAVIOUR or section in ("name", "eval"):
+            return None
+        return section if section in cls.STAGES else "sim"
 
 
 def _smoke() -> StudyConfig:
@@ -108,79 +174,6 @@ def preset(name: str) -> StudyConfig:
         raise ConfigError(f"unknown preset {name!r}; known presets: {', '.join(PRESETS)}") from None
 
 
-# ---------------------------------------------------------------- (de)serialisation
-
-def to_dict(cfg: Any) -> dict:
-    return dataclasses.asdict(cfg)
-
-
-def _coerce(tp: Any, value: Any, where: str) -> Any:
-    origin = typing.get_origin(tp)
-    if dataclasses.is_dataclass(tp):
-        if not isinstance(value, dict):
-            raise ConfigError(f"{where}: expected a table of settings, got {value!r}")
-        return from_dict(tp, value, where)
-    if origin is tuple:
-        if isinstance(value, str):
-            value = [v for v in value.split(",") if v]
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{where}: expected a list, got {value!r}")
-        (item_tp, _ellipsis) = typing.get_args(tp)
-        return tuple(_coerce(item_tp, v, where) for v in value)
-    if tp is bool:
-        if isinstance(value, str):
-            if value.lower() in ("1", "true", "yes", "on"):
-                return True
-            if value.lower() in ("0", "false", "no", "off"):
-                return False
-            raise ConfigError(f"{where}: expected true or false, got {value!r}")
-        return bool(value)
-    if tp in (int, float, str):
-        if tp is not str and isinstance(value, (dict, list, tuple, bool)):
-            raise ConfigError(f"{where}: expected {tp.__name__}, got {value!r}")
-        try:
-            out = tp(value)
-        except (TypeError, ValueError, OverflowError):
-            raise ConfigError(f"{where}: expected {tp.__name__}, got {value!r}") from None
-        if tp is float and not math.isfinite(out):
-            raise ConfigError(f"{where}: expected a finite number, got {value!r}")
-        return out
-    return value
-
-
-def from_dict(cls: type, data: dict, where: str = "config") -> Any:
-    """Build a (nested) config dataclass from plain data, naming any unknown key."""
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = set(data) - names
-    if unknown:
-        raise ConfigError(f"{where}: unknown setting(s) {', '.join(sorted(unknown))}; "
-                          f"known: {', '.join(sorted(names))}")
-    kwargs = {k: _coerce(hints[k], v, f"{where}.{k}") for k, v in data.items()}
-    return cls(**kwargs)
-
-
-def apply_overrides(cfg: StudyConfig, overrides: list[str]) -> StudyConfig:
-    """Apply ``section.key=value`` overrides, e.g. ``sim.frames=30`` or ``render.variants=paper,grid``."""
-    data = to_dict(cfg)
-    for item in overrides:
-        if "=" not in item:
-            raise ConfigError(f"override {item!r} is not of the form section.key=value")
-        path, value = item.split("=", 1)
-        keys = path.strip().split(".")
-        node = data
-        for key in keys[:-1]:
-            if not isinstance(node.get(key), dict):
-                raise ConfigError(f"override {item!r}: {key!r} is not a config section "
-                                  f"(sections: {', '.join(k for k, v in data.items() if isinstance(v, dict))})")
-            node = node[key]
-        if keys[-1] not in node:
-            raise ConfigError(f"override {item!r}: unknown setting {keys[-1]!r}; "
-                              f"known: {', '.join(sorted(node))}")
-        node[keys[-1]] = value
-    return from_dict(StudyConfig, data)
-
-
 def read_config_file(path: Path | str) -> tuple[str | None, dict]:
     """A study's settings kept in a TOML file: ``(preset named in it or None, the settings as nested tables)``.
 
@@ -213,31 +206,6 @@ def read_config_file(path: Path | str) -> tuple[str | None, dict]:
     return name, data
 
 
-def apply_settings(cfg: StudyConfig, settings: dict, where: str = "config") -> StudyConfig:
-    """``cfg`` with the nested tables of ``settings`` laid over it (what a config file gives).
-
-    Only the keys named change; an unknown section or setting is a ConfigError naming it, ``where`` and what is known.
-    """
-    data = to_dict(cfg)
-
-    def lay(node: dict, new: dict, at: str) -> None:
-        for key, value in new.items():
-            if key not in node:
-                raise ConfigError(f"{where}: unknown setting {at}{key}; known: {', '.join(sorted(node))}")
-            if isinstance(node[key], dict):
-                if not isinstance(value, dict):
-                    raise ConfigError(f"{where}: {at}{key} is a section ([{at}{key}] in TOML), got {value!r}")
-                lay(node[key], value, f"{at}{key}.")
-            else:
-                node[key] = value
-
-    lay(data, settings, "")
-    try:
-        return from_dict(StudyConfig, data)
-    except ConfigError as e:
-        raise ConfigError(f"{where}: {e}") from None
-
-
 # ---------------------------------------------------------------- changing a run's config
 
 # Settings that say where or how fast work runs, not what it computes (within float rounding across devices),
@@ -253,124 +221,16 @@ DEFAULT_KEEPS_OLD_BEHAVIOUR = frozenset({"sim.self_collision", "sim.collision_th
                                          "sim.arm_nuisance"})
 # Lists a resumed run may extend: an item more is more work downstream, nothing finished changes.
 GROWING_SETTINGS = frozenset({"sim.motions", "sim.remeshing", "render.variants", "train.models", "train.seeds"})
-# The stages in order; a setting shapes the work of its own stage and of every stage after it.
-STAGES = ("sim", "render", "train", "eval")
 
-
-def _flat(data: dict, prefix: str = "") -> dict:
-    out = {}
-    for key, value in data.items():
-        if isinstance(value, dict):
-            out.update(_flat(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = value
-    return out
-
-
-def shown(value: Any) -> str:
-    """A setting's value as ``--set`` takes it (lists joined by commas)."""
-    return ",".join(map(str, value)) if isinstance(value, (list, tuple)) else str(value)
-
-
-def changed_settings(old: StudyConfig, new: StudyConfig) -> dict[str, tuple[Any, Any]]:
-    """``{"section.key": (old value, new value)}`` for every setting that differs."""
-    a, b = _flat(to_dict(old)), _flat(to_dict(new))
-    return {k: (a[k], b[k]) for k in a if a[k] != b[k]}
+# The names callers use; the config itself holds the logic (clothgap.runs reaches it through the instance).
+STAGES = StudyConfig.STAGES
+pairs = StudyConfig.pairs
+problems = StudyConfig.problems
 
 
 def invalidating_settings(old: StudyConfig, new: StudyConfig) -> dict[str, str]:
-    """The changed settings that would make a stage's finished work disagree with the config:
-    ``{"section.key": first stage it shapes}``.
-
-    Not listed: execution settings (``EXECUTION_SETTINGS``), lists that only grow (``GROWING_SETTINGS``: more
-    settings, variants, models or seeds), ``render.variant_settings`` when every variant keeps the settings it
-    had, and ``eval.*`` (``clothgap eval`` recomputes its tables and checks what it reuses). The run seed shapes
-    the simulations, hence everything.
-    """
-    out = {}
-    for key, (before, after) in changed_settings(old, new).items():
-        section = key.partition(".")[0]
-        if key in EXECUTION_SETTINGS or section == "eval":
-            continue
-        if key in GROWING_SETTINGS and set(before) <= set(after):
-            continue
-        if key == "render.variant_settings":
-            settings = new.sim.settings()
-            if all(set(old.render.settings_of(v, settings)) <= set(new.render.settings_of(v, settings))
-                   for v in old.render.variants):
-                continue
-        out[key] = section if section in STAGES else "sim"
-    return out
-
-
-def problems(cfg: StudyConfig) -> list[str]:
-    """Everything wrong with a resolved config: its own settings', then each stage's."""
-    out = []
-    if not cfg.name or "/" in cfg.name or "\\" in cfg.name:
-        out.append(f"name={cfg.name!r}: must be a non-empty folder name")
-    if cfg.seed < 0:
-        out.append(f"seed={cfg.seed}: must be >= 0")
-    for stage in (cfg.sim, cfg.render, cfg.train, cfg.eval):
-        out += stage.problems()
-    if cfg.sim.frames < cfg.train.clip_len:
-        # Found here, not after sim and render ran: a clip shorter than one window gives no training item.
-        out.append(f"sim.frames={cfg.sim.frames} is shorter than train.clip_len={cfg.train.clip_len}: "
-                   "every clip must hold at least one sub-sequence")
-    settings = cfg.sim.settings()
-    for pair in cfg.render.variant_settings:
-        setting = pair.partition(":")[2]
-        if setting and setting not in settings:
-            out.append(f"render.variant_settings: {pair!r} names setting {setting!r}, which the run does not "
-                       f"simulate ({', '.join(settings)})")
-    return out
-
-
-def pairs(cfg: StudyConfig) -> list[tuple[str, str]]:
-    """(setting, variant) pairs the run renders, trains and evaluates, setting-major."""
-    return [(setting, variant) for setting in cfg.sim.settings() for variant in cfg.render.variants
-            if setting in cfg.render.settings_of(variant, cfg.sim.settings())]
-
-
-def validate(cfg: StudyConfig, where: str = "") -> StudyConfig:
-    """``cfg`` when it is valid, else a ConfigError naming every bad setting, its value and what is allowed.
-
-    Called when a run starts and whenever a run's config.json is loaded, so bad
-    settings fail before any work (and never deep inside Warp, Mitsuba or torch).
-    """
-    found = problems(cfg)
-    if len(found) == 1:
-        raise ConfigError(f"{where}{found[0]}")
-    if found:
-        raise ConfigError(f"{where}{len(found)} invalid settings:\n  " + "\n  ".join(found))
-    return cfg
-
-
-def save_config(cfg: StudyConfig, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    try:
-        tmp.write_text(json.dumps(to_dict(cfg), indent=2) + "\n")
-        tmp.replace(path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)     # a full disk leaves no half-written config behind
-        raise
-
-
-def load_config(path: Path, check: bool = True) -> StudyConfig:
-    """A run's config.json, validated (``check=False``: only parsed, for workers whose driver validated it)."""
-    if not path.is_file():
-        raise ConfigError(f"no config at {path}: is this a clothgap run folder? "
-                          "(start one with `clothgap sim --preset NAME --out DIR`)")
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{path} is not valid JSON ({e})") from None
-    except OSError as e:
-        raise ConfigError(f"{path} cannot be read: {e.strerror or e}") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a table of settings, got {type(data).__name__}")
-    cfg = from_dict(StudyConfig, data)
-    return validate(cfg, f"{path}: ") if check else cfg
+    """``new.invalidating_settings(old)``: the changed settings that would make finished work disagree with ``new``."""
+    return new.invalidating_settings(old)
 
 
 def with_name(cfg: StudyConfig, name: str) -> StudyConfig:

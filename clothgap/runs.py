@@ -34,9 +34,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from clothgap.config import (DEFAULT_KEEPS_OLD_BEHAVIOUR, EXECUTION_SETTINGS, STAGES, ConfigError, StudyConfig, changed_settings,
-                             invalidating_settings, load_config, save_config, shown, to_dict, validate)
-from clothgap.errors import InputError, MissingInputError, StorageError
+from clothgap.errors import ConfigError, InputError, MissingInputError, StorageError
+from clothgap.settings import changed_settings, load_config, save_config, shown, study_config, to_dict, validate
 
 DONE = "DONE"
 
@@ -202,7 +201,7 @@ def _key_differences(data: dict, known: dict, prefix: str = "") -> tuple[list[st
     return unknown, missing
 
 
-def load_run_config(root: Path, check: bool = True) -> StudyConfig:
+def load_run_config(root: Path, check: bool = True) -> Any:
     """A run folder's config.json, every setting of the current code in it.
 
     A setting the code does not know is a ConfigError naming it (a run made by another version). A setting
@@ -220,7 +219,8 @@ def load_run_config(root: Path, check: bool = True) -> StudyConfig:
         data = None             # load_config says what is wrong with the file
     if not isinstance(data, dict):
         return load_config(path)
-    default = to_dict(StudyConfig())
+    cls = study_config()
+    default = to_dict(cls())
     unknown, missing = _key_differences(data, default)
     if unknown:
         raise ConfigError(f"{path}: unknown setting(s) {', '.join(unknown)}: this clothgap does not have them (was "
@@ -237,17 +237,10 @@ def load_run_config(root: Path, check: bool = True) -> StudyConfig:
             node = node[part]   # type: ignore[index]
         return node
 
-    def stage_of(key: str) -> str | None:
-        """The first stage a setting shapes; None: no result depends on it, or its default is what runs made
-        before it existed did."""
-        section = key.partition(".")[0]
-        if key in EXECUTION_SETTINGS or key in DEFAULT_KEEPS_OLD_BEHAVIOUR or section in ("name", "eval"):
-            return None
-        return section if section in STAGES else "sim"
-
     done = finished_stages(root)
-    shaping = {key: [s for s in STAGES[STAGES.index(stage):] if s in done]
-               for key in missing if (stage := stage_of(key)) is not None}
+    order = cls.STAGES
+    shaping = {key: [s for s in order[order.index(stage):] if s in done]
+               for key in missing if (stage := cls.missing_setting_stage(key)) is not None}
     blocked = {key: stages for key, stages in shaping.items() if stages}
     if blocked:
         named = "; ".join(f"{key} (default {shown(value_of(key))}; {', '.join(stages)} work is done)"
@@ -286,7 +279,9 @@ def select_clips(num_clips: int, indices: Sequence[int] | None = None) -> list[i
 @dataclass(frozen=True)
 class Run:
     root: Path
-    config: StudyConfig
+    # The study config (clothgap.config.StudyConfig, registered with clothgap.settings.use_study_config): typed
+    # loosely here because the ground floor imports no stage config.
+    config: Any
 
     # ---- opening and creating
     @classmethod
@@ -302,11 +297,11 @@ class Run:
         return cls(root, load_run_config(root, check))
 
     @classmethod
-    def create_or_resume(cls, root: Path | str, config: StudyConfig) -> "Run":
+    def create_or_resume(cls, root: Path | str, config: Any) -> "Run":
         """Start a run in ``root``, or resume it (a bad config is a ConfigError).
 
         A run folder that already holds a config takes a different one when the change only adds work (more
-        settings, variants, models, seeds; see ``clothgap.config.invalidating_settings``) or touches settings
+        settings, variants, models, seeds; see ``StudyConfig.invalidating_settings``) or touches settings
         of stages with no finished work yet; ``config.json`` is then rewritten. A change that would make
         finished work disagree with the config is a ConfigError naming each setting and the finished stage.
         """
@@ -320,12 +315,13 @@ class Run:
             if to_dict(existing) == to_dict(config):
                 return cls(root, existing)
             done = finished_stages(root)
-            blocked = {key: stage for key, stage in invalidating_settings(existing, config).items()
-                       if any(s in done for s in STAGES[STAGES.index(stage):])}
+            stages = config.STAGES
+            blocked = {key: stage for key, stage in config.invalidating_settings(existing).items()
+                       if any(s in done for s in stages[stages.index(stage):])}
             if blocked:
                 changes = changed_settings(existing, config)
                 named = "; ".join(f"{key} {shown(changes[key][0])} -> {shown(changes[key][1])} "
-                                  f"({', '.join(s for s in STAGES[STAGES.index(stage):] if s in done)} work is done)"
+                                  f"({', '.join(s for s in stages[stages.index(stage):] if s in done)} work is done)"
                                   for key, stage in blocked.items())
                 raise ConfigError(
                     f"{root} already holds a run whose finished work this config would invalidate or leave out: {named}. "

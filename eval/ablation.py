@@ -21,12 +21,14 @@ import json
 import math
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from clothgap.config import ConfigError, StudyConfig, apply_overrides, validate
+from clothgap.errors import ConfigError
 from clothgap.runs import Run, atomic_write_json, atomic_write_text
+from clothgap.settings import apply_overrides, validate
 from eval import metrics
 from eval import predictions as preds
 from learn.config import TrainConfig
@@ -47,8 +49,9 @@ LEVERS: dict[str, dict] = {
 }
 
 
-def recipe_config(study: StudyConfig, recipe: str) -> TrainConfig:
-    """The run's train settings changed by the recipe's levers, checked like any setting of the run."""
+def recipe_config(study: Any, recipe: str) -> TrainConfig:
+    """The train settings of ``study`` (a ``clothgap.config.StudyConfig``) changed by the recipe's levers, checked
+    like any setting of the run."""
     sets: list[str] = []
     for part in filter(None, recipe.split("+")):
         if "=" in part:

@@ -47,7 +47,7 @@ import numpy as np
 import pandas as pd
 from PIL import Image, ImageDraw
 
-from clothgap.config import ConfigError
+from clothgap.errors import ConfigError
 from clothgap.runs import Run, atomic_write_json, fresh_dir, mark_done
 from eval import predictions as preds
 from eval.real import VideoError, model_geometry, per_video, read_video, write_clip

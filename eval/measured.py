@@ -48,7 +48,7 @@ import numpy as np
 import pandas as pd
 
 from clothgap import seeding
-from clothgap.config import ConfigError
+from clothgap.errors import ConfigError
 from clothgap.runs import Run, atomic_write_json, atomic_write_text, fresh_dir, is_done, mark_done
 from eval import classes, metrics, real
 from eval import predictions as preds

@@ -23,8 +23,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from clothgap.config import ConfigError, to_dict
+from clothgap.errors import ConfigError
 from clothgap.runs import Run, atomic_write_text, is_done
+from clothgap.settings import to_dict
 from eval import figures, tables
 from eval.metrics import Estimate
 from eval.trained import grid_models

@@ -35,9 +35,9 @@ import numpy as np
 import pandas as pd
 
 from clothgap import seeding
-from clothgap.config import ConfigError, to_dict
-from clothgap.errors import InputError, MissingInputError, UserError
+from clothgap.errors import ConfigError, InputError, MissingInputError, UserError
 from clothgap.runs import Run, atomic_write_json, atomic_write_text, file_sha256, is_done, read_meta
+from clothgap.settings import to_dict
 from eval import figures, metrics, tables
 from eval import predictions as preds
 from eval.trained import TrainedModel, finished_models

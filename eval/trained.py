@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from clothgap.config import pairs
 from clothgap.runs import Run, is_done
 
 
@@ -26,7 +25,7 @@ def grid_models(run: Run) -> list[TrainedModel]:
     """Every (setting, variant, model, seed) of the config's grid with its train folder, finished or not."""
     cfg = run.config
     return [TrainedModel(setting, variant, model, seed, run.train_dir(setting, variant, model, seed))
-            for setting, variant in pairs(cfg) for model in cfg.train.models for seed in cfg.train.seeds]
+            for setting, variant in cfg.pairs() for model in cfg.train.models for seed in cfg.train.seeds]
 
 
 def finished_models(run: Run) -> list[TrainedModel]:

@@ -24,8 +24,7 @@ import json
 from pathlib import Path
 
 from clothgap import seeding
-from clothgap.config import ConfigError
-from clothgap.errors import InputError
+from clothgap.errors import ConfigError, InputError
 from clothgap.runs import Run, atomic_write_json, read_meta
 
 PARTS = ("train", "val", "test")

@@ -8,7 +8,6 @@ from pathlib import Path
 
 import torch
 
-from clothgap.config import pairs
 from clothgap.runs import Run, atomic_write_json, is_done
 from learn.models import MODEL_NAMES
 from learn.train import is_main, train_one
@@ -22,7 +21,7 @@ def training_grid(run: Run) -> list[tuple[str, str, str, int]]:
         raise ValueError(f"unknown model(s) {', '.join(unknown)} in train.models; known: {', '.join(MODEL_NAMES)}")
     models = sorted(cfg.models, key=lambda m: (m == "base2", MODEL_NAMES.index(m)))
     return [(setting, variant, model, seed)
-            for setting, variant in pairs(run.config)
+            for setting, variant in run.config.pairs()
             for seed in cfg.seeds
             for model in models]
 
@@ -84,7 +83,7 @@ def main(argv: list[str] | None = None) -> None:
         if not (opts.setting or opts.variant or opts.model or opts.seed is not None):
             run_train(run, progress=not opts.no_progress)
             return
-        for setting, variant in pairs(cfg):
+        for setting, variant in cfg.pairs():
             if (opts.setting and setting not in opts.setting) or (opts.variant and variant not in opts.variant):
                 continue
             for seed in opts.seed or cfg.train.seeds:

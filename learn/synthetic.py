@@ -11,12 +11,12 @@ and the motion, or the spread of positions over frames, the second.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from PIL import Image
 
 from clothgap import seeding
-from clothgap.config import StudyConfig
 from clothgap.runs import Run, atomic_write_json, clip_id, mark_done
 
 NUM_BEND = 9
@@ -60,8 +60,8 @@ def write_synthetic_clip(folder: Path, index: int, class_index: int, frames: int
     return folder
 
 
-def synthetic_run(root: Path | str, config: StudyConfig) -> Run:
-    """A run whose render folders hold synthetic clips shaped by ``config``.
+def synthetic_run(root: Path | str, config: Any) -> Run:
+    """A run whose render folders hold synthetic clips shaped by ``config`` (a ``clothgap.config.StudyConfig``).
 
     Classes, sequences per class and frames come from ``config.sim``, the frame
     size from ``config.render.resolution``; every variant and setting is written.

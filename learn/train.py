@@ -37,8 +37,7 @@ import torch
 from tqdm import tqdm
 
 from clothgap import seeding
-from clothgap.config import ConfigError
-from clothgap.errors import UserError
+from clothgap.errors import ConfigError, UserError
 from clothgap.runs import Run, atomic_write_json, atomic_write_text, fresh_dir, is_done, mark_done
 from learn.config import SCHEDULES, TrainConfig
 from learn.dataset import build_cache

@@ -20,6 +20,7 @@ import dataclasses
 import numpy as np
 import torch
 
+import clothgap.config  # noqa: F401  (registers the study config that Run.open reads)
 from clothgap.runs import Run
 from eval import metrics
 from learn.models import build_model, model_args

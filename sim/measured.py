@@ -37,7 +37,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from clothgap.config import ConfigError
+from clothgap.errors import ConfigError
 from clothgap.seeding import stream_id
 from sim import classes
 from sim.analysis import BASIS, PAPER_TABLE2, estimate_ratios

@@ -9,6 +9,7 @@ import sys
 
 import pytest
 
+import clothgap.config  # noqa: F401  (registers the study config that Run.open reads)
 from clothgap.runs import Run
 
 

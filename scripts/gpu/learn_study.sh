@@ -45,6 +45,7 @@ if [ "${PARALLEL:-1}" -gt 1 ]; then
   # The frame and lattice caches are built once first, so that the processes only read them.
   python3 - "$RUN" "$SETTING" "$VARIANT" <<'PY'
 import sys
+import clothgap.config  # noqa: F401  (registers the study config that Run.open reads)
 from clothgap.runs import Run
 from learn.dataset import build_cache
 from learn.geometry import clip_lattices
