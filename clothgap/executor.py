@@ -12,7 +12,9 @@ covers its indices under every setting (and render variant), so shards never
 touch the same folder.
 
 The stages write nothing at stage level: each shard returns its summary, and
-the driver (``run_stage``) merges them once all shards are finished.
+the driver (``run_stage``) merges them once all shards are finished with the
+stage's own ``merge_shard_summaries`` (``sim.stage``, ``render.stage``), so
+this module knows no stage's summary.
 
     local     in this process (default; what CPU runs and tests use)
     process   a local pool of spawned processes (Warp, Mitsuba and torch are not
@@ -41,7 +43,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from clothgap.config import ConfigError
+# clothgap.config also registers the study config that a worker's Run.open reads (workers import this module).
+from clothgap.config import ConfigError, validate
 from clothgap.runs import Run
 
 EXECUTORS = ("local", "process", "ray")
@@ -114,6 +117,18 @@ def render_shard(run_root: str, indices: list[int]) -> dict:
 SHARD_FNS: dict[str, ShardFn] = {"sim": sim_shard, "render": render_shard}
 
 
+def _stage_functions(stage: str) -> tuple[Callable[..., dict], Callable[[list[dict]], dict]]:
+    """A shardable stage's ``run(run, progress=, indices=)`` and the function that merges its shards' summaries
+    (the stage knows its summary); imported when used, since the stages load Warp and Mitsuba."""
+    if stage == "sim":
+        from sim.stage import merge_shard_summaries, run_sim
+
+        return run_sim, merge_shard_summaries
+    from render.stage import merge_shard_summaries, run_render
+
+    return run_render, merge_shard_summaries
+
+
 def run_stage(run: Run, stage: str, options: ExecutorOptions = ExecutorOptions()) -> dict:
     """Run the sim or render stage of ``run`` through an executor; returns the merged summary.
 
@@ -122,22 +137,12 @@ def run_stage(run: Run, stage: str, options: ExecutorOptions = ExecutorOptions()
     if stage not in STAGES:
         raise ConfigError(f"stage {stage!r} cannot be sharded; shardable: {', '.join(STAGES)}")
     options = options.validate()
+    run_whole, merge = _stage_functions(stage)
     if options.executor == "local" and options.shard_size is None:
-        if stage == "sim":
-            from sim.stage import run_sim
-
-            return run_sim(run, progress=options.progress)
-        from render.stage import run_render
-
-        return run_render(run, progress=options.progress)
-    if stage == "render":       # a bad variant name is a config error here, not a failed shard later
-        from render.variants import get_variant
-
-        for name in run.config.render.variants:
-            try:
-                get_variant(name)
-            except ValueError as e:        # render.variants.VariantError
-                raise ConfigError(str(e)) from None
+        return run_whole(run, progress=options.progress)
+    # The workers open the run unchecked (Run.open(check=False)): a bad setting (e.g. an unknown render variant)
+    # is a config error here, not a failed shard later.
+    validate(run.config)
     start = time.perf_counter()
     indices = list(range(run.config.sim.num_clips()))
     with ray_session(options) as ray:
@@ -153,7 +158,7 @@ def run_stage(run: Run, stage: str, options: ExecutorOptions = ExecutorOptions()
         shards = shard(indices, options.shard_size or default_shard_size(len(indices), workers))
         parts = run_shards(SHARD_FNS[stage], str(run.root.resolve()), shards, options=options, label=stage,
                            gpu_slots=slots)
-    summary = merge_summaries(stage, parts)
+    summary = merge(parts)
     summary["seconds"] = round(time.perf_counter() - start, 3)
     summary["executor"] = {"name": options.executor, "workers": workers, "shards": len(shards),
                            **({"address": options.address} if options.address else {}),
@@ -162,25 +167,8 @@ def run_stage(run: Run, stage: str, options: ExecutorOptions = ExecutorOptions()
 
 
 def merge_summaries(stage: str, parts: list[dict]) -> dict:
-    """One stage summary from the shards' summaries (counts add up, failures are listed together)."""
-    if stage == "sim":
-        merged: dict[str, Any] = {k: sum(p.get(k, 0) for p in parts)
-                                  for k in ("simulated", "skipped", "failed", "retried")}
-        merged["failed_clips"] = [f for p in parts for f in p.get("failed_clips", [])]
-        merged["seconds"] = 0.0
-        return merged
-    merged = {"backend": next((p["backend"] for p in parts if "backend" in p), None),
-              "rendered": sum(p.get("rendered", 0) for p in parts),
-              "skipped": sum(p.get("skipped", 0) for p in parts),
-              "failed": [f for p in parts for f in p.get("failed", [])],
-              "frames": sum(p.get("frames", 0) for p in parts),
-              "skipped_backgrounds": {k: v for p in parts for k, v in p.get("skipped_backgrounds", {}).items()},
-              "seconds": 0.0}
-    render_seconds = sum(p.get("seconds_per_clip", 0.0) * p.get("rendered", 0) for p in parts)
-    if merged["rendered"]:
-        merged["seconds_per_clip"] = round(render_seconds / merged["rendered"], 4)
-        merged["seconds_per_frame"] = round(render_seconds / merged["frames"], 5)
-    return merged
+    """One stage summary from the shards' summaries: the stage's own ``merge_shard_summaries``."""
+    return _stage_functions(stage)[1](parts)
 
 
 # ---------------------------------------------------------------- GPUs of this host

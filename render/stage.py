@@ -169,6 +169,24 @@ def run_render(run: Run, progress: bool = True, indices: Sequence[int] | None = 
     return render_jobs(run, jobs, progress, variants=variants)
 
 
+def merge_shard_summaries(parts: list[dict]) -> dict:
+    """One ``run_render`` summary from the summaries of its shards (``indices=``, run by ``clothgap.executor``):
+    counts add up, failures and skipped backgrounds are listed together, the per-clip and per-frame times are
+    weighted by the clips each shard rendered; ``seconds`` is left to the caller, who timed the whole."""
+    merged = {"backend": next((p["backend"] for p in parts if "backend" in p), None),
+              "rendered": sum(p.get("rendered", 0) for p in parts),
+              "skipped": sum(p.get("skipped", 0) for p in parts),
+              "failed": [f for p in parts for f in p.get("failed", [])],
+              "frames": sum(p.get("frames", 0) for p in parts),
+              "skipped_backgrounds": {k: v for p in parts for k, v in p.get("skipped_backgrounds", {}).items()},
+              "seconds": 0.0}
+    render_seconds = sum(p.get("seconds_per_clip", 0.0) * p.get("rendered", 0) for p in parts)
+    if merged["rendered"]:
+        merged["seconds_per_clip"] = round(render_seconds / merged["rendered"], 4)
+        merged["seconds_per_frame"] = round(render_seconds / merged["frames"], 5)
+    return merged
+
+
 def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], progress: bool = True,
                 label: str = "render", variants: Sequence[RenderVariant] | None = None,
                 config: RenderConfig | None = None) -> dict:

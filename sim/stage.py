@@ -255,6 +255,15 @@ def run_sim(run: Run, progress: bool = True, indices: Sequence[int] | None = Non
     return simulate_jobs(run, {s: jobs for s in cfg.settings()}, run.sim_dir, progress)
 
 
+def merge_shard_summaries(parts: list[dict]) -> dict:
+    """One ``run_sim`` summary from the summaries of its shards (``indices=``, run by ``clothgap.executor``):
+    counts add up, failed clips are listed together; ``seconds`` is left to the caller, who timed the whole."""
+    merged: dict = {k: sum(p.get(k, 0) for p in parts) for k in ("simulated", "skipped", "failed", "retried")}
+    merged["failed_clips"] = [f for p in parts for f in p.get("failed_clips", [])]
+    merged["seconds"] = 0.0
+    return merged
+
+
 def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[[str], Path],
                   progress: bool = True, label: str = "sim") -> dict:
     """Simulate the unfinished ``jobs`` of each setting into ``folder_of(setting) / job.name``.
