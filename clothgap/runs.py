@@ -21,13 +21,9 @@ run loses nothing that was finished.
 from __future__ import annotations
 
 import errno
-import fnmatch
-import glob
 import hashlib
 import json
-import os
 import shutil
-import signal
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -35,6 +31,8 @@ from pathlib import Path
 from typing import Any
 
 from clothgap.errors import ConfigError, InputError, MissingInputError, StorageError
+# The atomic writer lives in clothgap.files; the stages import it from here with the rest of a run folder's tools.
+from clothgap.files import KILL_AT_ENV, atomic_write_json, atomic_write_text  # noqa: F401
 from clothgap.settings import changed_settings, load_config, save_config, shown, study_config, to_dict, validate
 
 DONE = "DONE"
@@ -51,81 +49,6 @@ def storage_error(err: OSError, path: Path | str | None = None) -> StorageError 
     where = err.filename or path
     return StorageError(f"cannot write {where}: {err.strerror or err}; finished work is kept: "
                         "run the same command again once this is fixed")
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    _remove_stale_temps(path)
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    try:
-        tmp.write_text(text)
-        kill_point(path)
-        tmp.replace(path)
-    except BaseException:
-        # A full disk must not leave a half-written temporary file behind (nor replace the old file).
-        tmp.unlink(missing_ok=True)
-        raise
-
-
-def _remove_stale_temps(path: Path) -> None:
-    """Delete ``path``'s temporary files left by a killed process (``<name>.tmp<pid>`` of a pid that is gone), so
-    a resumed run that writes the same file again leaves none behind."""
-    remove_stale_temps(path.parent, path.name + ".tmp")
-
-
-def remove_stale_temps(folder: Path, prefix: str, suffix: str = "") -> None:
-    """Delete the files ``<prefix><pid><suffix>`` in ``folder`` whose process is gone: temporaries a killed
-    writer left (``kill -9`` runs no cleanup), e.g. a multi-GB frame cache being built."""
-    for old in Path(folder).glob(glob.escape(prefix) + "*" + glob.escape(suffix)):
-        pid = old.name[len(prefix):len(old.name) - len(suffix)]
-        if pid.isdigit() and int(pid) != os.getpid() and not _alive(int(pid)):
-            old.unlink(missing_ok=True)
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except OSError:
-        return True     # exists, owned by someone else
-    return True
-
-
-# Test-only fault injection (tests/test_kill_resume.py); never set in normal use.
-KILL_AT_ENV = "CLOTHGAP_KILL_AT"
-_kill_count = 0
-
-
-def kill_point(path: Path) -> None:
-    """Test only: with ``$CLOTHGAP_KILL_AT=GLOB:N`` the process SIGKILLs itself at the N-th atomic write of a
-    file whose path matches GLOB (fnmatch, e.g. ``*/render/*/DONE:3``), its temporary file written and not yet
-    in place: the worst moment for a ``kill -9``, reached at the same point of the work on every run."""
-    spec = os.environ.get(KILL_AT_ENV)
-    if not spec:
-        return
-    pattern, _, count = spec.rpartition(":")
-    if fnmatch.fnmatch(str(path), pattern):
-        global _kill_count
-        _kill_count += 1
-        if _kill_count >= int(count):
-            os.kill(os.getpid(), signal.SIGKILL)
-
-
-def atomic_write_json(path: Path, data: Any) -> None:
-    atomic_write_text(path, json.dumps(data, indent=2, default=_json_default) + "\n")
-
-
-def _json_default(o: Any) -> Any:
-    import numpy as np
-
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
 def is_done(folder: Path) -> bool:

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from clothgap.errors import ConfigError
+from clothgap.files import atomic_write_text
 
 # ---------------------------------------------------------------- (de)serialisation
 
@@ -180,14 +181,7 @@ def study_config() -> type:
 
 
 def save_config(cfg: Any, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    try:
-        tmp.write_text(json.dumps(to_dict(cfg), indent=2) + "\n")
-        tmp.replace(path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)     # a full disk leaves no half-written config behind
-        raise
+    atomic_write_text(path, json.dumps(to_dict(cfg), indent=2) + "\n")
 
 
 def load_config(path: Path, check: bool = True) -> Any:

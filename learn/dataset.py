@@ -18,7 +18,6 @@ warning naming the clip and the file, and left out.
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import warnings
 from dataclasses import dataclass
@@ -29,7 +28,8 @@ import torch
 from tqdm import tqdm
 
 from clothgap.errors import MissingInputError, StorageError
-from clothgap.runs import Run, atomic_write_json, read_meta, remove_stale_temps
+from clothgap.files import atomic_path
+from clothgap.runs import Run, atomic_write_json, read_meta
 from render.frames import FrameError, frame_count, open_clip_frames, read_clip_frames, resize_frames
 
 CACHE_VERSION = 1
@@ -116,11 +116,10 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
     if need > free:
         raise StorageError(f"the frame cache {array_path} needs {need / 2**30:.2f} GiB but {array_path.parent} "
                            f"has {free / 2**30:.2f} GiB free: free some space and run the same command again")
-    remove_stale_temps(array_path.parent, f"{array_path.stem}.tmp", ".npy")   # a killed build's array
-    tmp = array_path.with_name(f"{array_path.stem}.tmp{os.getpid()}.npy")
-    array = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=(max(total, 1), size, size, 3))
     clips, skipped, offset = [], {}, 0
-    try:
+    # A killed or failed build leaves no multi-GB temporary behind (a kill -9's is removed by the next build).
+    with atomic_path(array_path, keep_suffix=True) as tmp:
+        array = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=(max(total, 1), size, size, 3))
         for cid in tqdm(clip_ids, desc=f"cache {variant}/{setting} {size}px", disable=not progress, leave=False):
             try:
                 frames = open_clip_frames(render_dir / cid, counts[cid])
@@ -137,10 +136,6 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
             offset += len(frames)
         array.flush()
         del array
-        tmp.replace(array_path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)     # a killed or failed build leaves no multi-GB temporary behind
-        raise
     atomic_write_json(index_path, {"version": CACHE_VERSION, "size": size, "signature": signature,
                                    "clips": [c.__dict__ for c in clips], "skipped": skipped})
     return FrameCache(array_path, clips)

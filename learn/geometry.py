@@ -19,7 +19,6 @@ setting. Targets are cached per setting in
 
 from __future__ import annotations
 
-import os
 import warnings
 from pathlib import Path
 
@@ -27,7 +26,8 @@ import numpy as np
 from tqdm import tqdm
 
 from clothgap.errors import MissingInputError
-from clothgap.runs import Run, remove_stale_temps
+from clothgap.files import atomic_path
+from clothgap.runs import Run
 from learn.dataset import FrameCache
 from learn.models import GEOMETRY_DIM
 from sim.lattice import LATTICE, clip_lattice
@@ -56,11 +56,8 @@ def clip_lattices(run: Run, setting: str, clip_ids: list[str], progress: bool = 
                                     f"comes from the simulation), but it is missing or unfinished")
         stored[cid] = clip_lattice(folder)
     if missing:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        remove_stale_temps(path.parent, f"{path.stem}.tmp", ".npz")    # a killed writer's leftover
-        tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.npz")
-        np.savez(tmp, **stored)
-        tmp.replace(path)
+        with atomic_path(path, keep_suffix=True) as tmp:
+            np.savez(tmp, **stored)
     return {c: stored[c] for c in clip_ids}
 
 

@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
+from clothgap.files import atomic_path
+
 _HEADER = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
 
 
@@ -21,12 +23,8 @@ def write_exr(path: Path, rgba: np.ndarray, half: bool = False) -> None:
     if rgba.ndim != 3 or rgba.shape[2] != 4:
         raise ValueError(f"write_exr({path}): expected an (H, W, 4) RGBA array, got shape {rgba.shape}")
     pixels = np.ascontiguousarray(rgba, np.float16 if half else np.float32)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.exr")
-    with OpenEXR.File(dict(_HEADER), {"RGBA": pixels}) as f:
+    with atomic_path(path, keep_suffix=True) as tmp, OpenEXR.File(dict(_HEADER), {"RGBA": pixels}) as f:
         f.write(str(tmp))
-    tmp.replace(path)
 
 
 def read_exr(path: Path) -> np.ndarray:

@@ -20,11 +20,12 @@ To look at a clip frame by frame when only the array was written::
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
+
+from clothgap.files import atomic_path
 
 FRAMES_FILE = "frames.npy"
 LDR_DIR = "ldr"
@@ -40,14 +41,8 @@ def write_frames(clip_dir: Path, frames: np.ndarray) -> Path:
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
         raise ValueError(f"write_frames({clip_dir}): expected (T, H, W, 3) uint8, got {frames.shape} {frames.dtype}")
     path = Path(clip_dir) / FRAMES_FILE
-    tmp = path.with_name(f"frames.tmp{os.getpid()}.npy")
-    try:
-        with open(tmp, "wb") as f:
-            np.save(f, np.ascontiguousarray(frames))
-        tmp.replace(path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)     # a full disk or a kill leaves no half-written array behind
-        raise
+    with atomic_path(path, keep_suffix=True) as tmp, open(tmp, "wb") as f:
+        np.save(f, np.ascontiguousarray(frames))
     return path
 
 

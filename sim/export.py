@@ -9,12 +9,12 @@ requires, by (x, y, z) -> (x, z, -y), so the cloth hangs upright in any glTF vie
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
 from clothgap.errors import ConfigError, InputError
+from clothgap.files import atomic_path
 from sim.clip import SimClip
 
 FORMATS = ("ply", "obj", "glb")
@@ -71,12 +71,7 @@ def export_clip(clip_dir: Path | str, out: Path | str, fmt: str = "ply", frames:
     for t in chosen:
         data = frame_mesh(clip, t, fmt).export(file_type=fmt)
         path = out / f"{clip_dir.name}_{t:04d}.{fmt}"
-        tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
-        try:
+        with atomic_path(path) as tmp:
             tmp.write_bytes(data.encode() if isinstance(data, str) else data)
-            tmp.replace(path)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
         written.append(path)
     return written

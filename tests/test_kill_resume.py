@@ -2,7 +2,7 @@
 
 Each case copies the inputs of one stage from a reference run (every stage run once, uninterrupted, same config),
 runs that stage's real command in a subprocess that SIGKILLs itself at a fixed point of its work
-(``$CLOTHGAP_KILL_AT``, ``clothgap.runs.kill_point``: at the N-th atomic write of a matching file, its temporary
+(``$CLOTHGAP_KILL_AT``, ``clothgap.files.kill_point``: at the N-th atomic write of a matching file, its temporary
 file written and not yet in place), resumes with the same command, and compares a digest of every file the stage
 wrote with the reference's, and finds no temporary file left. A tiny study (2 classes x 4 sequences, 10 frames,
 32 px, one variant, 2 epochs) keeps the module to a few seconds per stage on 2 cores.
