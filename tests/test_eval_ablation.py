@@ -7,23 +7,16 @@ import json
 import pytest
 from clothgap.config import ConfigError, StudyConfig
 from eval.ablation import recipe_config, run_ablation
-from learn.config import TrainConfig
 from learn.split import get_or_make_split, part_windows
 from learn.synthetic import synthetic_run
-from render.config import RenderConfig
-from sim.config import SimConfig
+from tests.conftest import tiny_train_config
 from tests.test_cli import assert_user_error, clothgap
 
 SETTING, VARIANT = "wind-uniform1", "paper"
 
 
 def tiny() -> StudyConfig:
-    return StudyConfig(sim=SimConfig(classes=(0, 8, 45, 53), sequences_per_class=4, frames=16),
-                       render=RenderConfig(resolution=32),
-                       train=TrainConfig(image_size=32, clip_len=6, clip_stride=5, epochs=2, batch_size=8, width=8,
-                                         fc6=32, hidden=16, val_fraction=0.25, test_fraction=0.25, lr=3e-3,
-                                         num_threads=2),
-                       )
+    return tiny_train_config(epochs=2, dropout=0.5)
 
 
 def test_recipes_compose_levers_and_settings():

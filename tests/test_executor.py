@@ -20,24 +20,20 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from clothgap.config import ConfigError, StudyConfig
+from clothgap.config import ConfigError
 from clothgap.executor import (ExecutorOptions, ShardError, check_reachable, default_shard_size, gpu_slots,
                                merge_summaries, ray_session, run_shards, run_stage, shard, sim_shard)
 from clothgap.runs import DONE, Run, clip_id, fresh_dir, is_done, select_clips
 from render.config import RenderConfig
-from sim.config import SimConfig
+from tests.conftest import RENDER_BACKEND, tiny_sim_run
 
 SETTING = "wind-uniform1"
 
 
-def tiny_run(root: Path, classes=(0, 53, 20, 8), render: bool = False) -> Run:
-    """Four clips of three frames on a 6x6 grid: a second or two to simulate on one core."""
-    cfg = StudyConfig(name="tiny", seed=3, sim=SimConfig(
-        classes=classes, sequences_per_class=1, grid_vertices=6, frames=3, settle_s=0.04, device="cpu",
-        batch_size=4), render=RenderConfig(variants=("paper",), resolution=12, spp=1, backend="scalar_rgb",
-                                             write_hdr=False))
-    cfg = replace(cfg, train=replace(cfg.train, clip_len=3))     # sim.frames must hold one sub-sequence
-    return Run.create_or_resume(root, cfg)
+def tiny_run(root: Path) -> Run:
+    """Four clips of three frames on a 6x6 grid, rendered at 12 px: a second or two to simulate on one core."""
+    return tiny_sim_run(root, seed=3, classes=(0, 53, 20, 8), render=RenderConfig(
+        variants=("paper",), resolution=12, spp=1, backend=RENDER_BACKEND, write_hdr=False))
 
 
 def sim_arrays(run: Run, setting: str = SETTING) -> dict[str, tuple]:

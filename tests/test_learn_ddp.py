@@ -12,12 +12,12 @@ import pytest
 from clothgap.runs import is_done
 from learn.predict import predict_clips
 from learn.synthetic import synthetic_run
-from tests.test_learn_train import SETTING, VARIANT, tiny_config
+from tests.conftest import SETTING, VARIANT, tiny_train_config
 
 
 @pytest.mark.slow
 def test_torchrun_two_processes_train_one_model(tmp_path):
-    run = synthetic_run(tmp_path / "run", tiny_config(epochs=2, num_threads=1))
+    run = synthetic_run(tmp_path / "run", tiny_train_config(epochs=2, num_threads=1))
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
            "-m", "learn", str(run.root), "--model", "lrcn", "--no-progress"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=90, env={**os.environ, "OMP_NUM_THREADS": "1"})

@@ -9,26 +9,14 @@ import pytest
 import torch
 
 import learn.train
-from clothgap.config import ConfigError, StudyConfig
+from clothgap.config import ConfigError
 from clothgap.runs import Run, is_done
-from learn.config import TrainConfig
 from learn.predict import load_model, predict_clips
 from learn.split import get_or_make_split
 from learn.stage import run_train
 from learn.synthetic import synthetic_run
 from learn.train import train_one
-from render.config import RenderConfig
-from sim.config import SimConfig
-
-SETTING, VARIANT = "wind-uniform1", "paper"
-
-
-def tiny_config(**train) -> StudyConfig:
-    """Four classes at the corners of the (p, k) grid, short clips, a very small network."""
-    base = dict(image_size=32, clip_len=6, clip_stride=5, epochs=3, batch_size=8, width=8, fc6=32, hidden=16,
-                dropout=0.2, val_fraction=0.25, test_fraction=0.25, lr=3e-3, num_threads=2)
-    return StudyConfig(sim=SimConfig(classes=(0, 8, 45, 53), sequences_per_class=4, frames=16),
-                       render=RenderConfig(resolution=32), train=TrainConfig(**{**base, **train}))
+from tests.conftest import SETTING, VARIANT, tiny_train_config
 
 
 class SimulatedKill(Exception):
@@ -50,7 +38,7 @@ def kill_after_first_epoch(run: Run, monkeypatch) -> None:
 
 
 def test_train_one_writes_its_folder_and_a_killed_run_resumes_to_the_same_weights(tmp_path, monkeypatch):
-    cfg = tiny_config(augment=True)
+    cfg = tiny_train_config(augment=True)
     whole = synthetic_run(tmp_path / "whole", cfg)
     killed = synthetic_run(tmp_path / "killed", cfg)
     out = train_one(whole, SETTING, VARIANT, "lrcn", 0, progress=False)
@@ -82,7 +70,7 @@ def test_train_one_writes_its_folder_and_a_killed_run_resumes_to_the_same_weight
 
 
 def test_trained_model_beats_chance_on_held_out_sequences(tmp_path):
-    run = synthetic_run(tmp_path / "run", tiny_config(epochs=20, val_fraction=0.0, dropout=0.0))
+    run = synthetic_run(tmp_path / "run", tiny_train_config(epochs=20, val_fraction=0.0, dropout=0.0))
     out = train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
     test_clips = [run.render_dir(VARIANT, SETTING) / c for c in get_or_make_split(run, SETTING)["test"]]
     pred = predict_clips(out, test_clips, device="cpu", batch_size=5)
@@ -93,7 +81,7 @@ def test_trained_model_beats_chance_on_held_out_sequences(tmp_path):
 
 
 def test_run_train_grid_base2_freezes_base1s_cnn_and_writes_the_index(tmp_path):
-    cfg = tiny_config(models=("base2", "base1"), epochs=1, val_fraction=0.0, factored=True)
+    cfg = tiny_train_config(models=("base2", "base1"), epochs=1, val_fraction=0.0, factored=True)
     run = synthetic_run(tmp_path / "run", cfg)
     index = run_train(run, progress=False)
     assert [(e["model"], e["done"]) for e in index["entries"]] == [("base1", True), ("base2", True)]
@@ -105,21 +93,21 @@ def test_run_train_grid_base2_freezes_base1s_cnn_and_writes_the_index(tmp_path):
 
 
 def test_pretrained_cnn_weights_come_from_a_local_file(tmp_path):
-    donor = synthetic_run(tmp_path / "donor", tiny_config(models=("base1",), epochs=1, val_fraction=0.0))
+    donor = synthetic_run(tmp_path / "donor", tiny_train_config(models=("base1",), epochs=1, val_fraction=0.0))
     weights = train_one(donor, SETTING, VARIANT, "base1", 0, progress=False) / "checkpoint.pt"
-    run = synthetic_run(tmp_path / "run", tiny_config(epochs=1, val_fraction=0.0, pretrained=str(weights)))
+    run = synthetic_run(tmp_path / "run", tiny_train_config(epochs=1, val_fraction=0.0, pretrained=str(weights)))
     out = train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
     assert json.loads((out / "config.json").read_text())["cnn_init"] == str(weights)
-    missing = synthetic_run(tmp_path / "missing", tiny_config(epochs=1, pretrained=str(tmp_path / "absent.pt")))
+    missing = synthetic_run(tmp_path / "missing", tiny_train_config(epochs=1, pretrained=str(tmp_path / "absent.pt")))
     with pytest.raises(FileNotFoundError, match="absent.pt"):
         train_one(missing, SETTING, VARIANT, "lrcn", 0, progress=False)
 
 
 def test_unknown_model_in_the_grid_is_named(tmp_path):
     with pytest.raises(ConfigError, match="train.models: unknown model 'resnet'; known: lrcn"):
-        synthetic_run(tmp_path / "bad", tiny_config(models=("lrcn", "resnet")))   # refused when the run starts
-    run = synthetic_run(tmp_path / "run", tiny_config(epochs=1))
-    run = Run(run.root, tiny_config(models=("lrcn", "resnet")))                  # a config never validated
+        synthetic_run(tmp_path / "bad", tiny_train_config(models=("lrcn", "resnet")))   # refused when the run starts
+    run = synthetic_run(tmp_path / "run", tiny_train_config(epochs=1))
+    run = Run(run.root, tiny_train_config(models=("lrcn", "resnet")))                  # a config never validated
     with pytest.raises(ValueError, match="resnet.*known: lrcn"):
         run_train(run, progress=False)
 
@@ -127,7 +115,7 @@ def test_unknown_model_in_the_grid_is_named(tmp_path):
 def test_split_by_subsequence_trains_on_exactly_the_train_windows(tmp_path):
     from learn.split import part_windows
 
-    run = synthetic_run(tmp_path / "run", tiny_config(epochs=1, split_by="subsequence", clip_stride=6))
+    run = synthetic_run(tmp_path / "run", tiny_train_config(epochs=1, split_by="subsequence", clip_stride=6))
     out = train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
     split = get_or_make_split(run, SETTING)
     assert split["by"] == "subsequence" and all("@" in item for item in split["train"])
@@ -169,7 +157,7 @@ def test_geometry_targets_follow_the_frame_cache_and_train_an_auxiliary_head(tmp
     from learn.dataset import build_cache
     from learn.geometry import geometry_targets
 
-    cfg = tiny_config(aux_geometry=1.0, epochs=1)
+    cfg = tiny_train_config(aux_geometry=1.0, epochs=1)
     run = synthetic_run(tmp_path / "run", cfg)
     with pytest.raises(MissingInputError, match="c00000"):
         train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)   # the target needs the simulation
@@ -214,7 +202,7 @@ def test_a_clip_gone_astray_does_not_flatten_every_other_target(tmp_path):
     from learn.dataset import build_cache
     from learn.geometry import TARGET_LIMIT, geometry_targets
 
-    cfg = tiny_config(aux_geometry=1.0, epochs=1)
+    cfg = tiny_train_config(aux_geometry=1.0, epochs=1)
     run = synthetic_run(tmp_path / "run", cfg)
     _sim_clips_for(run, cfg.sim.frames, flown="c00003")
     cache = build_cache(run, VARIANT, SETTING, 32, progress=False)
@@ -229,7 +217,7 @@ def test_a_clip_gone_astray_does_not_flatten_every_other_target(tmp_path):
 def test_diverged_training_is_not_marked_done(tmp_path):
     from learn.train import TrainingDiverged
 
-    run = synthetic_run(tmp_path / "run", tiny_config(lr=1e6, epochs=3))
+    run = synthetic_run(tmp_path / "run", tiny_train_config(lr=1e6, epochs=3))
     with pytest.raises(TrainingDiverged, match=r"train\.lr=1e\+06"):
         train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
     folder = run.train_dir(SETTING, VARIANT, "lrcn", 0)
@@ -247,7 +235,7 @@ class _Payload:
 
 
 def test_a_pickle_payload_in_last_pt_does_not_run(tmp_path, monkeypatch):
-    run = synthetic_run(tmp_path / "run", tiny_config(epochs=2))
+    run = synthetic_run(tmp_path / "run", tiny_train_config(epochs=2))
     kill_after_first_epoch(run, monkeypatch)
     folder = run.train_dir(SETTING, VARIANT, "lrcn", 0)
     marker = tmp_path / "payload-ran"
@@ -259,7 +247,7 @@ def test_a_pickle_payload_in_last_pt_does_not_run(tmp_path, monkeypatch):
 
 
 def test_keep_best_checkpoints_the_best_validation_epoch(tmp_path):
-    run = synthetic_run(tmp_path / "run", tiny_config(keep="best", epochs=4))
+    run = synthetic_run(tmp_path / "run", tiny_train_config(keep="best", epochs=4))
     out = train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
     metrics = pd.read_csv(out / "metrics.csv")
     best_epoch = int(metrics.val_acc.idxmax())                 # the first epoch with the highest accuracy
@@ -269,4 +257,4 @@ def test_keep_best_checkpoints_the_best_validation_epoch(tmp_path):
     assert state["best"]["epoch"] == best_epoch
     assert all(torch.equal(kept[k], v) for k, v in state["best"]["model"].items())
     with pytest.raises(ConfigError, match="train.keep=best needs validation clips"):
-        synthetic_run(tmp_path / "noval", tiny_config(keep="best", val_fraction=0.0))
+        synthetic_run(tmp_path / "noval", tiny_train_config(keep="best", val_fraction=0.0))

@@ -3,36 +3,25 @@
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 
 import numpy as np
 import pytest
 from PIL import Image
 
-from clothgap.config import preset
-from clothgap.runs import Run, clip_id, is_done, mark_done
+from clothgap.runs import clip_id, is_done
 from render.batch import BatchRenderer, batchable, enclosure_mesh, grid_offsets
 from render.config import RenderConfig, frames_per_launch
 from render.exr import read_exr
 from render.scene import ClipRenderer
 from render.synthetic import waving_sheet
 from render.variants import get_variant, list_variants
+from tests.conftest import synthetic_sim_run
 from tests.test_render_output import BACKEND
 
 
 def make_run(root, variants=("paper",), clips=2, frames=3, **render):
-    """A run with finished synthetic sim clips (as tests.test_render_output.make_run) and render overrides."""
-    cfg = preset("smoke")
-    cfg = replace(cfg, sim=replace(cfg.sim, frames=frames),
-                  render=replace(cfg.render, variants=variants, resolution=16, spp=1, backend=BACKEND, **render))
-    cfg = replace(cfg, train=replace(cfg.train, clip_len=min(cfg.train.clip_len, frames)))
-    run = Run.create_or_resume(root, cfg)
-    for setting in cfg.sim.settings():
-        for i in range(clips):
-            folder = run.sim_dir(setting) / clip_id(i)
-            waving_sheet(frames=frames, n=8, index=i, setting=setting).save(folder)
-            mark_done(folder)
-    return run
+    """A run with finished synthetic sim clips and render overrides."""
+    return synthetic_sim_run(root, variants, clips, frames, **render)
 
 
 def renderer(variant="paper", spp=4, resolution=16, clip=None, clip_index=2, seed_shift=0):

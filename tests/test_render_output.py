@@ -10,7 +10,7 @@ import pytest
 from PIL import Image
 
 from clothgap.config import ConfigError, preset, validate
-from clothgap.runs import Run, clip_id, is_done, mark_done
+from clothgap.runs import clip_id, is_done
 from dataclasses import replace
 from render.backend import BackendError, MIN_LLVM_VERSION, _LLVM_NAME, find_libllvm, load_mitsuba, resolve_backend
 from render.exr import read_exr, write_exr
@@ -19,8 +19,9 @@ from render.synthetic import waving_sheet
 from sim.clip import SimClip
 from render.tonemap import OPERATORS, tonemap
 from render.variants import USER_VARIANTS_ENV, get_variant
+from tests.conftest import RENDER_BACKEND, synthetic_sim_run
 
-BACKEND = "scalar_rgb"
+BACKEND = RENDER_BACKEND
 
 
 def render(variant="paper", clip_index=0, t=0, resolution=24, clip=None, **kw):
@@ -163,18 +164,7 @@ def test_corrupt_background_is_reported_by_name_and_the_run_goes_on(tmp_path, mo
 
 
 def make_run(root, variants=("paper",), clips=2, frames=3, remeshing=("uniform1",), variant_settings=()):
-    cfg = preset("smoke")
-    cfg = replace(cfg, sim=replace(cfg.sim, frames=frames, remeshing=remeshing),
-                  render=replace(cfg.render, variants=variants, resolution=16, spp=1, backend=BACKEND,
-                                 variant_settings=variant_settings))
-    cfg = replace(cfg, train=replace(cfg.train, clip_len=min(cfg.train.clip_len, frames)))
-    run = Run.create_or_resume(root, cfg)
-    for setting in cfg.sim.settings():
-        for i in range(clips):
-            folder = run.sim_dir(setting) / clip_id(i)
-            waving_sheet(frames=frames, n=8, index=i, setting=setting).save(folder)
-            mark_done(folder)
-    return run
+    return synthetic_sim_run(root, variants, clips, frames, remeshing, variant_settings=variant_settings)
 
 
 def test_stage_writes_frames_meta_and_done_and_skips_done_clips(tmp_path):

@@ -14,8 +14,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from clothgap.config import StudyConfig
-from clothgap.runs import Run, clip_id, is_done
+from clothgap.runs import clip_id, is_done
 from sim import classes, kernels
 from sim.clip import SimClip
 from sim.config import SimConfig
@@ -23,6 +22,7 @@ from sim.materials import bending_stiffness, green_strain, list_materials, load_
 from sim.mesh import ClothMesh, hinges_of, square_cloth, vertices_per_side
 from sim.motions import hanging_positions
 from sim.solver import BatchSolver, ClothSpec, SolverParams
+from tests.conftest import tiny_sim_run
 
 BASIS = load_material("camel-ponte-roma")
 
@@ -265,18 +265,10 @@ def test_batched_equals_one_at_a_time():
 
 # ---------------------------------------------------------------- stage
 
-def _tiny_run(tmp_path, seed=0, **sim):
-    cfg = StudyConfig(name="tiny", seed=seed, sim=SimConfig(**{
-        "classes": (0, 53), "sequences_per_class": 1, "grid_vertices": 6, "frames": 3, "settle_s": 0.04,
-        "device": "cpu", "batch_size": 4, **sim}))
-    cfg = replace(cfg, train=replace(cfg.train, clip_len=min(cfg.train.clip_len, cfg.sim.frames)))
-    return Run.create_or_resume(tmp_path, cfg)
-
-
 def test_run_sim_writes_skips_and_redoes(tmp_path):
     from sim.stage import run_sim
 
-    run = _tiny_run(tmp_path / "a")
+    run = tiny_sim_run(tmp_path / "a")
     assert run_sim(run, progress=False)["simulated"] == 2
     folder = run.sim_dir("wind-uniform1")
     assert [p.name for p in sorted(folder.iterdir())] == ["c00000", "c00001"]
@@ -303,13 +295,13 @@ def test_run_sim_writes_skips_and_redoes(tmp_path):
     assert redo["simulated"] == 1 and is_done(folder / "c00001")
 
     # same seed, same clips, bit for bit; material does not depend on the setting
-    other = _tiny_run(tmp_path / "b")
+    other = tiny_sim_run(tmp_path / "b")
     run_sim(other, progress=False)
     a = SimClip.load(folder / "c00000")
     b = SimClip.load(other.sim_dir("wind-uniform1") / "c00000")
     np.testing.assert_array_equal(a.positions, b.positions)
     assert a.meta["p"] == b.meta["p"] and a.meta["motion_params"] == b.meta["motion_params"]
-    third = _tiny_run(tmp_path / "c", seed=1)
+    third = tiny_sim_run(tmp_path / "c", seed=1)
     run_sim(third, progress=False)
     assert SimClip.load(third.sim_dir("wind-uniform1") / "c00000").meta["p"] != a.meta["p"]
 
@@ -318,7 +310,7 @@ def test_exploding_clip_is_retried_then_marked_failed(tmp_path, monkeypatch):
     import sim.stage
 
     monkeypatch.setattr(sim.stage, "MAX_SPEED_MPS", 0.0)     # every frame now counts as an explosion
-    run = _tiny_run(tmp_path, classes=(0,))
+    run = tiny_sim_run(tmp_path, classes=(0,))
     summary = sim.stage.run_sim(run, progress=False)
     assert summary["failed"] == 1 and summary["retried"] == 1
     folder = run.sim_dir("wind-uniform1") / "c00000"
@@ -340,7 +332,7 @@ def test_unsupported_setting_is_a_clear_error():
 def test_arm_setting_and_refined_levels_write_finite_clips(tmp_path):
     from sim.stage import run_sim
 
-    run = _tiny_run(tmp_path, motions=("wind", "arm"), remeshing=("uniform1", "uniform2"), frames=4)
+    run = tiny_sim_run(tmp_path, motions=("wind", "arm"), remeshing=("uniform1", "uniform2"), frames=4)
     summary = run_sim(run, progress=False)
     assert summary["simulated"] == 8 and summary["failed"] == 0
     for setting, n in (("arm-uniform1", 6), ("arm-uniform2", 11), ("wind-uniform2", 11)):
@@ -400,7 +392,7 @@ def test_soft_mid_and_stiff_cloths_stay_on_the_bending_arm():
 def test_adaptive_setting_changes_topology_and_is_reproducible(tmp_path):
     from sim.stage import run_sim
 
-    runs = [_tiny_run(tmp_path / name, motions=("wind", "arm"), remeshing=("adaptive",), grid_vertices=8, frames=5)
+    runs = [tiny_sim_run(tmp_path / name, motions=("wind", "arm"), remeshing=("adaptive",), grid_vertices=8, frames=5)
             for name in ("a", "b")]
     for run in runs:
         summary = run_sim(run, progress=False)

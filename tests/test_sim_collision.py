@@ -160,9 +160,9 @@ def test_stage_meta_records_self_collision_and_intersections(tmp_path):
     """Fixed and adaptive clips with self-collision on: meta says so and the health holds the last frame's
     intersecting pairs and the unresolved pairs."""
     from sim.stage import run_sim
-    from tests.test_sim import _tiny_run
+    from tests.conftest import tiny_sim_run
 
-    run = _tiny_run(tmp_path, classes=(0,), remeshing=("uniform1", "adaptive"), self_collision=True)
+    run = tiny_sim_run(tmp_path, classes=(0,), remeshing=("uniform1", "adaptive"), self_collision=True)
     summary = run_sim(run, progress=False)
     assert summary["simulated"] == 2 and summary["failed"] == 0
     for setting in ("wind-uniform1", "wind-adaptive"):
