@@ -185,7 +185,7 @@ def test_geometry_targets_follow_the_frame_cache_and_train_an_auxiliary_head(tmp
 def test_reader_truth_reaches_the_readers_through_training(tmp_path):
     readers = {}
     for weight in (0.0, 1.0):
-        cfg = tiny_config(bottleneck=True, dropout=0.0, reader_truth=weight, epochs=1)
+        cfg = tiny_train_config(bottleneck=True, dropout=0.0, reader_truth=weight, epochs=1)
         run = synthetic_run(tmp_path / f"run{weight}", cfg)
         _sim_clips_for(run, cfg.sim.frames)
         out = train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
