@@ -457,7 +457,7 @@ def train_selected(run: Run, settings: Iterable[str] | None = None, variants: It
     Raises:
         ConfigError: a name the run does not have, or a selected (setting, variant) not rendered yet.
     """
-    from learn.config import MODEL_NAMES
+    from learn.registry import MODEL_NAMES, training_order
 
     cfg = run.config
     everything = settings is None and variants is None and models is None and seeds is None
@@ -484,6 +484,6 @@ def train_selected(run: Run, settings: Iterable[str] | None = None, variants: It
         return [run.root / e["dir"] for e in index["entries"]]
     from learn.train import train_one
 
-    # base2 freezes the CNN of base1 of the same (setting, variant, seed): base1 first.
-    models.sort(key=lambda m: (m == "base2", MODEL_NAMES.index(m)))
+    # A model that needs another (base2 freezes base1's CNN of the same setting, variant and seed) comes after it.
+    models = training_order(models)
     return [train_one(run, s, v, m, seed, progress) for s, v in chosen for seed in seeds for m in models]

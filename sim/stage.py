@@ -1,6 +1,6 @@
 """The sim stage: every (setting, clip index) of a run -> ``sim/<setting>/<clip_id>/`` (see docs/contracts.md).
 
-Settings are ``<motion>-<remeshing>``: motion ``wind`` or ``arm`` (``sim.motions``);
+Settings are ``<motion>-<remeshing>``: a motion registered in ``sim.motions.MOTIONS`` (``wind``, ``arm``);
 remeshing ``uniform<L>``, the base grid refined uniformly to level L = 1, 2, 3
 (``sim.mesh``), or ``adaptive``, a quadtree mesh that starts at level 1 and is
 refined where the cloth curves and coarsened where it is flat after every
@@ -43,7 +43,7 @@ from sim.config import REMESHING, SimConfig
 from sim.intersections import count_intersections
 from sim.materials import load_material
 from sim.mesh import ClothMesh, square_cloth, vertices_per_side
-from sim.motions import MOTIONS, ClipScene, arm_scene, view_box, wind_scene
+from sim.motions import MOTIONS, ClipScene, get_motion, view_box
 from sim.solver import BatchSolver, CGStats, SolverParams, resolve_device
 
 # Health check of every recorded frame: beyond these a cloth has exploded.
@@ -223,12 +223,7 @@ def build_scene(cfg: SimConfig, seed: int, index: int, setting: Setting, mesh: C
 
         material = load_material(fabric)
         meta = fabric_labels(fabric)
-    if setting.motion == "wind":
-        scene = wind_scene(mesh, cfg.cloth_size_m, material, motion_rng, cfg.wind_nuisance)
-    else:
-        scene = arm_scene(mesh, cfg.cloth_size_m, material, motion_rng, cfg.settle_s, cfg.fps, cfg.frames,
-                          cfg.arm_nuisance)
-    return scene, meta
+    return get_motion(setting.motion).scene(mesh, material, motion_rng, cfg), meta
 
 
 @dataclass(frozen=True)
