@@ -460,11 +460,12 @@ def clone(video, run_dir, model_name, setting, variant, train_seed, garment, mot
     simulate a skirt of that material (beside a softer and a stiffer one) and render it next to the input."""
     if not video.exists():
         raise ConfigError(f"input video {video} does not exist")
-    from eval.clone import clone_video
+    from eval.clone import CloneOptions, clone_video
 
-    path = clone_video(video, run_dir, model=model_name, setting=setting, variant=variant, seed=train_seed,
-                       garment=garment, motion=motion, out=out, frames=frames, render_variant=render_variant,
-                       resolution=resolution, spp=spp, backend=backend, compare=not no_compare)
+    options = CloneOptions(model=model_name, setting=setting, variant=variant, seed=train_seed, garment=garment,
+                           motion=motion, frames=frames, render_variant=render_variant, resolution=resolution,
+                           spp=spp, backend=backend, compare=not no_compare)
+    path = clone_video(video, run_dir, options, out=out)
     click.echo(f"wrote {path}")
 
 
