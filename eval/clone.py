@@ -424,7 +424,8 @@ def render_panels(run: Run, video: Path, skirts: SimulatedSkirts, options: Clone
 
 def write_side_by_side(video: Path, prediction: dict, panels: list[tuple[str, int]], rendered: RenderedPanels,
                        options: CloneOptions, out_dir: Path) -> Path:
-    """input | clone | softer | stiffer, captioned, as ``frames/*.png`` and ``clone.mp4``; returns the frames' folder."""
+    """input | clone | softer | stiffer, captioned, as ``frames/*.png`` and ``clone.mp4``; returns the frames'
+    folder."""
     try:
         shown = read_video(video, options.resolution, prediction["fps"], options.frames, options.frames_fps)
     except VideoError as err:

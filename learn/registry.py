@@ -30,8 +30,8 @@ MODELS: dict[str, ModelEntry] = {e.name: e for e in (
     # A per-frame classifier: its answer is always the clip average.
     ModelEntry("base1", "the CNN + fc6 alone, one prediction per frame, averaged over the clip",
                temporal=None, readout="mean"),
-    ModelEntry("base2", "base1's CNN frozen (its weights put in by the trainer), an LSTM trained on top", temporal="lstm", freeze_cnn=True,
-               needs="base1"),
+    ModelEntry("base2", "base1's CNN frozen (its weights put in by the trainer), an LSTM trained on top",
+               temporal="lstm", freeze_cnn=True, needs="base1"),
     ModelEntry("base3", "lrcn with a vanilla (tanh) RNN instead of the LSTM", temporal="rnn"),
 )}
 MODEL_NAMES = tuple(MODELS)
