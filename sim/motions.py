@@ -14,9 +14,8 @@ forearm along x, elbow at the origin); when recording starts the forearm swings
 horizontally (about the vertical axis through the elbow) through a fixed angle
 (``ARM_ANGLE_DEG``) at a speed drawn per clip. The flap on the inside of the
 bend is compressed into folds whose shape shows bending stiffness; the outside
-flap is swung out. (A vertical sweep was tried first: it stretches the cloth
-over the outside of the elbow faster than vertex-capsule contact lets it slide,
-so edges end up cut through the elbow.) The cloth's placement along and across the arm is drawn per clip,
+flap is swung out. The sweep is horizontal because a vertical one cuts edges
+through the elbow (docs/simulation.md, "Arm contact"). The cloth's placement along and across the arm is drawn per clip,
 across within 2 cm of centre so that it drapes nearly symmetrically; friction (``SolverParams.friction``,
 static and sliding, inside the implicit solve) holds it there while the forearm turns.
 ``arm_contact_report`` tells a clip of a cloth on the arm from one of a cloth falling off it.

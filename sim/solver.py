@@ -34,17 +34,8 @@ handled in two places:
   and the slip relative to the (rigidly turning) arm surface: mu J_n against a
   sliding vertex, and at rest a stiff damping that holds a draped cloth
   (creeping below ``slip_velocity``) while the pull stays inside the cone.
-  Before, contacts alternated on and off every step (the edge pass below and
-  the penetration recovery left resting vertices moving outward, so they
-  were dropped as "moving away") and friction acted only after the solve on
-  the penetrating part of the velocity: no static friction at all, and soft
-  and stiff cloths alike slid off the arm. Without the contact in the solve,
-  contact was resolved only after the solve, which the solve never saw: for a
-  stiff cloth it spent the
-  stretching forces on the contact vertex, and the projection then undid that,
-  so the arm acted through an effective spring of stiffness m / h^2 (about
-  12 N/m at 8 substeps) instead of the cloth's; stiff cloths dragged by the
-  forearm stretched 30-80 % and wrapped edges round it;
+  Contact resolved only after the solve lets stiff cloths stretch round the
+  forearm and every cloth slide off the arm (docs/simulation.md, "Arm contact");
 * after the step, as a projection: vertices out of the capsules, edges whose
   inside comes closer than the contact thickness out of them too (vertex-only
   contact lets a capsule of the edge length's size slide between two vertices),
