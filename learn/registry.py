@@ -18,6 +18,7 @@ class ModelEntry:
 
     name: str
     description: str
+    title: str                      # its column title in the tables and the report (the paper's Table 3)
     temporal: str | None            # the recurrent layer over frames: "lstm", "rnn", or None (per frame)
     freeze_cnn: bool = False        # the CNN's weights come from ``needs`` and stay fixed
     readout: str | None = None      # a readout the model always uses, whatever train.readout says
@@ -26,13 +27,14 @@ class ModelEntry:
 
 MODELS: dict[str, ModelEntry] = {e.name: e for e in (
     ModelEntry("lrcn", "AlexNet-style CNN + fc6 per frame, an LSTM over the frames (the paper's Section 5)",
-               temporal="lstm"),
+               "CNN+LSTM (RGB-V)", temporal="lstm"),
     # A per-frame classifier: its answer is always the clip average.
     ModelEntry("base1", "the CNN + fc6 alone, one prediction per frame, averaged over the clip",
-               temporal=None, readout="mean"),
+               "Base-1 (CNN, RGB-I)", temporal=None, readout="mean"),
     ModelEntry("base2", "base1's CNN frozen (its weights put in by the trainer), an LSTM trained on top",
-               temporal="lstm", freeze_cnn=True, needs="base1"),
-    ModelEntry("base3", "lrcn with a vanilla (tanh) RNN instead of the LSTM", temporal="rnn"),
+               "Base-2 (fixed CNN+LSTM, RGB-V)", temporal="lstm", freeze_cnn=True, needs="base1"),
+    ModelEntry("base3", "lrcn with a vanilla (tanh) RNN instead of the LSTM", "Base-3 (CNN+RNN, RGB-V)",
+               temporal="rnn"),
 )}
 MODEL_NAMES = tuple(MODELS)
 

@@ -75,8 +75,7 @@ import warp as wp
 
 from sim import kernels
 from sim.collision import SelfCollision, unique_edges
-from sim.mesh import ClothMesh
-from sim.specs import ArmSpec, ClothSpec  # noqa: F401 - part of the solver's interface, defined without Warp
+from sim.specs import ArmSpec, ClothSpec   # plain data, kept apart so that sim.motions needs no Warp
 
 
 class _StderrLogger:

@@ -43,7 +43,7 @@ def test_every_registered_model_builds_and_runs_a_forward_pass(name):
 @pytest.mark.parametrize("name", MODEL_NAMES)
 def test_every_model_entry_is_complete_and_trained_after_what_it_needs(name):
     entry = MODELS[name]
-    assert entry.name == name and entry.description.strip()
+    assert entry.name == name and entry.description.strip() and entry.title.strip()
     assert entry.temporal in ("lstm", "rnn", None)
     assert entry.readout is None or entry.readout in READOUTS
     if entry.needs is not None:
