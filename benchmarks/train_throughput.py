@@ -28,7 +28,8 @@ from pathlib import Path
 import torch
 
 from learn.dataset import to_input
-from learn.models import MODEL_NAMES, build_model
+from learn.models import build_model
+from learn.registry import MODEL_NAMES
 from learn.train import resolve_device
 
 RESULTS = Path(__file__).resolve().parent / "results"

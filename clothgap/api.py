@@ -38,7 +38,15 @@ class StageFailures(Exception):
 
 
 def failure_lines(stage: str, summary: object) -> list[str]:
-    """What a stage's summary says failed or was left out, one ``where: why`` line per clip."""
+    """What a stage's summary says failed or was left out.
+
+    Args:
+        stage: ``"sim"``, ``"render"`` or ``"eval"`` (any other stage lists nothing).
+        summary: The summary the stage returned.
+
+    Returns:
+        One ``where: why`` line per clip (empty when none failed).
+    """
     if not isinstance(summary, dict):
         return []
     if stage == "sim":
@@ -51,7 +59,15 @@ def failure_lines(stage: str, summary: object) -> list[str]:
 
 
 def failure_message(stage: str, summary: object) -> str:
-    """One line naming the clips a stage's summary lists as failed or left out ("" when none)."""
+    """One line naming the clips a stage's summary lists as failed or left out.
+
+    Args:
+        stage: ``"sim"``, ``"render"`` or ``"eval"``.
+        summary: The summary the stage returned.
+
+    Returns:
+        The line (the first five clips and a count of the rest), or "" when none failed.
+    """
     lines = failure_lines(stage, summary)
     if not lines:
         return ""
@@ -95,10 +111,21 @@ def start(out: Path | str, preset: str | None = None, *, config_file: Path | str
 
 def resolve_config(root: Path | None, preset: str | None, config_file: Path | str | None,
                    overrides: list[str]) -> StudyConfig:
-    """The config a run in ``root`` gets: the preset (``preset``, else the one ``config_file`` names, else the
-    run's own config), then the file's settings, then each ``section.key=value`` override; a run started
-    from a preset is named after its folder unless the file or an override names it (``root`` None: the
-    folder is not chosen yet, ``runs/<name>`` by the CLI's convention)."""
+    """The config a run in ``root`` gets: the preset, then the file's settings, then each override.
+
+    Args:
+        root: The run folder, or None when it is not chosen yet (``runs/<name>`` by the CLI's convention).
+        preset: The preset to start from; None: the one ``config_file`` names, else the run's own config.
+        config_file: A TOML file of settings (as ``start``'s), or None.
+        overrides: ``section.key=value`` strings, applied last.
+
+    Returns:
+        The config. A run started from a preset is named after its folder unless the file or an override
+        names it.
+
+    Raises:
+        ConfigError: no run folder and no preset, an unknown preset or setting, a bad value or bad TOML.
+    """
     file_preset, file_settings = read_config_file(config_file) if config_file is not None else (None, {})
     preset = preset or file_preset
     if preset is None and root is None:
@@ -332,7 +359,14 @@ class Study:
         return self._check("eval", run_eval(run, progress=progress), allow_failures)
 
     def report(self) -> Path:
-        """Write ``report/report.html`` (``clothgap report RUN``) and return its path."""
+        """Write the run's HTML report (``clothgap report RUN``).
+
+        Returns:
+            The path of ``report/report.html``.
+
+        Raises:
+            ConfigError: the run is not evaluated yet.
+        """
         from eval.report import write_report
 
         run = self.run
@@ -425,16 +459,28 @@ class Study:
         return self._table("axis_ranking.csv")
 
     def table3(self) -> pd.DataFrame:
-        """The paper's Table 3: in-domain accuracy per motion x remeshing x texture, one column per model."""
+        """The paper's Table 3.
+
+        Returns:
+            ``eval/table3.csv``: in-domain accuracy per motion x remeshing x texture, one column per model.
+        """
         return self._table("table3.csv")
 
     def measured(self) -> pd.DataFrame:
-        """The measured-fabric set (``eval.measured_sequences`` > 0, or ``clothgap eval measured``): one row per
-        (model, fabric) with the predicted class beside the paper's Table 2 class and the measured stiffness."""
+        """The measured-fabric set's results (``eval.measured_sequences`` > 0, or ``clothgap eval measured``).
+
+        Returns:
+            ``eval/measured.csv``: one row per (model, fabric) with the predicted class beside the paper's
+            Table 2 class and the measured stiffness.
+        """
         return self._table("measured.csv")
 
     def summary(self) -> dict:
-        """``eval/summary.json``: models and checkpoints, test variants, axes, left-out clips, config."""
+        """What the evaluation used and left out.
+
+        Returns:
+            ``eval/summary.json`` as a dict: models and checkpoints, test variants, axes, left-out clips, config.
+        """
         path = self.root / "eval" / "summary.json"
         if not path.is_file():
             raise MissingInputError(f"{path} does not exist: evaluate the run first (study.evaluate())")
@@ -457,7 +503,7 @@ def train_selected(run: Run, settings: Iterable[str] | None = None, variants: It
     Raises:
         ConfigError: a name the run does not have, or a selected (setting, variant) not rendered yet.
     """
-    from learn.config import MODEL_NAMES
+    from learn.registry import MODEL_NAMES, training_order
 
     cfg = run.config
     everything = settings is None and variants is None and models is None and seeds is None
@@ -484,6 +530,6 @@ def train_selected(run: Run, settings: Iterable[str] | None = None, variants: It
         return [run.root / e["dir"] for e in index["entries"]]
     from learn.train import train_one
 
-    # base2 freezes the CNN of base1 of the same (setting, variant, seed): base1 first.
-    models.sort(key=lambda m: (m == "base2", MODEL_NAMES.index(m)))
+    # A model that needs another (base2 freezes base1's CNN of the same setting, variant and seed) comes after it.
+    models = training_order(models)
     return [train_one(run, s, v, m, seed, progress) for s, v in chosen for seed in seeds for m in models]

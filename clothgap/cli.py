@@ -155,8 +155,14 @@ def sim() -> None:
 @_run_options
 @_executor_options
 @_allow_failures_option
-def sim_run(run_dir, preset_name, out, overrides, config_file, allow_failures, **execution) -> None:
+@click.option("--list-motions", is_flag=True, help="List the registered motions and exit.")
+def sim_run(run_dir, preset_name, out, overrides, config_file, allow_failures, list_motions, **execution) -> None:
     """Simulate every clip of the run that is not done yet."""
+    if list_motions:
+        from sim.motions import describe_motions
+
+        click.echo(describe_motions())
+        return
     opts = executor_options(**execution)
     run = resolve_run(run_dir, preset_name, out, overrides, config_file)
     from clothgap.executor import run_stage
@@ -274,13 +280,20 @@ def render(run_dir, preset_name, out, overrides, config_file, list_variants, all
 # ---- train
 @cli.command()
 @_run_options
-@click.option("--model", "model_name", help="Train only this model (lrcn, base1, base2, base3).")
+@click.option("--model", "model_name", help="Train only this model (see --list-models).")
 @click.option("--variant", help="Train only on this render variant.")
 @click.option("--setting", help="Train only on this setting, e.g. wind-uniform1.")
 @click.option("--seed", "train_seed", type=int, help="Train only this seed.")
-def train(run_dir, preset_name, out, overrides, config_file, model_name, variant, setting, train_seed) -> None:
+@click.option("--list-models", is_flag=True, help="List the registered models and exit.")
+def train(run_dir, preset_name, out, overrides, config_file, model_name, variant, setting, train_seed,
+          list_models) -> None:
     """Train the models on the rendered clips (every setting x variant x model x seed
     not done yet, or the one selected by --model/--variant/--setting/--seed)."""
+    if list_models:
+        from learn.registry import describe_models
+
+        click.echo(describe_models())
+        return
     run = resolve_run(run_dir, preset_name, out, overrides, config_file)
     from clothgap.api import train_selected
 
@@ -447,11 +460,12 @@ def clone(video, run_dir, model_name, setting, variant, train_seed, garment, mot
     simulate a skirt of that material (beside a softer and a stiffer one) and render it next to the input."""
     if not video.exists():
         raise ConfigError(f"input video {video} does not exist")
-    from eval.clone import clone_video
+    from eval.clone import CloneOptions, clone_video
 
-    path = clone_video(video, run_dir, model=model_name, setting=setting, variant=variant, seed=train_seed,
-                       garment=garment, motion=motion, out=out, frames=frames, render_variant=render_variant,
-                       resolution=resolution, spp=spp, backend=backend, compare=not no_compare)
+    options = CloneOptions(model=model_name, setting=setting, variant=variant, seed=train_seed, garment=garment,
+                           motion=motion, frames=frames, render_variant=render_variant, resolution=resolution,
+                           spp=spp, backend=backend, compare=not no_compare)
+    path = clone_video(video, run_dir, options, out=out)
     click.echo(f"wrote {path}")
 
 

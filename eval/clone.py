@@ -40,6 +40,7 @@ from __future__ import annotations
 import dataclasses
 import shutil
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -232,128 +233,223 @@ def write_mp4(frames: list[np.ndarray], path: Path, fps: float) -> None:
 
 # ------------------------------------------------------------------ entry point
 
-def clone_video(video: Path | str, run_dir: Path | str, *, model: str = "lrcn", setting: str | None = None,
-                variant: str | None = None, seed: int | None = None, garment: str = "skirt",
-                motion: str = "twirl", out: Path | str | None = None, frames: int = 50,
-                render_variant: str | None = None, resolution: int = 128, spp: int = 16,
-                backend: str | None = None, device: str | None = None, compare: bool = True,
-                settle_s: float = SETTLE_S, max_frames: int = 250, frames_fps: float | None = None,
-                shape=None, predictor: Predictor | None = None, progress: bool = True) -> Path:
-    """Predict ``video``'s class with a model of ``run_dir``, simulate and render a skirt of that material
-    (and a softer and a stiffer one), write the side-by-side video; returns ``clone.json``'s path.
+@dataclass(frozen=True)
+class CloneOptions:
+    """How to clone: which trained model predicts, the garment and its simulation, the render."""
 
-    ``frames``: frames of the clone (the input loops beside it when shorter); ``render_variant``:
-    default the variant the model was trained on; ``backend``: Mitsuba variant (default "auto": CUDA,
-    else LLVM, else scalar); ``device``: Warp device of the skirt simulation (default "cpu");
-    ``shape``: a ``sim.garment.SkirtShape``; ``predictor`` replaces ``learn.predict.predict_clips`` (tests).
+    # the model: train/<setting>/<variant>/<model>/s<seed> of the run (None: the first trained, ``find_model``)
+    model: str = "lrcn"
+    setting: str | None = None
+    variant: str | None = None
+    seed: int | None = None
+    # the garment and its simulation
+    garment: str = "skirt"
+    motion: str = "twirl"               # how the waist moves (sim.garment.MOTIONS)
+    frames: int = 50                    # frames of the clone (the input loops beside it when shorter)
+    settle_s: float = SETTLE_S
+    device: str | None = None           # Warp device of the skirt simulation (None: "cpu")
+    compare: bool = True                # also a softer and a stiffer class
+    shape: object = None                # a sim.garment.SkirtShape (None: its defaults)
+    # the render
+    render_variant: str | None = None   # None: the variant the model was trained on
+    resolution: int = 128
+    spp: int = 16
+    backend: str | None = None          # Mitsuba variant (None: "auto": CUDA, else LLVM, else scalar)
+    # reading the input video
+    max_frames: int = 250
+    frames_fps: float | None = None
+
+    def check(self) -> None:
+        """Raise a CloneError naming the first setting that cannot work."""
+        if self.garment not in GARMENTS:
+            raise CloneError(f"unknown garment {self.garment!r}; known garments: {', '.join(GARMENTS)}")
+        if self.frames < 2:
+            raise CloneError(f"the clone needs at least 2 frames, got {self.frames}")
+        if self.resolution < 8 or self.spp < 1:
+            raise CloneError(f"resolution must be >= 8 pixels and spp >= 1, got {self.resolution} and {self.spp}")
+        from sim.garment import MOTIONS
+
+        if self.motion not in MOTIONS:
+            raise CloneError(f"unknown waist motion {self.motion!r}; known motions: {', '.join(MOTIONS)}")
+
+
+@dataclass
+class SimulatedSkirts:
+    """The simulated panels of a clone: the skirt they share, its waist motion, each panel's positions."""
+
+    shape: object                       # the sim.garment.SkirtShape
+    mesh: object                        # the sim.garment.Skirt
+    waist: object                       # the sim.garment.WaistMotion
+    panels: list[tuple[str, int]]       # (panel name, class) of the panels that simulated
+    positions: dict[str, np.ndarray]    # panel name -> (T, V, 3)
+    device: str
+    seconds: float
+
+
+@dataclass
+class RenderedPanels:
+    """Each panel's rendered frames, what the clone.json says of it, and the render's own meta."""
+
+    frames: dict[str, list[np.ndarray]]
+    info: list[dict]
+    render_meta: dict
+    variant: str
+    seconds: float
+
+
+RENDER_INDEX = 0                        # every panel renders as clip 0 of the run: the same render draws
+
+
+def clone_video(video: Path | str, run_dir: Path | str, options: CloneOptions = CloneOptions(), *,
+                out: Path | str | None = None, predictor: Predictor | None = None, progress: bool = True) -> Path:
+    """Predict ``video``'s class with a model of ``run_dir``, simulate and render a skirt of that material
+    (and a softer and a stiffer one) and write the side-by-side video.
+
+    Args:
+        video: A video file PyAV reads, or a folder of frames.
+        run_dir: A run folder holding a trained model.
+        options: The model, garment, simulation and render settings (``CloneOptions``).
+        out: The output folder (default ``RUN_DIR/clone/<video>``).
+        predictor: Replaces ``learn.predict.predict_clips`` (tests).
+        progress: Print each step's outcome.
+
+    Returns:
+        The path of the written ``clone.json``.
+
+    Raises:
+        CloneError: a missing or unreadable video, a bad option, a run without a matching trained model.
     """
     start = time.perf_counter()
     video, run_dir = Path(video), Path(run_dir)
     if not video.exists():
         raise CloneError(f"input video {video} does not exist")
-    if garment not in GARMENTS:
-        raise CloneError(f"unknown garment {garment!r}; known garments: {', '.join(GARMENTS)}")
-    if frames < 2:
-        raise CloneError(f"the clone needs at least 2 frames, got {frames}")
-    if resolution < 8 or spp < 1:
-        raise CloneError(f"resolution must be >= 8 pixels and spp >= 1, got {resolution} and {spp}")
-    from sim.garment import MOTIONS, SkirtShape, WaistMotion, skirt
-
-    if motion not in MOTIONS:
-        raise CloneError(f"unknown waist motion {motion!r}; known motions: {', '.join(MOTIONS)}")
+    options.check()
     run = Run.open(run_dir)
-    train_dir = find_model(run, model, setting, variant, seed)
+    train_dir = find_model(run, options.model, options.setting, options.variant, options.seed)
     out_dir = Path(out) if out is not None else run.root / "clone" / _name(video)
     out_dir.mkdir(parents=True, exist_ok=True)
     say = (lambda msg: print(f"[clone] {msg}", flush=True)) if progress else (lambda msg: None)
     say(f"model {train_dir}")
 
-    # 1. predict
-    prediction = predict_video(video, train_dir, out_dir, max_frames=max_frames, frames_fps=frames_fps,
-                               predictor=predictor)
+    prediction = predict_video(video, train_dir, out_dir, max_frames=options.max_frames,
+                               frames_fps=options.frames_fps, predictor=predictor)
     say(f"{video.name}: class {prediction['class_index']} (p={prediction['p']:g}, k={prediction['k']:g}), "
         f"probability {prediction['confidence']:.2f}, {prediction['vote_share']:.0%} of "
         f"{prediction['subsequences']} sub-sequences")
+    skirts = simulate_clone(run, prediction["class_index"], options, progress)
+    say(f"simulated {', '.join(n for n, _ in skirts.panels)} in {skirts.seconds:.1f} s")
+    rendered = render_panels(run, video, skirts, options, train_dir, out_dir, say)
+    frames_dir = write_side_by_side(video, prediction, skirts.panels, rendered, options, out_dir)
+    doc = clone_doc(video, run, train_dir, prediction, skirts, rendered, options, out_dir, frames_dir)
+    doc["seconds"] = round(time.perf_counter() - start, 2)
+    path = out_dir / "clone.json"
+    atomic_write_json(path, doc)
+    say(f"wrote {out_dir / 'clone.mp4'} and {path}")
+    return path
 
-    # 2. simulate
+
+def simulate_clone(run: Run, class_index: int, options: CloneOptions, progress: bool = True) -> SimulatedSkirts:
+    """The skirt in the predicted class and, with ``options.compare``, a softer and a stiffer one."""
+    from sim.garment import SkirtShape, WaistMotion, skirt
     from sim.solver import resolve_device
 
-    cfg = run.config
-    sim_device = resolve_device(device or "cpu")           # three small skirts: a CPU is plenty
-    shape = shape or SkirtShape()
-    skirt_mesh = skirt(shape)
-    waist = WaistMotion(kind=motion)
-    panels = comparison_classes(prediction["class_index"], compare)
+    device = resolve_device(options.device or "cpu")           # three small skirts: a CPU is plenty
+    shape = options.shape or SkirtShape()
+    mesh = skirt(shape)
+    waist = WaistMotion(kind=options.motion)
+    panels = comparison_classes(class_index, options.compare)
     t0 = time.perf_counter()
-    simulated = simulate_panels(panels, cfg.sim, skirt_mesh, waist, frames=frames, settle_s=settle_s,
-                                device=sim_device, progress=progress)
-    panels = [(n, c) for n, c in panels if n in simulated]
-    sim_seconds = time.perf_counter() - t0
-    say(f"simulated {', '.join(n for n, _ in panels)} in {sim_seconds:.1f} s")
+    positions = simulate_panels(panels, run.config.sim, mesh, waist, frames=options.frames,
+                                settle_s=options.settle_s, device=device, progress=progress)
+    return SimulatedSkirts(shape, mesh, waist, [(n, c) for n, c in panels if n in positions], positions, device,
+                           time.perf_counter() - t0)
 
-    # 3. render, all panels under one camera (framed on every skirt's whole motion) and one seed
+
+def _renderer(options: CloneOptions, train_dir: Path):
+    """The render variant and RenderConfig of the clone; a bad variant or backend is a CloneError."""
+    from render.backend import BackendError, load_mitsuba
     from render.config import RenderConfig
-    from render.stage import render_clip
     from render.variants import VariantError, get_variant
+
+    try:
+        variant = get_variant(options.render_variant or train_dir.parts[-3])
+    except VariantError as err:
+        raise CloneError(str(err)) from None
+    try:
+        load_mitsuba(options.backend or "auto")
+    except (BackendError, ValueError) as err:
+        raise CloneError(f"render backend: {err}") from None
+    config = RenderConfig(variants=(variant.name,), resolution=options.resolution, spp=options.spp,
+                          backend=options.backend or "auto", write_hdr=False)
+    return variant, config
+
+
+def render_panels(run: Run, video: Path, skirts: SimulatedSkirts, options: CloneOptions, train_dir: Path,
+                  out_dir: Path, say: Callable[[str], None]) -> RenderedPanels:
+    """Render every panel under one camera (framed on every skirt's whole motion) and one seed, so that
+    only the material differs; each panel's SimClip and frames are kept under ``out_dir``."""
+    from render.stage import render_clip
     from sim.clip import SimClip
     from sim.materials import load_material
 
-    try:
-        rvariant = get_variant(render_variant or train_dir.parts[-3])
-    except VariantError as err:
-        raise CloneError(str(err)) from None
-    from render.backend import BackendError, load_mitsuba
-
-    try:
-        load_mitsuba(backend or "auto")
-    except (BackendError, ValueError) as err:
-        raise CloneError(f"render backend: {err}") from None
-    rconfig = RenderConfig(variants=(rvariant.name,), resolution=resolution, spp=spp, backend=backend or "auto",
-                           write_hdr=False)
-    render_positions = {n: skirt_mesh.to_render(simulated[n]) for n, _ in panels}
+    variant, rconfig = _renderer(options, train_dir)
+    cfg, mesh = run.config, skirts.mesh
+    render_positions = {n: mesh.to_render(skirts.positions[n]) for n, _ in skirts.panels}
     allpos = np.concatenate([p.reshape(-1, 3) for p in render_positions.values()])
     bounds = (allpos.min(axis=0), allpos.max(axis=0))
     basis = load_material(cfg.sim.basis)
-    render_index = 0
-    panel_info, rendered = [], {}
+    info, frames = [], {}
     t0 = time.perf_counter()
-    for name, c in panels:
+    for name, c in skirts.panels:
         p, k = classes.class_values(c)
-        meta = {"clip_id": name, "index": render_index, "class_index": c, "p_class": p, "k_class": k, "p": p,
+        meta = {"clip_id": name, "index": RENDER_INDEX, "class_index": c, "p_class": p, "k_class": k, "p": p,
                 "k": k, "basis": cfg.sim.basis, "density": basis.density, "seed": cfg.seed, "fps": cfg.sim.fps,
-                "frames": frames, "garment": garment, "motion": waist.params(),
-                "skirt": dataclasses.asdict(shape), "source": f"clothgap clone of {video.name}"}
-        clip = SimClip.from_fixed(meta, render_positions[name], skirt_mesh.render_faces, skirt_mesh.render_uv)
+                "frames": options.frames, "garment": options.garment, "motion": skirts.waist.params(),
+                "skirt": dataclasses.asdict(skirts.shape), "source": f"clothgap clone of {video.name}"}
+        clip = SimClip.from_fixed(meta, render_positions[name], mesh.render_faces, mesh.render_uv)
         clip.save(fresh_dir(out_dir / "sim" / name))
         clip.bounds = lambda b=bounds: b          # one framing for every panel: only the material differs
         folder = fresh_dir(out_dir / "render" / name)
-        rmeta = render_clip(clip, rvariant, folder, config=rconfig, run_seed=cfg.seed, clip_index=render_index)
-        mark_done(folder, {"frames": frames})
-        rendered[name] = [np.asarray(Image.open(folder / "ldr" / f"{t:04d}.png").convert("RGB"))
-                          for t in range(frames)]
-        stats = hem_statistics(skirt_mesh, simulated[name])
-        panel_info.append({"panel": name, "class_index": c, "p": p, "k": k, **stats,
-                           "sim": str(out_dir / "sim" / name), "frames": str(folder / "ldr")})
+        rmeta = render_clip(clip, variant, folder, config=rconfig, run_seed=cfg.seed, clip_index=RENDER_INDEX)
+        mark_done(folder, {"frames": options.frames})
+        frames[name] = [np.asarray(Image.open(folder / "ldr" / f"{t:04d}.png").convert("RGB"))
+                        for t in range(options.frames)]
+        stats = hem_statistics(mesh, skirts.positions[name])
+        info.append({"panel": name, "class_index": c, "p": p, "k": k, **stats,
+                     "sim": str(out_dir / "sim" / name), "frames": str(folder / "ldr")})
         say(f"rendered {name} (class {c}): hem {stats['hem_drop_m']:.3f} m below the waist, "
             f"{stats['hem_radius_m']:.3f} m out")
-    render_seconds = time.perf_counter() - t0
+    return RenderedPanels(frames, info, rmeta, variant.name, time.perf_counter() - t0)
 
-    # 4. side by side: input | clone | softer | stiffer
+
+def write_side_by_side(video: Path, prediction: dict, panels: list[tuple[str, int]], rendered: RenderedPanels,
+                       options: CloneOptions, out_dir: Path) -> Path:
+    """input | clone | softer | stiffer, captioned, as ``frames/*.png`` and ``clone.mp4``; returns the frames'
+    folder."""
     try:
-        shown = read_video(video, resolution, prediction["fps"], frames, frames_fps)
+        shown = read_video(video, options.resolution, prediction["fps"], options.frames, options.frames_fps)
     except VideoError as err:
         raise CloneError(f"cannot read the input video: {err}") from None
     frames_dir = fresh_dir(out_dir / "frames")
     side = []
-    for t in range(frames):
+    for t in range(options.frames):
         row = [_caption(shown[t % len(shown)], f"input {video.name}"[:40])]
-        row += [_caption(rendered[n][t], _panel_caption(n, c)) for n, c in panels]
+        row += [_caption(rendered.frames[n][t], _panel_caption(n, c)) for n, c in panels]
         image = np.concatenate(row, axis=1)
         Image.fromarray(image).save(frames_dir / f"{t:04d}.png")
         side.append(image)
     write_mp4(side, out_dir / "clone.mp4", prediction["fps"])
+    return frames_dir
 
-    doc = {
+
+def clone_doc(video: Path, run: Run, train_dir: Path, prediction: dict, skirts: SimulatedSkirts,
+              rendered: RenderedPanels, options: CloneOptions, out_dir: Path, frames_dir: Path) -> dict:
+    """What ``clone.json`` records: the prediction, the model, garment, material, sim and render settings,
+    the seeds and the panels (``seconds`` is added by the caller)."""
+    from sim.materials import load_material
+
+    cfg = run.config
+    return {
         "video": str(video),
         "predicted": {k: prediction[k] for k in ("class_index", "p", "k", "confidence", "vote_share",
                                                  "subsequences", "frames_read", "top3")},
@@ -362,27 +458,24 @@ def clone_video(video: Path | str, run_dir: Path | str, *, model: str = "lrcn", 
         "model": {"checkpoint": str(train_dir / "checkpoint.pt"), "train_dir": str(train_dir),
                   "setting": train_dir.parts[-4], "variant": train_dir.parts[-3], "model": train_dir.parts[-2],
                   "seed": int(train_dir.name.lstrip("s"))},
-        "garment": {"kind": garment, "shape": dataclasses.asdict(shape), "motion": waist.params(),
-                    "vertices": skirt_mesh.num_vertices, "faces": int(len(skirt_mesh.mesh.faces))},
-        "material": {"basis": cfg.sim.basis, "density_kg_m2": basis.density,
+        "garment": {"kind": options.garment, "shape": dataclasses.asdict(skirts.shape),
+                    "motion": skirts.waist.params(), "vertices": skirts.mesh.num_vertices,
+                    "faces": int(len(skirts.mesh.mesh.faces))},
+        "material": {"basis": cfg.sim.basis, "density_kg_m2": load_material(cfg.sim.basis).density,
                      "note": "every stretching entry of the basis times p, every bending entry times k"},
-        "sim": {"fps": cfg.sim.fps, "frames": frames, "substeps": cfg.sim.substeps, "settle_s": settle_s,
-                "cg_iterations": cfg.sim.cg_iterations, "device": sim_device, "seconds": round(sim_seconds, 2)},
-        "render": {"variant": rvariant.name, "resolution": resolution, "spp": spp,
-                   "backend": rmeta["render"]["backend"], "seconds": round(render_seconds, 2)},
-        "seeds": {"run_seed": cfg.seed, "render_clip_index": render_index,
-                  "sampler_seed": rmeta["render"]["sampler_seed"],
+        "sim": {"fps": cfg.sim.fps, "frames": options.frames, "substeps": cfg.sim.substeps,
+                "settle_s": options.settle_s, "cg_iterations": cfg.sim.cg_iterations, "device": skirts.device,
+                "seconds": round(skirts.seconds, 2)},
+        "render": {"variant": rendered.variant, "resolution": options.resolution, "spp": options.spp,
+                   "backend": rendered.render_meta["render"]["backend"], "seconds": round(rendered.seconds, 2)},
+        "seeds": {"run_seed": cfg.seed, "render_clip_index": RENDER_INDEX,
+                  "sampler_seed": rendered.render_meta["render"]["sampler_seed"],
                   "note": "the simulation is deterministic; render draws come from "
                           "clothgap.seeding.rng(run_seed, render_clip_index, RENDER, stream)"},
-        "panels": panel_info,
+        "panels": rendered.info,
         "outputs": {"video": str(out_dir / "clone.mp4"), "frames": str(frames_dir),
                     "input_clip": str(out_dir / "input" / "clip")},
-        "seconds": round(time.perf_counter() - start, 2),
     }
-    path = out_dir / "clone.json"
-    atomic_write_json(path, doc)
-    say(f"wrote {out_dir / 'clone.mp4'} and {path}")
-    return path
 
 
 def _name(video: Path) -> str:

@@ -1,4 +1,4 @@
-"""The measured-fabric test set: the platform's stand-in for real video (issue 6, item 3).
+"""The measured-fabric test set: the platform's stand-in for real video.
 
 ``run_measured(run)`` (``clothgap eval measured RUN_DIR``, and part of
 ``clothgap eval`` when ``eval.measured_sequences`` > 0):
@@ -295,14 +295,79 @@ def markdown(run: Run, variant: str, heldout: bool, table: pd.DataFrame, corr: p
 
 # ------------------------------------------------------------------ entry point
 
+# What the summary's numbers mean (measured.json "definitions").
+DEFINITIONS = {
+    "stretching_N_m": "mean of the low-strain row's k0 (warp), k2 (weft), k3 (shear) entries of the "
+                      "fabric's stretching table (N/m); a class predicts p x the basis's value",
+    "bending_N_m": "mean of the 15 bending-table entries (N*m); a class predicts k x the basis's value",
+    "density_kg_m2": "the fabric's area density",
+    "fabric decision": "argmax of the mean over the fabric's clips of each clip's mean sub-sequence "
+                       "probabilities",
+    "correlations": "Pearson on raw values, Spearman on ranks; unit 'clip' resamples whole fabrics, "
+                    "unit 'fabric' resamples fabrics",
+}
+
+
 def run_measured(run: Run, *, models: list | None = None, sequences: int | None = None,
                  fabrics: Sequence[str] | None = None, variant: str | None = None,
                  predictor: Predictor | None = None, activations: int = 2, progress: bool = True) -> dict:
     """Make (or reuse) the measured-fabric clips, predict them with every finished model (or ``models``),
-    and write ``eval/measured.{csv,md,json}`` and ``eval/measured_correlations.csv``; returns a summary."""
-    from sim.measured import basis_values, clip_name, wanted_clips
+    and write ``eval/measured.{csv,md,json}`` and ``eval/measured_correlations.csv``.
+
+    Args:
+        run: The run.
+        models: The TrainedModels to predict with (default: every finished model of the run).
+        sequences, fabrics, variant: Clips per fabric and setting, the fabrics and the render variant
+            (default: the run's ``eval.measured_*`` settings, see ``resolve``).
+        predictor: Replaces ``learn.predict.predict_clips`` (tests).
+        activations: Clips whose CNN activations are drawn per model.
+        progress: Print progress.
+
+    Returns:
+        A short summary: the variant, whether it is held out, counts, and each model's exact-match rate.
+
+    Raises:
+        ConfigError: no finished model, bad settings, or no measured clip rendered for any model's setting.
+    """
+    from sim.measured import clip_name, wanted_clips
 
     sequences, fabrics, variant = resolve(run, sequences, fabrics, variant)
+    models, heldout = _models_and_heldout(run, models, variant, progress)
+    t0 = time.perf_counter()
+    generation = make_clips(run, sequences, fabrics, variant, progress)
+    names = [clip_name(f, n) for f, n in wanted_clips(fabrics, sequences)]
+    tables, corrs, matches, entries = [], [], [], []
+    for m in models:
+        entry, scored = score_model(run, m, variant, names, predictor=predictor, activations=activations,
+                                    progress=progress)
+        entries.append(entry)
+        if scored is not None:
+            tables.append(scored[0])
+            corrs.append(scored[1])
+            matches.append(scored[2])
+    if not tables:
+        raise ConfigError(f"no measured clip was rendered for any model's setting under "
+                          f"{run.root / 'measured' / 'render' / variant}: see the render summary "
+                          f"{json.dumps(generation['render'].get('failed', []))[:500]}")
+    table, corr, match = _ordered(tables), _ordered(corrs), _ordered(matches)
+    out = run.eval_dir
+    atomic_write_text(out / "measured.csv", table.to_csv(index=False, float_format="%.6g"))
+    atomic_write_text(out / "measured_correlations.csv", corr.to_csv(index=False, float_format="%.6g"))
+    atomic_write_text(out / "measured.md", markdown(run, variant, heldout, table, corr, match))
+    atomic_write_json(out / "measured.json", _summary(run, models, variant, heldout, fabrics, sequences,
+                                                       generation, entries, time.perf_counter() - t0))
+    return {"variant": variant, "heldout": heldout, "fabrics": len(fabrics), "sequences": sequences,
+            "simulated": generation["sim"]["simulated"], "rendered": generation["render"]["rendered"],
+            "predicted": sum(e["status"] == "predicted" for e in entries),
+            "reused": sum(e["status"] == "reused" for e in entries),
+            "exact": {f"{e['setting']}/{e['train_variant']}/{e['model']}/s{e['seed']}":
+                      next(r["value"] for r in e["match"] if r["score"] == "exact")
+                      for e in entries if "match" in e}}
+
+
+def _models_and_heldout(run: Run, models: list | None, variant: str, progress: bool) -> tuple[list, bool]:
+    """The models to predict with (``models``, else every finished one) and whether ``variant`` is held out
+    (neither a training variant of theirs nor a render variant of the run)."""
     models = list(models) if models is not None else finished_models(run)
     if not models:
         raise ConfigError(f"no finished train folder under {run.root / 'train'}: run `clothgap train {run.root}` "
@@ -311,82 +376,67 @@ def run_measured(run: Run, *, models: list | None = None, sequences: int | None 
     if progress and not heldout:
         print(f"[eval measured] warning: variant {variant!r} is also a training variant, so the set is not held out",
               flush=True)
-    t0 = time.perf_counter()
-    generation = make_clips(run, sequences, fabrics, variant, progress)
-    names = [clip_name(f, n) for f, n in wanted_clips(fabrics, sequences)]
+    return models, heldout
+
+
+def score_model(run: Run, m, variant: str, names: list[str], *, predictor: Predictor | None = None,
+                activations: int = 2, progress: bool = True
+                ) -> tuple[dict, tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame] | None]:
+    """Predict the measured clips with model ``m`` (or reuse its finished folder) and score it.
+
+    Returns its summary entry and its (fabric, correlation, match) tables with the model's keys, or None
+    for the tables when no clip of its setting was rendered."""
+    videos, status = predict_model(run, m, variant, names, predictor=predictor, activations=activations,
+                                   progress=progress)
+    entry = {"setting": m.setting, "train_variant": m.variant, "model": m.model, "seed": m.seed,
+             "checkpoint": _rel(run, m.checkpoint), "status": status}
+    if videos is None:
+        return entry, None
     cfg = run.config.eval
-    tables, corrs, matches, entries = [], [], [], []
-    for m in models:
-        videos, status = predict_model(run, m, variant, names, predictor=predictor, activations=activations,
-                                       progress=progress)
-        entry = {"setting": m.setting, "train_variant": m.variant, "model": m.model, "seed": m.seed,
-                 "checkpoint": _rel(run, m.checkpoint), "status": status}
-        if videos is None:
-            entries.append(entry)
-            continue
-        folder = model_folder(run, m, variant)
-        key = {"setting": m.setting, "train_variant": m.variant, "model": m.model, "seed": m.seed,
-               "test_variant": variant}
+    folder = model_folder(run, m, variant)
+    key = {"setting": m.setting, "train_variant": m.variant, "model": m.model, "seed": m.seed,
+           "test_variant": variant}
 
-        def rng_for(*parts: str, m=m) -> np.random.Generator:
-            return seeding.rng(run.config.seed, 0, seeding.EVAL, "bootstrap", "measured", m.setting, m.variant,
-                               m.model, str(m.seed), *parts)
+    def rng_for(*parts: str) -> np.random.Generator:
+        return seeding.rng(run.config.seed, 0, seeding.EVAL, "bootstrap", "measured", m.setting, m.variant,
+                           m.model, str(m.seed), *parts)
 
-        opts = {"resamples": cfg.bootstrap, "confidence": cfg.confidence, "rng_for": rng_for}
-        table = fabric_table(videos)
-        corr = correlation_table(videos, table, **opts)
-        match = match_table(table, **opts)
-        tables.append(table.assign(**key, checkpoint=_rel(run, m.checkpoint), folder=_rel(run, folder)))
-        corrs.append(corr.assign(**key))
-        matches.append(match.assign(**key))
-        entry.update({"folder": _rel(run, folder), "clips": len(videos),
-                      "skipped": _count_rows(folder / "skipped.csv"),
-                      "match": json.loads(match.to_json(orient="records")),
-                      "correlations": json.loads(corr.to_json(orient="records"))})
-        entries.append(entry)
-    if not tables:
-        raise ConfigError(f"no measured clip was rendered for any model's setting under "
-                          f"{run.root / 'measured' / 'render' / variant}: see the render summary "
-                          f"{json.dumps(generation['render'].get('failed', []))[:500]}")
+    opts = {"resamples": cfg.bootstrap, "confidence": cfg.confidence, "rng_for": rng_for}
+    table = fabric_table(videos)
+    corr = correlation_table(videos, table, **opts)
+    match = match_table(table, **opts)
+    entry.update({"folder": _rel(run, folder), "clips": len(videos),
+                  "skipped": _count_rows(folder / "skipped.csv"),
+                  "match": json.loads(match.to_json(orient="records")),
+                  "correlations": json.loads(corr.to_json(orient="records"))})
+    return entry, (table.assign(**key, checkpoint=_rel(run, m.checkpoint), folder=_rel(run, folder)),
+                   corr.assign(**key), match.assign(**key))
 
-    def ordered(frames: list[pd.DataFrame]) -> pd.DataFrame:
-        frame = pd.concat(frames, ignore_index=True)
-        return frame[MODEL_KEYS + [c for c in frame.columns if c not in MODEL_KEYS]]
 
-    table, corr, match = ordered(tables), ordered(corrs), ordered(matches)
-    out = run.eval_dir
-    atomic_write_text(out / "measured.csv", table.to_csv(index=False, float_format="%.6g"))
-    atomic_write_text(out / "measured_correlations.csv", corr.to_csv(index=False, float_format="%.6g"))
-    atomic_write_text(out / "measured.md", markdown(run, variant, heldout, table, corr, match))
-    summary = {
+def _ordered(frames: list[pd.DataFrame]) -> pd.DataFrame:
+    """The models' tables as one, the model keys first."""
+    frame = pd.concat(frames, ignore_index=True)
+    return frame[MODEL_KEYS + [c for c in frame.columns if c not in MODEL_KEYS]]
+
+
+def _summary(run: Run, models: list, variant: str, heldout: bool, fabrics: list[str], sequences: int,
+             generation: dict, entries: list[dict], seconds: float) -> dict:
+    """``eval/measured.json``: the set, the definitions, the generation summaries, every model's entry."""
+    from sim.measured import basis_values
+
+    cfg = run.config.eval
+    return {
         "variant": variant, "heldout": heldout, "training_variants": sorted({m.variant for m in models}),
         "fabrics": fabrics, "sequences": sequences, "settings": run.config.sim.settings(),
-        "definitions": {
-            "stretching_N_m": "mean of the low-strain row's k0 (warp), k2 (weft), k3 (shear) entries of the "
-                              "fabric's stretching table (N/m); a class predicts p x the basis's value",
-            "bending_N_m": "mean of the 15 bending-table entries (N*m); a class predicts k x the basis's value",
-            "density_kg_m2": "the fabric's area density",
-            "fabric decision": "argmax of the mean over the fabric's clips of each clip's mean sub-sequence "
-                               "probabilities",
-            "correlations": "Pearson on raw values, Spearman on ranks; unit 'clip' resamples whole fabrics, "
-                            "unit 'fabric' resamples fabrics",
-        },
+        "definitions": DEFINITIONS,
         "basis": basis_values(),
         "bootstrap": {"resamples": cfg.bootstrap, "confidence": cfg.confidence},
         "generation": generation, "models": entries,
         "files": {"fabrics": "eval/measured.csv", "correlations": "eval/measured_correlations.csv",
                   "markdown": "eval/measured.md", "sim": "measured/sim", "render": f"measured/render/{variant}",
                   "per_model": f"eval/measured/{variant}"},
-        "seconds": round(time.perf_counter() - t0, 2),
+        "seconds": round(seconds, 2),
     }
-    atomic_write_json(out / "measured.json", summary)
-    return {"variant": variant, "heldout": heldout, "fabrics": len(fabrics), "sequences": sequences,
-            "simulated": generation["sim"]["simulated"], "rendered": generation["render"]["rendered"],
-            "predicted": sum(e["status"] == "predicted" for e in entries),
-            "reused": sum(e["status"] == "reused" for e in entries),
-            "exact": {f"{e['setting']}/{e['train_variant']}/{e['model']}/s{e['seed']}":
-                      next(r["value"] for r in e["match"] if r["score"] == "exact")
-                      for e in entries if "match" in e}}
 
 
 def _rel(run: Run, path: Path) -> str:

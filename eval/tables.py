@@ -17,10 +17,10 @@ import pandas as pd
 
 from eval import classes, metrics
 from eval import predictions as preds
+from learn.registry import MODELS
 
-MODEL_ORDER = ("base1", "base2", "base3", "lrcn")
-MODEL_TITLES = {"base1": "Base-1 (CNN, RGB-I)", "base2": "Base-2 (fixed CNN+LSTM, RGB-V)",
-                "base3": "Base-3 (CNN+RNN, RGB-V)", "lrcn": "CNN+LSTM (RGB-V)"}
+MODEL_ORDER = ("base1", "base2", "base3", "lrcn")   # the paper's column order; other models follow
+MODEL_TITLES = {name: entry.title for name, entry in MODELS.items()}
 DETAIL_SCORES = ("top3", "stretch_acc", "bend_acc", "within1", "class_dist", "seq_acc")
 
 # rng_for(key...) -> Generator: the stage passes clothgap.seeding-derived generators

@@ -1,8 +1,9 @@
 """The learn stage's settings (no heavy imports here).
 
-The names the learn stage supports live here, so that a config is checked
-without importing torch: ``learn.models`` builds the models in ``MODEL_NAMES``
-with a readout from ``READOUTS``, ``learn.train`` runs the ``SCHEDULES``.
+The names the learn stage supports live here or in ``learn.registry`` (the
+models), so that a config is checked without importing torch:
+``learn.models`` builds the registered models with a readout from
+``READOUTS``, ``learn.train`` runs the ``SCHEDULES``.
 """
 
 from __future__ import annotations
@@ -10,8 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from clothgap import checks
+from learn.registry import MODEL_NAMES
 
-MODEL_NAMES = ("lrcn", "base1", "base2", "base3")   # the registry of learn.models (it checks it builds each)
 READOUTS = ("mean", "last")
 SCHEDULES = ("cosine", "step")
 KEEP = ("last", "best")                             # which epoch's weights become checkpoint.pt
@@ -21,7 +22,7 @@ IMAGE_SIZES = range(32, 225, 16)                    # FrameCNN: a multiple of 16
 
 @dataclass(frozen=True)
 class TrainConfig:
-    models: tuple[str, ...] = ("lrcn",)     # "lrcn", "base1", "base2", "base3"
+    models: tuple[str, ...] = ("lrcn",)     # names in learn.registry: "lrcn", "base1", "base2", "base3"
     seeds: tuple[int, ...] = (0,)
     image_size: int = 64                    # frames are resized to this before the CNN
     clip_len: int = 10                      # frames per sub-sequence (the paper: 10)

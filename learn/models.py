@@ -15,10 +15,8 @@ clip's class from its texture (every clip has its own), which is how it
 otherwise memorises training clips; it has to go through the shape the
 simulation says carries the material (docs/learnability.md).
 
-    lrcn   AlexNet-style CNN + fc6 per frame, an LSTM over the frames (Section 5)
-    base1  the CNN + fc6 alone, one prediction per frame, averaged over the clip
-    base2  base1's CNN frozen (weights put in by the trainer), an LSTM trained on top
-    base3  lrcn with a vanilla (tanh) RNN instead of the LSTM
+The models (lrcn, base1, base2, base3) are entries of ``learn.registry``, which
+says which parts ``build_model`` puts together for each.
 """
 
 from __future__ import annotations
@@ -29,7 +27,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from clothgap.errors import MissingInputError
-from learn.config import IMAGE_SIZES, MODEL_NAMES, READOUTS
+from learn.config import IMAGE_SIZES, READOUTS
+from learn.registry import get_model_entry
 from sim.lattice import LATTICE
 
 NUM_CLASSES = 54
@@ -215,30 +214,17 @@ class ClipClassifier(nn.Module):
         return self._steps(out["logits"]).float().softmax(-1).mean(1)
 
 
-# ---------------------------------------------------------------- registry
-
-# name -> (recurrent layer, CNN frozen, readout forced whatever the config says)
-_SPECS: dict[str, tuple[str | None, bool, str | None]] = {
-    "lrcn": ("lstm", False, None),
-    "base1": (None, False, "mean"),   # a per-frame classifier: its answer is always the clip average
-    "base2": ("lstm", True, None),
-    "base3": ("rnn", False, None),
-}
-if tuple(_SPECS) != MODEL_NAMES:      # the names a config may use are listed in learn.config (no torch there)
-    raise RuntimeError(f"learn.config.MODEL_NAMES {MODEL_NAMES} != the models built here {tuple(_SPECS)}")
-
+# ---------------------------------------------------------------- built by name
 
 def build_model(name: str, *, image_size: int, width: int, fc6: int, hidden: int, dropout: float = 0.5,
                 readout: str = "mean", factored: bool = False, motion: bool = False, geometry_dim: int = 0,
                 bottleneck: bool = False, bottleneck_noise: float = 0.0,
                 num_classes: int = NUM_CLASSES) -> ClipClassifier:
-    """A model by registry name; ``model_args(cfg)`` gives the keyword arguments from a TrainConfig."""
-    if name not in _SPECS:
-        raise ValueError(f"unknown model {name!r}; known models: {', '.join(MODEL_NAMES)}")
-    temporal, freeze_cnn, forced_readout = _SPECS[name]
+    """A model by its ``learn.registry`` name; ``model_args(cfg)`` gives the keyword arguments from a TrainConfig."""
+    entry = get_model_entry(name)
     cnn = FrameCNN(image_size, width, fc6, dropout, in_channels=6 if motion else 3)
-    return ClipClassifier(cnn, temporal, hidden, forced_readout or readout, factored, freeze_cnn, num_classes,
-                          motion=motion, geometry_dim=geometry_dim, bottleneck=bottleneck,
+    return ClipClassifier(cnn, entry.temporal, hidden, entry.readout or readout, factored, entry.freeze_cnn,
+                          num_classes, motion=motion, geometry_dim=geometry_dim, bottleneck=bottleneck,
                           bottleneck_noise=bottleneck_noise)
 
 

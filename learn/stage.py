@@ -9,17 +9,18 @@ from pathlib import Path
 import torch
 
 from clothgap.runs import Run, atomic_write_json, is_done
-from learn.models import MODEL_NAMES
+from learn.registry import MODEL_NAMES, training_order
 from learn.train import is_main, train_one
 
 
 def training_grid(run: Run) -> list[tuple[str, str, str, int]]:
-    """(setting, variant, model, seed) in training order: base1 before base2, which freezes its CNN."""
+    """(setting, variant, model, seed) in training order: a model after the one it needs (base1 before base2,
+    which freezes base1's CNN)."""
     cfg = run.config.train
     unknown = [m for m in cfg.models if m not in MODEL_NAMES]
     if unknown:
         raise ValueError(f"unknown model(s) {', '.join(unknown)} in train.models; known: {', '.join(MODEL_NAMES)}")
-    models = sorted(cfg.models, key=lambda m: (m == "base2", MODEL_NAMES.index(m)))
+    models = training_order(cfg.models)
     return [(setting, variant, model, seed)
             for setting, variant in run.config.pairs()
             for seed in cfg.seeds

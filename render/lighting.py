@@ -11,9 +11,9 @@ cloth exceeds 1 in linear radiance, so the tone-mapping operators matter.
 floor gradient with bright window-like patches) and one to three area lights of
 random direction, size, intensity and colour temperature (colour-science
 converts the temperature to linear sRGB). ``daylight`` is a sun (a directional
-light, warmer when low) at a random position plus a procedural clear sky.
-(Mitsuba's own ``sunsky`` plugin was tried first, but with a z-up world its
-horizon check and orientation did not behave predictably.)
+light, warmer when low) at a random position plus a procedural clear sky:
+Mitsuba's own ``sunsky`` plugin is not used, as with a z-up world its horizon
+check and orientation do not behave predictably.
 
 ``room_shapes`` puts a floor and two walls around the cloth for
 ``background = "room"`` (the room is rendered, not composited).

@@ -1,7 +1,8 @@
 """The sim stage's settings (no heavy imports here: the CLI reads this at start-up).
 
-The names the sim stage supports live here, so that a config is checked without
-importing Warp: ``sim.stage`` builds scenes for ``MOTIONS`` (``sim.motions``)
+The names the sim stage supports live here or, for the motions, in the registry
+``sim.motions.MOTIONS`` (no Warp there either), so that a config is checked
+without importing Warp: ``sim.stage`` builds scenes for the registered motions
 and meshes for ``REMESHING`` (``parse_setting``).
 """
 
@@ -11,7 +12,6 @@ from dataclasses import dataclass
 
 from clothgap import checks
 
-MOTIONS = ("wind", "arm")
 REMESHING = ("uniform1", "uniform2", "uniform3", "adaptive")    # uniform<level>; adaptive refines 1..3
 WIND_NUISANCE = ("full", "speed")                               # what a wind clip draws (sim.motions.wind_scene)
 ARM_NUISANCE = ("full", "speed")                                # what an arm clip draws (sim.motions.arm_scene)
@@ -20,7 +20,7 @@ ARM_NUISANCE = ("full", "speed")                                # what an arm cl
 @dataclass(frozen=True)
 class SimConfig:
     # The simulated settings: every (motion, remeshing) pair is one dataset.
-    motions: tuple[str, ...] = ("wind",)            # "wind", "arm"
+    motions: tuple[str, ...] = ("wind",)            # names in sim.motions.MOTIONS: "wind", "arm"
     remeshing: tuple[str, ...] = ("uniform1",)      # "uniform1", "uniform2", "uniform3", "adaptive"
     # Material classes simulated (indices into sim.classes, 0..53); empty = all 54.
     classes: tuple[int, ...] = ()
@@ -49,8 +49,9 @@ class SimConfig:
         """What is wrong with these settings, one message each (empty when they are valid)."""
         from sim.classes import NUM_CLASSES          # numpy only
         from sim.materials import list_materials     # numpy only
+        from sim.motions import MOTIONS              # numpy only
 
-        out = checks.names("sim.motions", self.motions, MOTIONS, "motion")
+        out = checks.names("sim.motions", self.motions, tuple(MOTIONS), "motion")
         out += checks.names("sim.remeshing", self.remeshing, REMESHING, "remeshing")
         bad = [c for c in self.classes if not 0 <= c < NUM_CLASSES]
         if bad:

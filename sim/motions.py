@@ -1,4 +1,4 @@
-"""The paper's motion sub-space (Section 4.3): what drives each simulated clip.
+"""The paper's motion sub-space (Section 4.3): what drives each simulated clip, one registry entry per motion.
 
 ``wind``: the cloth hangs under gravity, gathered to a fraction of its width
 like a curtain, in one of two poses (the paper's Fig. 8 shows two): ``rod``, the
@@ -14,29 +14,31 @@ forearm along x, elbow at the origin); when recording starts the forearm swings
 horizontally (about the vertical axis through the elbow) through a fixed angle
 (``ARM_ANGLE_DEG``) at a speed drawn per clip. The flap on the inside of the
 bend is compressed into folds whose shape shows bending stiffness; the outside
-flap is swung out. (A vertical sweep was tried first: it stretches the cloth
-over the outside of the elbow faster than vertex-capsule contact lets it slide,
-so edges end up cut through the elbow.) The cloth's placement along and across the arm is drawn per clip,
+flap is swung out. The sweep is horizontal because a vertical one cuts edges
+through the elbow (docs/simulation.md, "Arm contact"). The cloth's placement along and across the arm is drawn per clip,
 across within 2 cm of centre so that it drapes nearly symmetrically; friction (``SolverParams.friction``,
 static and sliding, inside the implicit solve) holds it there while the forearm turns.
 ``arm_contact_report`` tells a clip of a cloth on the arm from one of a cloth falling off it.
 
 A motion builds a ``ClipScene``: the cloth at rest (``ClothSpec`` without wind)
 plus what changes when recording starts, and the parameters written to the
-clip's ``meta.json``.
+clip's ``meta.json``. ``MOTIONS`` registers each motion by name, with its scene
+builder and the box its fixed camera frames; adding a motion is writing those
+two functions and one ``Motion`` entry. This module imports no Warp, so config
+checks read the registry cheaply.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from sim.config import MOTIONS  # noqa: F401 - the motion names ("wind", "arm") are defined with the config
 from sim.materials import Material
 from sim.mesh import ClothMesh
-from sim.solver import ArmSpec, ClothSpec
+from sim.specs import ArmSpec, ClothSpec
 
 # Wind speed range, m/s. The basis fabric weighs 0.28 kg/m^2 (2.8 Pa under gravity);
 # 1 to 2.5 m/s gives 0.6 to 3.8 Pa of dynamic pressure: from a sway to a billow.
@@ -154,25 +156,19 @@ def arm_scene(mesh: ClothMesh, size_m: float, material: Material, rng: np.random
     return ClipScene(spec, np.zeros(3), params)
 
 
-def view_box(motion: str, size_m: float) -> tuple[list[float], list[float]]:
-    """The box a fixed camera frames for every clip of ``motion`` (``meta["view_box"]``, used by render).
-
-    The same for every clip of a setting, as the paper's "controlled camera settings": a
-    cloth that stretches, sags or swings more then looks bigger or moves further in the
-    image. (A camera framed on each clip's own bounds would scale that difference away.)
-    The box holds every pose the motion reaches; its depth (y) is no larger than its width
-    (x), so the camera looks along y, at the cloth's face.
-    """
+def wind_view_box(size_m: float) -> tuple[list[float], list[float]]:
+    """The wind camera's box: the cloth hangs from z = size_m down to 0 (more when stretched), blown mostly
+    toward +y."""
     s = float(size_m)
-    if motion == "wind":
-        # Hanging from z = s down to 0 (more when stretched); blown mostly toward +y.
-        return [-0.55 * s, -0.25 * s, -0.15 * s], [0.55 * s, 0.85 * s, 1.05 * s]
-    if motion == "arm":
-        # The cloth lies across the arm (x) around the elbow, its flaps hanging about s / 2 below; the
-        # forearm's swing carries its part toward +-y, i.e. toward or away from the camera.
-        half = 0.6 * s + ARM_RADIUS_M
-        return [-half, -half, -0.55 * s - ARM_RADIUS_M], [half, half, 2 * ARM_RADIUS_M]
-    raise ValueError(f"unknown motion {motion!r}")
+    return [-0.55 * s, -0.25 * s, -0.15 * s], [0.55 * s, 0.85 * s, 1.05 * s]
+
+
+def arm_view_box(size_m: float) -> tuple[list[float], list[float]]:
+    """The arm camera's box: the cloth lies across the arm (x) around the elbow, its flaps hanging about
+    size_m / 2 below; the forearm's swing carries its part toward +-y, i.e. toward or away from the camera."""
+    s = float(size_m)
+    half = 0.6 * s + ARM_RADIUS_M
+    return [-half, -half, -0.55 * s - ARM_RADIUS_M], [half, half, 2 * ARM_RADIUS_M]
 
 
 def _rotate(v: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
@@ -233,3 +229,55 @@ def arm_clip_report(clip) -> dict:
     """``arm_contact_report`` of a saved ``sim.clip.SimClip`` of an ``arm`` setting."""
     return arm_contact_report([pos for pos, _, _ in clip.frames()], clip.meta["motion_params"],
                               float(clip.meta["cloth_size_m"]))
+
+
+# ---------------------------------------------------------------- the registry
+
+@dataclass(frozen=True)
+class Motion:
+    """One registered motion: what drives its clips and where the camera looks."""
+
+    name: str
+    description: str
+    # (mesh, material, rng, cfg: sim.config.SimConfig) -> the clip's scene; rng is the clip's motion stream.
+    scene: Callable[[ClothMesh, Material, np.random.Generator, object], ClipScene]
+    # cloth side in metres -> (low, high) corners of the box a fixed camera frames for every clip of the motion
+    # (``meta["view_box"]``, used by render). It holds every pose the motion reaches, and its depth (y) is no
+    # larger than its width (x), so the camera looks along y at the cloth's face. The same for every clip of a
+    # setting, as the paper's "controlled camera settings": a cloth that stretches, sags or swings more then
+    # looks bigger or moves further in the image (a camera framed on each clip would scale that away).
+    view_box: Callable[[float], tuple[list[float], list[float]]]
+
+
+def _wind_clip(mesh: ClothMesh, material: Material, rng: np.random.Generator, cfg) -> ClipScene:
+    return wind_scene(mesh, cfg.cloth_size_m, material, rng, cfg.wind_nuisance)
+
+
+def _arm_clip(mesh: ClothMesh, material: Material, rng: np.random.Generator, cfg) -> ClipScene:
+    # The forearm starts turning with the first recorded frame, after settling.
+    return arm_scene(mesh, cfg.cloth_size_m, material, rng, cfg.settle_s, cfg.fps, cfg.frames, cfg.arm_nuisance)
+
+
+MOTIONS: dict[str, Motion] = {m.name: m for m in (
+    Motion("wind", "a gathered cloth hanging from a rod or its corners, blown by a constant wind "
+                   "(sim.wind_nuisance: what is drawn per clip)", _wind_clip, wind_view_box),
+    Motion("arm", f"a cloth draped over a capsule arm whose forearm swings through {ARM_ANGLE_DEG:g} degrees "
+                  "(sim.arm_nuisance: what is drawn per clip)", _arm_clip, arm_view_box),
+)}
+
+
+def get_motion(name: str) -> Motion:
+    """The motion called ``name``; an unknown name is an error listing the known ones."""
+    if name not in MOTIONS:
+        raise ValueError(f"unknown motion {name!r}; known motions: {', '.join(MOTIONS)}")
+    return MOTIONS[name]
+
+
+def view_box(motion: str, size_m: float) -> tuple[list[float], list[float]]:
+    """The box a fixed camera frames for every clip of ``motion`` (``Motion.view_box``)."""
+    return get_motion(motion).view_box(size_m)
+
+
+def describe_motions() -> str:
+    """A human-readable list (for ``clothgap sim --list-motions``): name and description."""
+    return "\n".join(f"{m.name}: {m.description}" for m in MOTIONS.values())

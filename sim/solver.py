@@ -34,17 +34,8 @@ handled in two places:
   and the slip relative to the (rigidly turning) arm surface: mu J_n against a
   sliding vertex, and at rest a stiff damping that holds a draped cloth
   (creeping below ``slip_velocity``) while the pull stays inside the cone.
-  Before, contacts alternated on and off every step (the edge pass below and
-  the penetration recovery left resting vertices moving outward, so they
-  were dropped as "moving away") and friction acted only after the solve on
-  the penetrating part of the velocity: no static friction at all, and soft
-  and stiff cloths alike slid off the arm. Without the contact in the solve,
-  contact was resolved only after the solve, which the solve never saw: for a
-  stiff cloth it spent the
-  stretching forces on the contact vertex, and the projection then undid that,
-  so the arm acted through an effective spring of stiffness m / h^2 (about
-  12 N/m at 8 substeps) instead of the cloth's; stiff cloths dragged by the
-  forearm stretched 30-80 % and wrapped edges round it;
+  Contact resolved only after the solve lets stiff cloths stretch round the
+  forearm and every cloth slide off the arm (docs/simulation.md, "Arm contact");
 * after the step, as a projection: vertices out of the capsules, edges whose
   inside comes closer than the contact thickness out of them too (vertex-only
   contact lets a capsule of the edge length's size slide between two vertices),
@@ -84,7 +75,7 @@ import warp as wp
 
 from sim import kernels
 from sim.collision import SelfCollision, unique_edges
-from sim.mesh import ClothMesh
+from sim.specs import ArmSpec, ClothSpec   # plain data, kept apart so that sim.motions needs no Warp
 
 
 class _StderrLogger:
@@ -110,37 +101,6 @@ if hasattr(wp, "set_logger"):
     wp.set_logger(_StderrLogger(wp.get_logger()))
 else:                                           # an older Warp: no logger to replace, only a switch
     wp.config.quiet = True
-
-
-@dataclass(frozen=True)
-class ArmSpec:
-    """Two capsules: the upper arm (shoulder -> elbow) stays put; the forearm (elbow -> elbow + forearm)
-    turns about ``axis`` through the elbow at ``omega`` rad/s, starting at simulated time ``t0``
-    (seconds since the solver started), until it has turned ``max_angle`` radians."""
-
-    shoulder: tuple[float, float, float]
-    elbow: tuple[float, float, float]
-    forearm: tuple[float, float, float]
-    axis: tuple[float, float, float]
-    radius: float
-    omega: float
-    max_angle: float
-    t0: float
-
-
-@dataclass
-class ClothSpec:
-    """One cloth of a batch: mesh, initial placement, material tables (already scaled), loads."""
-
-    mesh: ClothMesh
-    positions: np.ndarray                 # (V, 3) initial world positions, metres
-    stretching: np.ndarray                # (6, 4) Wang stretching table, N/m (scaled by p)
-    bending: np.ndarray                   # (3, 5) Wang bending table, N*m (scaled by k)
-    density: float                        # kg/m^2
-    pinned: np.ndarray | None = None      # indices of vertices held fixed
-    wind: tuple[float, float, float] = (0.0, 0.0, 0.0)   # m/s
-    velocities: np.ndarray | None = None  # (V, 3) initial velocities, default zero
-    arm: ArmSpec | None = None            # a kinematic arm the cloth collides with
 
 
 @dataclass(frozen=True)
@@ -205,6 +165,44 @@ def _edge_direction(du: float, dv: float) -> float:
     return y
 
 
+def _rest_state(c: int, s: ClothSpec, off: int) -> dict[str, np.ndarray]:
+    """Cloth ``c``'s host-side rest state (vertex ``off`` onward in the batch): positions, velocities,
+    lumped masses, free flags, faces with their inverse rest matrices and areas, hinges with their rest
+    length, the two faces' area and the edge's direction in (u, v)."""
+    uv, faces = s.mesh.uv, s.mesh.faces
+    nv = len(uv)
+    if s.positions.shape != (nv, 3):
+        raise ValueError(f"cloth {c}: positions must be ({nv}, 3), got {s.positions.shape}")
+    if s.stretching.shape != (6, 4) or s.bending.shape != (3, 5):
+        raise ValueError(f"cloth {c}: stretching must be 6x4 and bending 3x5")
+    if not s.density > 0:
+        raise ValueError(f"cloth {c}: density must be positive, got {s.density}")
+    d1 = uv[faces[:, 1]] - uv[faces[:, 0]]
+    d2 = uv[faces[:, 2]] - uv[faces[:, 0]]
+    dm = np.stack([np.stack([d1[:, 0], d2[:, 0]], 1), np.stack([d1[:, 1], d2[:, 1]], 1)], 1)  # (F,2,2)
+    area = 0.5 * (d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
+    if np.any(area <= 0):
+        raise ValueError(f"cloth {c}: faces must be counter-clockwise with positive area in (u, v)")
+    mass = np.zeros(nv)
+    np.add.at(mass, faces.ravel(), np.repeat(area * s.density / 3.0, 3))
+    free = np.ones(nv)
+    if s.pinned is not None:
+        free[np.asarray(s.pinned, dtype=np.int64)] = 0.0
+    h = s.mesh.hinges
+    face_area = {}
+    for fi, f in enumerate(faces):
+        for e in range(3):
+            face_area[(int(f[e]), int(f[(e + 1) % 3]))] = area[fi]
+    e_uv = uv[h[:, 1]] - uv[h[:, 0]]
+    return {"x": s.positions, "v": np.zeros((nv, 3)) if s.velocities is None else s.velocities,
+            "mass": mass, "free": free, "vertex_cloth": np.full(nv, c),
+            "tri": faces + off, "dm_inv": np.linalg.inv(dm), "area": area, "face_cloth": np.full(len(faces), c),
+            "hinge": h + off, "hinge_length": np.linalg.norm(e_uv, axis=1),
+            "hinge_area": np.array([face_area[(int(a), int(b))] + face_area[(int(b), int(a))] for a, b in h[:, :2]]),
+            "hinge_dir": np.array([_edge_direction(du, dv) for du, dv in e_uv]),
+            "hinge_cloth": np.full(len(h), c)}
+
+
 class BatchSolver:
     """Advances a batch of cloths together. ``step(n)`` runs n time steps; positions are read back
     per cloth with ``positions()``."""
@@ -225,100 +223,77 @@ class BatchSolver:
 
     # ---------------------------------------------------------------- set-up
     def _build(self, specs: list[ClothSpec]) -> None:
-        xs, vs, masses, free, vcloth = [], [], [], [], []
-        tris, dminv, areas, fcloth = [], [], [], []
-        hinges, hlen, harea, hdir, hcloth = [], [], [], [], []
-        stretch, bend, winds = [], [], []
-        for c, s in enumerate(specs):
-            off = int(self.vertex_offsets[c])
-            uv, faces = s.mesh.uv, s.mesh.faces
-            nv = len(uv)
-            if s.positions.shape != (nv, 3):
-                raise ValueError(f"cloth {c}: positions must be ({nv}, 3), got {s.positions.shape}")
-            if s.stretching.shape != (6, 4) or s.bending.shape != (3, 5):
-                raise ValueError(f"cloth {c}: stretching must be 6x4 and bending 3x5")
-            if not s.density > 0:
-                raise ValueError(f"cloth {c}: density must be positive, got {s.density}")
-            d1 = uv[faces[:, 1]] - uv[faces[:, 0]]
-            d2 = uv[faces[:, 2]] - uv[faces[:, 0]]
-            dm = np.stack([np.stack([d1[:, 0], d2[:, 0]], 1), np.stack([d1[:, 1], d2[:, 1]], 1)], 1)  # (F,2,2)
-            area = 0.5 * (d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
-            if np.any(area <= 0):
-                raise ValueError(f"cloth {c}: faces must be counter-clockwise with positive area in (u, v)")
-            mass = np.zeros(nv)
-            np.add.at(mass, faces.ravel(), np.repeat(area * s.density / 3.0, 3))
-            fr = np.ones(nv)
-            if s.pinned is not None:
-                fr[np.asarray(s.pinned, dtype=np.int64)] = 0.0
-            xs.append(s.positions)
-            vs.append(np.zeros((nv, 3)) if s.velocities is None else s.velocities)
-            masses.append(mass)
-            free.append(fr)
-            vcloth.append(np.full(nv, c))
-            tris.append(faces + off)
-            dminv.append(np.linalg.inv(dm))
-            areas.append(area)
-            fcloth.append(np.full(len(faces), c))
-            # per-hinge rest data: edge length, sum of the two face areas, edge direction in (u, v)
-            h = s.mesh.hinges
-            face_area = {}
-            for fi, f in enumerate(faces):
-                for e in range(3):
-                    face_area[(int(f[e]), int(f[(e + 1) % 3]))] = area[fi]
-            e_uv = uv[h[:, 1]] - uv[h[:, 0]]
-            hinges.append(h + off)
-            hlen.append(np.linalg.norm(e_uv, axis=1))
-            harea.append([face_area[(int(a), int(b))] + face_area[(int(b), int(a))] for a, b in h[:, :2]])
-            hdir.append([_edge_direction(du, dv) for du, dv in e_uv])
-            hcloth.append(np.full(len(h), c))
-            stretch.append(np.asarray(s.stretching).ravel())
-            bend.append(np.asarray(s.bending).ravel())
-            winds.append(s.wind)
+        rest = [_rest_state(c, s, int(self.vertex_offsets[c])) for c, s in enumerate(specs)]
+        self._upload_cloths(specs, rest)
+        edges = [unique_edges(s.mesh.faces) + int(self.vertex_offsets[c]) for c, s in enumerate(specs)]
+        if self.has_arm:
+            self._allocate_contact(edges)
+        self._allocate_step()
+        self.collision = None
+        if self.params.self_collision:
+            self.x_start = wp.zeros_like(self.x)
+            self.collision = SelfCollision(
+                x0=self.x_start, x=self.x, v=self.v, mass=np.concatenate([r["mass"] for r in rest]),
+                free=np.concatenate([r["free"] for r in rest]), vertex_cloth=self.vertex_cloth, tri=self.tri,
+                face_cloth=self.face_cloth, edges=np.concatenate(edges),
+                edge_cloth=np.concatenate([np.full(len(e), c) for c, e in enumerate(edges)]),
+                num_cloths=self.num_cloths, thickness=self.params.collision_thickness,
+                friction=self.params.self_friction, passes=self.params.collision_passes,
+                slots=self.params.collision_slots, device=self.device)
 
+    def _upload_cloths(self, specs: list[ClothSpec], rest: list[dict]) -> None:
+        """Every cloth's rest state, materials, loads and arm as device arrays, cloths concatenated."""
         dev = self.device
         f32 = np.float32
 
         def arr(a, dtype):
             return wp.array(np.asarray(a), dtype=dtype, device=dev)
 
-        cat = np.concatenate
-        self.x = arr(cat(xs).astype(f32), wp.vec3)
-        self.v = arr(cat(vs).astype(f32), wp.vec3)
-        self.mass = arr(cat(masses).astype(f32), float)
-        self.free = arr(cat(free).astype(f32), float)
-        self.vertex_cloth = arr(cat(vcloth).astype(np.int32), int)
-        self.tri = arr(cat(tris).astype(np.int32), int)
-        self.dm_inv = arr(cat(dminv).astype(f32), wp.mat22)
-        self.area = arr(cat(areas).astype(f32), float)
-        self.face_cloth = arr(cat(fcloth).astype(np.int32), int)
-        self.hinge = arr(cat(hinges).astype(np.int32).reshape(-1, 4), int)
-        self.hinge_length = arr(cat(hlen).astype(f32), float)
-        self.hinge_area = arr(cat(harea).astype(f32), float)
-        self.hinge_dir = arr(cat(hdir).astype(f32), float)
-        self.hinge_cloth = arr(cat(hcloth).astype(np.int32), int)
-        self.stretch = arr(np.stack(stretch).astype(f32), float)
-        self.bend = arr(np.stack(bend).astype(f32), float)
-        self.wind = arr(np.array(winds, dtype=f32).reshape(-1, 3), wp.vec3)
+        def cat(key):
+            return np.concatenate([r[key] for r in rest])
+
+        self.x = arr(cat("x").astype(f32), wp.vec3)
+        self.v = arr(cat("v").astype(f32), wp.vec3)
+        self.mass = arr(cat("mass").astype(f32), float)
+        self.free = arr(cat("free").astype(f32), float)
+        self.vertex_cloth = arr(cat("vertex_cloth").astype(np.int32), int)
+        self.tri = arr(cat("tri").astype(np.int32), int)
+        self.dm_inv = arr(cat("dm_inv").astype(f32), wp.mat22)
+        self.area = arr(cat("area").astype(f32), float)
+        self.face_cloth = arr(cat("face_cloth").astype(np.int32), int)
+        self.hinge = arr(cat("hinge").astype(np.int32).reshape(-1, 4), int)
+        self.hinge_length = arr(cat("hinge_length").astype(f32), float)
+        self.hinge_area = arr(cat("hinge_area").astype(f32), float)
+        self.hinge_dir = arr(cat("hinge_dir").astype(f32), float)
+        self.hinge_cloth = arr(cat("hinge_cloth").astype(np.int32), int)
+        self.stretch = arr(np.stack([np.asarray(s.stretching).ravel() for s in specs]).astype(f32), float)
+        self.bend = arr(np.stack([np.asarray(s.bending).ravel() for s in specs]).astype(f32), float)
+        self.wind = arr(np.array([s.wind for s in specs], dtype=f32).reshape(-1, 3), wp.vec3)
         self.has_arm = any(s.arm is not None for s in specs)
         self.arms = wp.array([self._arm_struct(s.arm) for s in specs], dtype=kernels.Arm, device=dev)
         self.clock = wp.zeros(1, dtype=float, device=dev)
         self.faces_per_cloth = [len(s.mesh.faces) for s in specs]
-        edges = [unique_edges(s.mesh.faces) + int(self.vertex_offsets[c]) for c, s in enumerate(specs)]
-        if self.has_arm:          # unique edges, for edge-capsule contact
-            self.edge = arr(cat(edges).astype(np.int32).reshape(-1, 2), int)
-            self.contact_dx = wp.zeros(self.x.shape[0], dtype=wp.vec3, device=dev)
-            self.contact_dv = wp.zeros(self.x.shape[0], dtype=wp.vec3, device=dev)
-            self.contact_count = wp.zeros(self.x.shape[0], dtype=float, device=dev)
-            self.contact_n = wp.zeros(self.x.shape[0], dtype=wp.vec3, device=dev)
-            self.contact_y = wp.zeros(self.x.shape[0], dtype=wp.vec3, device=dev)
-            self.vy = wp.zeros(self.x.shape[0], dtype=wp.vec3, device=dev)
-            self.contact_rn = wp.zeros(self.x.shape[0], dtype=float, device=dev)
-            self.released = wp.zeros(self.x.shape[0], dtype=int, device=dev)
-            self.contact_jn = wp.zeros(self.x.shape[0], dtype=float, device=dev)
-            self.friction_c = wp.zeros(self.x.shape[0], dtype=float, device=dev)
-            self.friction_b = wp.zeros(self.x.shape[0], dtype=wp.vec3, device=dev)
-            self.contact_recover = wp.zeros(self.x.shape[0], dtype=wp.vec3, device=dev)
 
+    def _allocate_contact(self, edges: list[np.ndarray]) -> None:
+        """The arm contact's per-vertex state, and the unique edges for edge-capsule contact."""
+        dev, nv = self.device, self.x.shape[0]
+        self.edge = wp.array(np.concatenate(edges).astype(np.int32).reshape(-1, 2), dtype=int, device=dev)
+        self.contact_dx = wp.zeros(nv, dtype=wp.vec3, device=dev)
+        self.contact_dv = wp.zeros(nv, dtype=wp.vec3, device=dev)
+        self.contact_count = wp.zeros(nv, dtype=float, device=dev)
+        self.contact_n = wp.zeros(nv, dtype=wp.vec3, device=dev)
+        self.contact_y = wp.zeros(nv, dtype=wp.vec3, device=dev)
+        self.vy = wp.zeros(nv, dtype=wp.vec3, device=dev)
+        self.contact_rn = wp.zeros(nv, dtype=float, device=dev)
+        self.released = wp.zeros(nv, dtype=int, device=dev)
+        self.contact_jn = wp.zeros(nv, dtype=float, device=dev)
+        self.friction_c = wp.zeros(nv, dtype=float, device=dev)
+        self.friction_b = wp.zeros(nv, dtype=wp.vec3, device=dev)
+        self.contact_recover = wp.zeros(nv, dtype=wp.vec3, device=dev)
+
+    def _allocate_step(self) -> None:
+        """The per-step work arrays: forces, the CG's vectors and per-cloth dot products, its statistics."""
+        dev = self.device
         nv, nf, nh = self.x.shape[0], self.tri.shape[0], self.hinge.shape[0]
         self.num_vertices, self.num_faces, self.num_hinges = nv, nf, nh
 
@@ -344,15 +319,6 @@ class BatchSolver:
         self.cg_iteration_sum = wp.zeros(nc, dtype=float, device=dev)  # statistics over all steps so far
         self.cg_iteration_max = wp.zeros(nc, dtype=int, device=dev)
         self.cg_residual_max = wp.zeros(nc, dtype=float, device=dev)
-        self.collision = None
-        if self.params.self_collision:
-            self.x_start = wp.zeros_like(self.x)
-            self.collision = SelfCollision(
-                x0=self.x_start, x=self.x, v=self.v, mass=cat(masses), free=cat(free),
-                vertex_cloth=self.vertex_cloth, tri=self.tri, face_cloth=self.face_cloth, edges=cat(edges),
-                edge_cloth=cat([np.full(len(e), c) for c, e in enumerate(edges)]), num_cloths=nc,
-                thickness=self.params.collision_thickness, friction=self.params.self_friction,
-                passes=self.params.collision_passes, slots=self.params.collision_slots, device=dev)
 
     @staticmethod
     def _arm_struct(arm: ArmSpec | None) -> kernels.Arm:

@@ -1,6 +1,6 @@
 """The sim stage: every (setting, clip index) of a run -> ``sim/<setting>/<clip_id>/`` (see docs/contracts.md).
 
-Settings are ``<motion>-<remeshing>``: motion ``wind`` or ``arm`` (``sim.motions``);
+Settings are ``<motion>-<remeshing>``: a motion registered in ``sim.motions.MOTIONS`` (``wind``, ``arm``);
 remeshing ``uniform<L>``, the base grid refined uniformly to level L = 1, 2, 3
 (``sim.mesh``), or ``adaptive``, a quadtree mesh that starts at level 1 and is
 refined where the cloth curves and coarsened where it is flat after every
@@ -43,7 +43,7 @@ from sim.config import REMESHING, SimConfig
 from sim.intersections import count_intersections
 from sim.materials import load_material
 from sim.mesh import ClothMesh, square_cloth, vertices_per_side
-from sim.motions import MOTIONS, ClipScene, arm_scene, view_box, wind_scene
+from sim.motions import MOTIONS, ClipScene, get_motion, view_box
 from sim.solver import BatchSolver, CGStats, SolverParams, resolve_device
 
 # Health check of every recorded frame: beyond these a cloth has exploded.
@@ -223,12 +223,7 @@ def build_scene(cfg: SimConfig, seed: int, index: int, setting: Setting, mesh: C
 
         material = load_material(fabric)
         meta = fabric_labels(fabric)
-    if setting.motion == "wind":
-        scene = wind_scene(mesh, cfg.cloth_size_m, material, motion_rng, cfg.wind_nuisance)
-    else:
-        scene = arm_scene(mesh, cfg.cloth_size_m, material, motion_rng, cfg.settle_s, cfg.fps, cfg.frames,
-                          cfg.arm_nuisance)
-    return scene, meta
+    return get_motion(setting.motion).scene(mesh, material, motion_rng, cfg), meta
 
 
 @dataclass(frozen=True)
@@ -275,14 +270,12 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
 
     cfg = run.config.sim
     device = resolve_device(cfg.device)
-    settings = [parse_setting(s) for s in jobs]
     summary = {"simulated": 0, "skipped": 0, "failed": 0, "retried": 0, "failed_clips": [], "seconds": 0.0}
     start = time.perf_counter()
-    for setting in settings:
+    for setting in [parse_setting(s) for s in jobs]:
         out = folder_of(setting.name)
         todo = [j for j in jobs[setting.name] if not is_done(out / j.name)]
         summary["skipped"] += len(jobs[setting.name]) - len(todo)
-        n = vertices_per_side(cfg.grid_vertices, setting.level)
         mesh, simulate = setting_simulator(cfg, setting)
         # Progress in clip-frames: a GPU batch of thousands of clips finishes all at once.
         bar = tqdm(total=len(todo) * cfg.frames, desc=f"{label} {setting.name}", unit="clip-frame",
@@ -291,63 +284,14 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
             batch = todo[b:b + cfg.batch_size]
             built = [build_scene(cfg, run.config.seed, j.index, setting, mesh, j.fabric) for j in batch]
             scenes = [s for s, _ in built]
-            solver_options = dict(cg_iterations=cfg.cg_iterations, cg_tolerance=cfg.cg_tolerance,
-                                  self_collision=cfg.self_collision, collision_thickness=cfg.collision_thickness,
-                                  device=device)
-            results = simulate(scenes, fps=cfg.fps, frames=cfg.frames, substeps=cfg.substeps,
-                               settle_s=cfg.settle_s, on_frame=lambda n=len(batch): bar.update(n), **solver_options)
-            substeps = [cfg.substeps] * len(batch)
-            failed = [j for j, r in enumerate(results) if r.reason]
-            if failed:
-                summary["retried"] += len(failed)
-                retry = simulate([scenes[j] for j in failed], fps=cfg.fps, frames=cfg.frames,
-                                 substeps=2 * cfg.substeps, settle_s=cfg.settle_s, **solver_options)
-                for j, r in zip(failed, retry):
-                    if r.reason:
-                        r.reason = f"{results[j].reason}; retry with {2 * cfg.substeps} substeps: {r.reason}"
-                    results[j] = r
-                    substeps[j] = 2 * cfg.substeps
-
-            def write(job: ClipJob, scene: ClipScene, labels: dict, result: ClipResult, sub: int) -> bool:
-                folder = out / job.name
-                try:
-                    return write_clip(job, scene, labels, result, sub, folder)
-                except OSError as e:
-                    err = storage_error(e, folder)
-                    if err is None:
-                        raise
-                    shutil.rmtree(folder, ignore_errors=True)   # no half-written clip left on a full disk
-                    raise err from None
-
-            def write_clip(job: ClipJob, scene: ClipScene, labels: dict, result: ClipResult, sub: int,
-                           folder: Path) -> bool:
-                fresh_dir(folder)
-                meta = {"clip_id": job.name, "index": job.index, "sequence": job.sequence, "setting": setting.name,
-                        "motion": setting.motion, "remeshing": setting.remeshing, **labels,
-                        "seed": run.config.seed, "fps": cfg.fps, "frames": cfg.frames, "substeps": sub,
-                        "dt": 1.0 / (cfg.fps * sub), "settle_s": cfg.settle_s, "cloth_size_m": cfg.cloth_size_m,
-                        "vertices_per_side": n, "motion_params": scene.motion_params,
-                        "view_box": view_box(setting.motion, cfg.cloth_size_m),
-                        "self_collision": cfg.self_collision}
-                if cfg.self_collision:
-                    meta["collision_thickness_m"] = cfg.collision_thickness
-                meta["health"] = clip_health(result, mesh)
-                if result.reason:
-                    atomic_write_json(folder / "FAILED", {**meta, "status": "failed", "reason": result.reason})
-                    return False
-                meta["status"] = "ok"
-                if result.frames is not None:
-                    counts = [len(f[0]) for f in result.frames]
-                    meta["vertex_counts"] = {"min": min(counts), "max": max(counts), "mean": float(np.mean(counts))}
-                    SimClip.from_frames(meta, result.frames).save(folder)
-                else:
-                    SimClip.from_fixed(meta, result.positions, mesh.faces, mesh.uv).save(folder)
-                mark_done(folder, {"status": "ok"})
-                return True
-
+            results, substeps = simulate_batch(cfg, simulate, scenes, device,
+                                               on_frame=lambda n=len(batch): bar.update(n))
+            summary["retried"] += sum(sub != cfg.substeps for sub in substeps)   # simulated a second time
+            metas = [clip_meta(run, setting, job, scene, labels, sub, mesh)
+                     for job, (scene, labels), sub in zip(batch, built, substeps)]
             # Compressing and writing thousands of clips is host work that threads overlap (zlib drops the GIL).
             with ThreadPoolExecutor(max_workers=8) as pool:
-                ok = list(pool.map(write, batch, scenes, [lab for _, lab in built], results, substeps))
+                ok = list(pool.map(write_clip, [out / j.name for j in batch], metas, results, [mesh] * len(batch)))
             summary["simulated"] += sum(ok)
             summary["failed"] += len(ok) - sum(ok)
             summary["failed_clips"] += [{"setting": setting.name, "clip_id": j.name, "error": r.reason}
@@ -355,6 +299,75 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
         bar.close()
     summary["seconds"] = round(time.perf_counter() - start, 3)
     return summary
+
+
+def simulate_batch(cfg: SimConfig, simulate: Callable[..., list[ClipResult]], scenes: list[ClipScene], device: str,
+                   on_frame: Callable[[], None] | None = None) -> tuple[list[ClipResult], list[int]]:
+    """Simulate a batch of scenes at ``cfg.substeps``, then once more at twice the substeps those that failed
+    the health check; returns each scene's result and the substeps it was simulated with."""
+    solver_options = dict(cg_iterations=cfg.cg_iterations, cg_tolerance=cfg.cg_tolerance,
+                          self_collision=cfg.self_collision, collision_thickness=cfg.collision_thickness,
+                          device=device)
+    results = simulate(scenes, fps=cfg.fps, frames=cfg.frames, substeps=cfg.substeps, settle_s=cfg.settle_s,
+                       on_frame=on_frame, **solver_options)
+    substeps = [cfg.substeps] * len(scenes)
+    failed = [j for j, r in enumerate(results) if r.reason]
+    if failed:
+        retry = simulate([scenes[j] for j in failed], fps=cfg.fps, frames=cfg.frames, substeps=2 * cfg.substeps,
+                         settle_s=cfg.settle_s, **solver_options)
+        for j, r in zip(failed, retry):
+            if r.reason:
+                r.reason = f"{results[j].reason}; retry with {2 * cfg.substeps} substeps: {r.reason}"
+            results[j] = r
+            substeps[j] = 2 * cfg.substeps
+    return results, substeps
+
+
+def clip_meta(run: Run, setting: Setting, job: ClipJob, scene: ClipScene, labels: dict, substeps: int,
+              mesh: ClothMesh) -> dict:
+    """A clip's ``meta.json`` before its outcome (``health``, ``status``) is known: the clip, its labels,
+    the simulation's settings, the motion's draws and the setting's camera box."""
+    cfg = run.config.sim
+    meta = {"clip_id": job.name, "index": job.index, "sequence": job.sequence, "setting": setting.name,
+            "motion": setting.motion, "remeshing": setting.remeshing, **labels,
+            "seed": run.config.seed, "fps": cfg.fps, "frames": cfg.frames, "substeps": substeps,
+            "dt": 1.0 / (cfg.fps * substeps), "settle_s": cfg.settle_s, "cloth_size_m": cfg.cloth_size_m,
+            "vertices_per_side": vertices_per_side(cfg.grid_vertices, setting.level),
+            "motion_params": scene.motion_params, "view_box": view_box(setting.motion, cfg.cloth_size_m),
+            "self_collision": cfg.self_collision}
+    if cfg.self_collision:
+        meta["collision_thickness_m"] = cfg.collision_thickness
+    return meta
+
+
+def write_clip(folder: Path, meta: dict, result: ClipResult, mesh: ClothMesh) -> bool:
+    """Write one simulated clip into a fresh ``folder``: the SimClip and DONE when it is healthy (True), else
+    FAILED with the reason (False). A full or read-only disk leaves no half-written clip and is a StorageError."""
+    try:
+        return _write_clip(folder, meta, result, mesh)
+    except OSError as e:
+        err = storage_error(e, folder)
+        if err is None:
+            raise
+        shutil.rmtree(folder, ignore_errors=True)
+        raise err from None
+
+
+def _write_clip(folder: Path, meta: dict, result: ClipResult, mesh: ClothMesh) -> bool:
+    fresh_dir(folder)
+    meta = {**meta, "health": clip_health(result, mesh)}
+    if result.reason:
+        atomic_write_json(folder / "FAILED", {**meta, "status": "failed", "reason": result.reason})
+        return False
+    meta["status"] = "ok"
+    if result.frames is not None:
+        counts = [len(f[0]) for f in result.frames]
+        meta["vertex_counts"] = {"min": min(counts), "max": max(counts), "mean": float(np.mean(counts))}
+        SimClip.from_frames(meta, result.frames).save(folder)
+    else:
+        SimClip.from_fixed(meta, result.positions, mesh.faces, mesh.uv).save(folder)
+    mark_done(folder, {"status": "ok"})
+    return True
 
 
 def simulate_measured(run: Run, fabrics: Sequence[str], sequences: int, progress: bool = True) -> dict:

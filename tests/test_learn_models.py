@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from learn.models import MODEL_NAMES, NUM_BEND, build_model, load_cnn_weights
+from learn.models import NUM_BEND, build_model, load_cnn_weights
+from learn.registry import MODEL_NAMES
 
 TINY = dict(width=8, fc6=32, hidden=16, dropout=0.0)
 

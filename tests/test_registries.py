@@ -1,0 +1,122 @@
+"""The model and motion registries: every entry builds and runs, unknown names are config errors, the CLI lists them."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from learn.config import READOUTS, TrainConfig
+from learn.registry import MODEL_NAMES, MODELS, describe_models, get_model_entry, training_order
+from sim.config import SimConfig
+from sim.motions import MOTIONS, describe_motions, get_motion
+
+
+def clothgap(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "clothgap", *args], capture_output=True, text=True,
+                          env=dict(os.environ))
+
+
+# ---------------------------------------------------------------- models
+
+@pytest.mark.parametrize("name", MODEL_NAMES)
+def test_every_registered_model_builds_and_runs_a_forward_pass(name):
+    import torch
+
+    from learn.models import build_model
+
+    torch.manual_seed(0)
+    model = build_model(name, image_size=32, width=4, fc6=8, hidden=8, dropout=0.0).eval()
+    with torch.no_grad():
+        out = model(torch.rand(2, 3, 3, 32, 32))
+    assert out["logits"].shape == (2, 3, 54)
+    assert torch.isfinite(out["logits"]).all()
+    assert torch.allclose(model.probs(out).sum(-1), torch.ones(2))
+    entry = get_model_entry(name)
+    assert model.freeze_cnn == entry.freeze_cnn
+    assert (model.temporal is None) == (entry.temporal is None)
+
+
+@pytest.mark.parametrize("name", MODEL_NAMES)
+def test_every_model_entry_is_complete_and_trained_after_what_it_needs(name):
+    entry = MODELS[name]
+    assert entry.name == name and entry.description.strip() and entry.title.strip()
+    assert entry.temporal in ("lstm", "rnn", None)
+    assert entry.readout is None or entry.readout in READOUTS
+    if entry.needs is not None:
+        assert entry.needs in MODELS
+        order = training_order(reversed(MODEL_NAMES))
+        assert order.index(entry.needs) < order.index(name)
+
+
+def test_training_order_keeps_the_registry_order_otherwise():
+    assert training_order(["base2", "base3", "lrcn", "base1"]) == ["lrcn", "base1", "base3", "base2"]
+
+
+def test_an_unknown_model_is_a_config_problem_naming_the_known_ones():
+    problems = TrainConfig(models=("lrcn", "alexnet")).problems()
+    assert any("'alexnet'" in p and ", ".join(MODEL_NAMES) in p for p in problems), problems
+    with pytest.raises(ValueError, match="known models: " + ", ".join(MODEL_NAMES)):
+        get_model_entry("alexnet")
+
+
+def test_config_checks_import_neither_torch_nor_warp():
+    code = ("import sys; from clothgap.config import preset; "
+            "assert not preset('smoke').train.problems() and not preset('smoke').sim.problems(); "
+            "from learn.registry import describe_models; from sim.motions import describe_motions; "
+            "print(sorted(m for m in ('torch', 'warp') if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "[]"
+
+
+def test_cli_lists_the_models():
+    r = clothgap("train", "--list-models")
+    assert r.returncode == 0, r.stderr
+    assert r.stdout == describe_models() + "\n"
+    for name in MODEL_NAMES:
+        assert f"{name}: " in r.stdout
+
+
+# ---------------------------------------------------------------- motions
+
+@pytest.mark.parametrize("name", list(MOTIONS))
+def test_every_registered_motion_simulates_a_tiny_clip_on_cpu(name):
+    from sim.stage import build_scene, parse_setting, simulate_scenes
+    from sim.mesh import square_cloth
+
+    cfg = SimConfig(motions=(name,), grid_vertices=5, frames=3, substeps=4, settle_s=0.08, device="cpu")
+    assert not cfg.problems()
+    mesh = square_cloth(cfg.cloth_size_m, cfg.grid_vertices, 1)
+    scenes = [build_scene(cfg, 0, i, parse_setting(f"{name}-uniform1"), mesh)[0] for i in (0, 53)]
+    results = simulate_scenes(scenes, fps=cfg.fps, frames=cfg.frames, substeps=cfg.substeps, settle_s=cfg.settle_s,
+                              device="cpu")
+    for scene, result in zip(scenes, results):
+        assert result.reason is None
+        assert result.positions.shape == (cfg.frames, len(mesh.uv), 3)
+        assert np.isfinite(result.positions).all()
+        assert scene.motion_params                        # written to the clip's meta.json
+    lo, hi = map(np.asarray, get_motion(name).view_box(cfg.cloth_size_m))
+    assert (lo < hi).all() and hi[1] - lo[1] <= hi[0] - lo[0]   # the camera looks along y
+
+
+def test_an_unknown_motion_is_a_config_problem_and_never_simulated():
+    from sim.stage import parse_setting
+
+    problems = SimConfig(motions=("wind", "swirl")).problems()
+    assert any("'swirl'" in p and ", ".join(MOTIONS) in p for p in problems), problems
+    with pytest.raises(ValueError, match="known motions: " + ", ".join(MOTIONS)):
+        get_motion("swirl")
+    with pytest.raises(ValueError, match="unknown motion 'swirl'"):
+        parse_setting("swirl-uniform1")
+
+
+def test_cli_lists_the_motions():
+    r = clothgap("sim", "--list-motions")
+    assert r.returncode == 0, r.stderr
+    assert r.stdout == describe_motions() + "\n"
+    for name in MOTIONS:
+        assert f"{name}: " in r.stdout
