@@ -58,6 +58,8 @@ class TrainConfig:
     bottleneck: bool = False                # classes read only the CNN's predicted lattice (learn.models);
                                             # the lattice loss weighs aux_geometry (1 when left at 0)
     bottleneck_noise: float = 0.0           # std of noise on that lattice while training (standardised units)
+    conv5_pool: bool = True                 # AlexNet's max-pool after conv5; false: fc6 reads conv5's own
+                                            # map (size/16, at most 7 x 7; 7 x 7 at 112 px instead of 3 x 3)
     reader_truth: float = 0.0               # weight of the bottleneck readers' class loss on the simulation's
                                             # own lattice (noised by bottleneck_noise), beside the predicted one
 

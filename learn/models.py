@@ -58,7 +58,8 @@ class FrameCNN(nn.Module):
     between clips and the recurrent models hardly learned (tiny-batch tests).
     """
 
-    def __init__(self, image_size: int, width: int, fc6: int, dropout: float = 0.5, in_channels: int = 3):
+    def __init__(self, image_size: int, width: int, fc6: int, dropout: float = 0.5, in_channels: int = 3,
+                 conv5_pool: bool = True):
         super().__init__()
         if image_size not in IMAGE_SIZES:
             raise ValueError(f"image_size={image_size}: must be a multiple of 16 from 32 to 224")
@@ -66,9 +67,12 @@ class FrameCNN(nn.Module):
         self.features = nn.Sequential(
             *_conv(in_channels, c1, 11, stride=4), nn.MaxPool2d(3, 2, padding=1),
             *_conv(c1, c2, 5), nn.MaxPool2d(3, 2, padding=1),
-            *_conv(c2, c3, 3), *_conv(c3, c4, 3), *_conv(c4, c5, 3), nn.MaxPool2d(3, 2, padding=1),
+            *_conv(c2, c3, 3), *_conv(c3, c4, 3), *_conv(c4, c5, 3),
+            *([nn.MaxPool2d(3, 2, padding=1)] if conv5_pool else []),
         )
-        grid = max(min(image_size // 32, 6), 1)
+        # Without the last max-pool fc6 sees conv5's own map (size/16, at most 7 x 7): the same
+        # convolutions, four times the positions, for a head that has to say where the cloth is.
+        grid = max(min(image_size // 32, 6), 1) if conv5_pool else min(image_size // 16, 7)
         self.pool = nn.AdaptiveAvgPool2d(grid)
         self.fc6 = nn.Sequential(nn.Flatten(), nn.Linear(c5 * grid * grid, fc6), nn.ReLU(inplace=True),
                                  nn.Dropout(dropout))
@@ -218,11 +222,11 @@ class ClipClassifier(nn.Module):
 
 def build_model(name: str, *, image_size: int, width: int, fc6: int, hidden: int, dropout: float = 0.5,
                 readout: str = "mean", factored: bool = False, motion: bool = False, geometry_dim: int = 0,
-                bottleneck: bool = False, bottleneck_noise: float = 0.0,
+                bottleneck: bool = False, bottleneck_noise: float = 0.0, conv5_pool: bool = True,
                 num_classes: int = NUM_CLASSES) -> ClipClassifier:
     """A model by its ``learn.registry`` name; ``model_args(cfg)`` gives the keyword arguments from a TrainConfig."""
     entry = get_model_entry(name)
-    cnn = FrameCNN(image_size, width, fc6, dropout, in_channels=6 if motion else 3)
+    cnn = FrameCNN(image_size, width, fc6, dropout, in_channels=6 if motion else 3, conv5_pool=conv5_pool)
     return ClipClassifier(cnn, entry.temporal, hidden, entry.readout or readout, factored, entry.freeze_cnn,
                           num_classes, motion=motion, geometry_dim=geometry_dim, bottleneck=bottleneck,
                           bottleneck_noise=bottleneck_noise)
@@ -231,13 +235,15 @@ def build_model(name: str, *, image_size: int, width: int, fc6: int, hidden: int
 def model_args(cfg) -> dict:
     """The ``build_model`` keyword arguments a TrainConfig asks for (stored in checkpoints).
 
-    The bottleneck keys appear only when it is on, so checkpoints written before they
-    existed compare and load with the same arguments."""
+    The bottleneck and conv5_pool keys appear only when they differ from the old behaviour, so
+    checkpoints written before they existed compare and load with the same arguments."""
     args = dict(image_size=cfg.image_size, width=cfg.width, fc6=cfg.fc6, hidden=cfg.hidden,
                 dropout=cfg.dropout, readout=cfg.readout, factored=cfg.factored, motion=cfg.motion,
                 geometry_dim=GEOMETRY_DIM if cfg.aux_geometry > 0 or cfg.bottleneck else 0)
     if cfg.bottleneck:
         args.update(bottleneck=True, bottleneck_noise=cfg.bottleneck_noise)
+    if not cfg.conv5_pool:
+        args.update(conv5_pool=False)
     return args
 
 

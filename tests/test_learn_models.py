@@ -123,6 +123,23 @@ def test_bottleneck_classes_read_only_the_predicted_shape():
         build_model("lrcn", image_size=32, bottleneck=True, **TINY)
 
 
+def test_without_the_conv5_pool_fc6_reads_conv5s_own_map():
+    from learn.models import FrameCNN
+
+    pooled, fine = FrameCNN(112, 8, 16), FrameCNN(112, 8, 16, conv5_pool=False)
+    maps = {}
+    for name, cnn in (("pooled", pooled), ("fine", fine)):
+        cnn.pool.register_forward_hook(lambda _m, _i, out, name=name: maps.update({name: out.shape[-2:]}))
+        assert cnn(torch.rand(2, 3, 112, 112)).shape == (2, 16)
+    assert maps == {"pooled": (3, 3), "fine": (7, 7)}
+    # The convolutions are the same layers: a pooled CNN's conv weights load into the fine one.
+    conv = {k: v for k, v in pooled.state_dict().items() if k.startswith("features.")}
+    fine.load_state_dict(conv, strict=False)
+    assert torch.equal(fine.features[0].weight, pooled.features[0].weight)
+    model = build_model("lrcn", image_size=64, geometry_dim=192, bottleneck=True, conv5_pool=False, **TINY)
+    assert model(torch.rand(1, 3, 3, 64, 64))["geometry"].shape == (1, 3, 192)
+
+
 def test_reader_truth_trains_the_readers_on_the_true_lattice_only():
     torch.manual_seed(0)
     model = build_model("lrcn", image_size=32, geometry_dim=192, bottleneck=True, **TINY)
