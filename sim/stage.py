@@ -22,6 +22,7 @@ is retried once with twice the substeps; if it fails again its folder gets a
 from __future__ import annotations
 
 import functools
+import os
 import shutil
 import time
 from collections.abc import Callable, Sequence
@@ -290,7 +291,7 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
             metas = [clip_meta(run, setting, job, scene, labels, sub, mesh)
                      for job, (scene, labels), sub in zip(batch, built, substeps)]
             # Compressing and writing thousands of clips is host work that threads overlap (zlib drops the GIL).
-            with ThreadPoolExecutor(max_workers=8) as pool:
+            with ThreadPoolExecutor(max_workers=min(32, os.cpu_count() or 1, max(len(batch), 1))) as pool:
                 ok = list(pool.map(write_clip, [out / j.name for j in batch], metas, results, [mesh] * len(batch)))
             summary["simulated"] += sum(ok)
             summary["failed"] += len(ok) - sum(ok)
