@@ -455,6 +455,15 @@ class BatchSolver:
                     cmd()
         self._steps += n
 
+    def step_uncaptured(self, n: int = 1) -> None:
+        """``step`` with every launch issued from the host, no CUDA graph and no early exit: the same
+        result, slower; for timing each kernel (``benchmarks/sim_profile.py``)."""
+        before, iterations, after = self._program
+        for _ in range(n):
+            for cmd in before + [c for it in iterations for c in it] + after:
+                cmd()
+        self._steps += n
+
     def cg_stats(self) -> list[CGStats]:
         """Per cloth: the CG iterations and final relative residuals of every step so far."""
         sums, maxes = self.cg_iteration_sum.numpy(), self.cg_iteration_max.numpy()
