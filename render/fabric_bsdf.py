@@ -118,6 +118,13 @@ def _sample_sheen(dr, mi, marginal, wi, sample2, active):
     return 2 * dr.dot(wi, h) * h - wi
 
 
+def _color_texture(mi: ModuleType, color):
+    """``color`` as a Mitsuba texture: a texture as it is, a plain colour or number as a constant ``rgb``."""
+    if isinstance(color, mi.Texture):
+        return color
+    return mi.load_dict({"type": "rgb", "value": np.broadcast_to(np.asarray(color, float), 3).tolist()})
+
+
 def register(mi: ModuleType) -> None:
     """Register ``clothgap_fabric`` with the current Mitsuba variant."""
     import drjit as dr
@@ -127,10 +134,7 @@ def register(mi: ModuleType) -> None:
 
         def __init__(self, props):
             mi.BSDF.__init__(self, props)
-            color = props["base_color"] if "base_color" in props else 0.5
-            if not isinstance(color, mi.Texture):  # a plain colour or number rather than a texture
-                color = mi.load_dict({"type": "rgb", "value": np.broadcast_to(np.asarray(color, float), 3).tolist()})
-            self.base_color = color
+            self.base_color = _color_texture(mi, props["base_color"] if "base_color" in props else 0.5)
             self.sheen = float(props["sheen"]) if "sheen" in props else 1.0
             path = Path(props["filename"]) if "filename" in props else DEFAULT_TABLE
             table = load_table(path)
