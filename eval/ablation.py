@@ -89,12 +89,19 @@ def _speed(folder: Path) -> dict:
 
 def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], models: list[str] | None = None,
                  seeds: list[int] | None = None, progress: bool = True, name: str | None = None) -> dict:
-    """Train and score every recipe x model x seed; write and return the comparison
-    (``RUN/eval/<name>.{json,md}``, by default ``ablation-<setting>-<variant>``)."""
-    from learn.dataset import build_cache
-    from learn.predict import predict_windows
+    """Train and score every recipe x model x seed; write and return the comparison.
+
+    Args:
+        run: the run whose rendered clips of ``setting`` / ``variant`` are trained and tested on.
+        recipes: recipe names (``recipe_config``); the first is the reference the others are compared with.
+        models, seeds: default to the run's ``train.models`` and ``train.seeds``.
+        progress: print a line per trained model.
+        name: the file stem under ``RUN/eval/`` (default ``ablation-<setting>-<variant>``).
+
+    Returns:
+        ``{"json": path of the written report, "top1": {"<recipe>/<model>": accuracy}}``.
+    """
     from learn.split import get_or_make_split, part_windows
-    from learn.train import resolve_device, train_one
 
     if not recipes:
         raise ConfigError("no recipes given")
@@ -103,42 +110,16 @@ def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], model
     models = models or list(base.models)
     seeds = seeds if seeds is not None else list(base.seeds)
     test = part_windows(get_or_make_split(run, setting), "test")
-    bootstrap = dict(resamples=run.config.eval.bootstrap, confidence=run.config.eval.confidence)
     rows, reference, caches = [], {}, {}
     out_dir = run.eval_dir
     for recipe in recipes:
         cfg = configs[recipe]
         for model in models:
-            frames = []
-            for seed in seeds:
-                t0 = time.perf_counter()
-                folder = train_one(run, setting, variant, model, seed, progress, config=cfg,
-                                   root=recipe_root(run, recipe))
-                path = folder / "test_predictions.csv"
-                if not path.is_file():
-                    if cfg.image_size not in caches:
-                        caches[cfg.image_size] = build_cache(run, variant, setting, cfg.image_size, progress=False)
-                    preds.save(predict_windows(folder, caches[cfg.image_size], test, resolve_device(cfg.device)),
-                               path)
-                frames.append(preds.load(path).assign(seed=seed))
-                if progress:
-                    print(f"[ablation] {recipe} {model} s{seed}: {time.perf_counter() - t0:.1f} s", flush=True)
-            frame = pd.concat(frames, ignore_index=True)
-            truth, pred = frame["class_index"].to_numpy(), frame["pred"].to_numpy()
-            groups = frame["clip_id"].to_numpy()
-            rng = np.random.default_rng([run.config.seed, len(rows)])   # bootstrap keyed by the row's place
+            frame, folders = _train_and_predict(run, setting, variant, recipe, cfg, model, seeds, test, caches,
+                                                progress)
             row = {"recipe": recipe, "model": model, "seeds": seeds,
                    "changes": {k: v for k, v in dataclasses.asdict(cfg).items() if getattr(base, k) != v},
-                   **metrics.summarize(truth, pred, preds.probs_of(frame), groups, rng=rng, **bootstrap)}
-            correct = metrics.correct(truth, pred)
-            if model in reference:
-                ref_correct, ref_groups = reference[model]
-                diff = metrics.bootstrap_mean_difference(correct, groups, ref_correct, ref_groups, rng=rng,
-                                                         **bootstrap)
-                row.update(diff.as_dict("acc_minus_first"))
-            else:
-                reference[model] = (correct, groups)
-            folders = [recipe_root(run, recipe) / setting / variant / model / f"s{s}" for s in seeds]
+                   **_scores(run, frame, model, reference, len(rows))}
             row["speed"] = [_speed(f) for f in folders]
             row["curves"] = {f"s{s}": _curves(f) for s, f in zip(seeds, folders)}
             rows.append(row)
@@ -151,6 +132,49 @@ def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], model
     atomic_write_text(out_dir / f"{stem}.md", markdown(report))
     return {"json": str(out_dir / f"{stem}.json"),
             "top1": {f"{r['recipe']}/{r['model']}": round(r["acc"], 4) for r in rows}}
+
+
+def _train_and_predict(run: Run, setting: str, variant: str, recipe: str, cfg, model: str, seeds: list[int],
+                       test, caches: dict, progress: bool) -> tuple[pd.DataFrame, list[Path]]:
+    """``model`` trained with ``recipe`` for every seed (resumable) and its predictions on the ``test`` windows
+    (kept in each folder's ``test_predictions.csv``): all seeds' predictions, and the training folders.
+    ``caches`` holds the frame cache per image size, built once."""
+    from learn.dataset import build_cache
+    from learn.predict import predict_windows
+    from learn.train import resolve_device, train_one
+
+    frames, folders = [], []
+    for seed in seeds:
+        t0 = time.perf_counter()
+        folder = train_one(run, setting, variant, model, seed, progress, config=cfg, root=recipe_root(run, recipe))
+        path = folder / "test_predictions.csv"
+        if not path.is_file():
+            if cfg.image_size not in caches:
+                caches[cfg.image_size] = build_cache(run, variant, setting, cfg.image_size, progress=False)
+            preds.save(predict_windows(folder, caches[cfg.image_size], test, resolve_device(cfg.device)), path)
+        frames.append(preds.load(path).assign(seed=seed))
+        folders.append(folder)
+        if progress:
+            print(f"[ablation] {recipe} {model} s{seed}: {time.perf_counter() - t0:.1f} s", flush=True)
+    return pd.concat(frames, ignore_index=True), folders
+
+
+def _scores(run: Run, frame: pd.DataFrame, model: str, reference: dict, row_index: int) -> dict:
+    """Accuracy and its interval of one recipe's ``model`` on the test windows, and for every recipe after the
+    first its difference from the first's (``reference``: model -> the first recipe's correct flags and clips)."""
+    bootstrap = dict(resamples=run.config.eval.bootstrap, confidence=run.config.eval.confidence)
+    truth, pred = frame["class_index"].to_numpy(), frame["pred"].to_numpy()
+    groups = frame["clip_id"].to_numpy()
+    rng = np.random.default_rng([run.config.seed, row_index])   # bootstrap keyed by the row's place
+    scores = metrics.summarize(truth, pred, preds.probs_of(frame), groups, rng=rng, **bootstrap)
+    correct = metrics.correct(truth, pred)
+    if model in reference:
+        ref_correct, ref_groups = reference[model]
+        diff = metrics.bootstrap_mean_difference(correct, groups, ref_correct, ref_groups, rng=rng, **bootstrap)
+        scores.update(diff.as_dict("acc_minus_first"))
+    else:
+        reference[model] = (correct, groups)
+    return scores
 
 
 def _pct(row: dict, key: str) -> str:

@@ -337,36 +337,12 @@ def evaluate_real(video_dir: Path | str, truth_csv: Path | str, train_dir: Path 
     video_dir, truth_csv, train_dir, out_dir = map(Path, (video_dir, truth_csv, train_dir, out_dir))
     truth = read_truth(truth_csv)              # every input is checked before the model is loaded
     listed = inputs if inputs is not None else {p.name: p for p in list_inputs(video_dir)}
-    check_distinct(listed)
-    early = match_truth(truth, listed)
-    twice = early[early.notna() & early.duplicated(keep=False)]
-    if not twice.empty:
-        raise InputError(f"truth CSV {truth_csv}: rows {', '.join(truth.loc[twice.index, 'video'])} name the same "
-                         "video; give each video one row")
+    _check_inputs(truth, truth_csv, listed)
     geometry = model_geometry(train_dir)
     fps = fps or geometry["fps"]
     out_dir.mkdir(parents=True, exist_ok=True)
 
-    skipped, clip_dirs, names = [], [], {}
-    for name, path in listed.items():
-        path = Path(path)
-        try:
-            frames = read_video(path, geometry["image_size"], fps, max_frames, frames_fps)
-            if len(frames) < geometry["clip_len"]:
-                raise VideoError(f"{name}: {len(frames)} frames at {fps:g} fps, fewer than one "
-                                 f"{geometry['clip_len']}-frame sub-sequence")
-        except VideoError as err:
-            skipped.append({"video": name, "reason": str(err)})
-            if progress:
-                print(f"[eval real] skipped {err}", flush=True)
-            continue
-        folder = out_dir / "clips" / clip_folder_name(name, path)
-        if folder.exists():
-            shutil.rmtree(folder)
-        clip_dirs.append(write_clip(frames, folder, name))
-        names[name] = path
-        if progress:
-            print(f"[eval real] {name}: {len(frames)} frames", flush=True)
+    clip_dirs, names, skipped = _write_clips(listed, out_dir, geometry, fps, max_frames, frames_fps, progress)
     atomic_write_text(out_dir / "skipped.csv", pd.DataFrame(skipped, columns=["video", "reason"]).to_csv(index=False))
     if not clip_dirs:
         raise VideoError(f"no readable video in {video_dir} ({len(skipped)} skipped; see {out_dir / 'skipped.csv'})")
@@ -392,6 +368,43 @@ def evaluate_real(video_dir: Path | str, truth_csv: Path | str, train_dir: Path 
     if activations:
         _activation_figure(train_dir, clip_dirs[:activations], out_dir / "activations.png")
     return path
+
+
+def _check_inputs(truth: pd.DataFrame, truth_csv: Path, listed: dict[str, Path]) -> None:
+    """The inputs have distinct names and no two truth rows name the same input."""
+    check_distinct(listed)
+    early = match_truth(truth, listed)
+    twice = early[early.notna() & early.duplicated(keep=False)]
+    if not twice.empty:
+        raise InputError(f"truth CSV {truth_csv}: rows {', '.join(truth.loc[twice.index, 'video'])} name the same "
+                         "video; give each video one row")
+
+
+def _write_clips(listed: dict[str, Path], out_dir: Path, geometry: dict, fps: float, max_frames: int,
+                 frames_fps: float | None, progress: bool) -> tuple[list[Path], dict[str, Path], list[dict]]:
+    """Every readable input as a clip folder under ``out_dir / "clips"`` at the model's image size and ``fps``:
+    returns the clip folders, the inputs they came from (name -> path), and the inputs skipped, with the reason."""
+    skipped, clip_dirs, names = [], [], {}
+    for name, path in listed.items():
+        path = Path(path)
+        try:
+            frames = read_video(path, geometry["image_size"], fps, max_frames, frames_fps)
+            if len(frames) < geometry["clip_len"]:
+                raise VideoError(f"{name}: {len(frames)} frames at {fps:g} fps, fewer than one "
+                                 f"{geometry['clip_len']}-frame sub-sequence")
+        except VideoError as err:
+            skipped.append({"video": name, "reason": str(err)})
+            if progress:
+                print(f"[eval real] skipped {err}", flush=True)
+            continue
+        folder = out_dir / "clips" / clip_folder_name(name, path)
+        if folder.exists():
+            shutil.rmtree(folder)
+        clip_dirs.append(write_clip(frames, folder, name))
+        names[name] = path
+        if progress:
+            print(f"[eval real] {name}: {len(frames)} frames", flush=True)
+    return clip_dirs, names, skipped
 
 
 def _activation_figure(train_dir: Path, clip_dirs: list[Path], path: Path) -> None:

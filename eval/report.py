@@ -419,44 +419,58 @@ def _section_measured(run: Run) -> str:
                    "against its measured one, one colour per training variant (on the dashed diagonal the "
                    "prediction is the measurement; the class grid makes the predictions step).</p>"
                    + _img(figures.png_bytes(figures.measured_scatter(table)), "measured fabrics, all models", 760))
-    keys = ["setting", "train_variant", "model", "seed", "test_variant"]
-    for key, g in table.groupby(keys, sort=True):
-        setting, train_v, model, seed, _ = key
-        out.append(f"<h3>{_esc(tables.MODEL_TITLES.get(model, model))} trained on {_esc(train_v)} "
-                   f"({_esc(setting)}, seed {_esc(seed)})</h3><p>Model: {_links(run, g['checkpoint'].iloc[0])}; "
-                   f"per-clip predictions and Table 4: {_links(run, g['folder'].iloc[0])}</p>")
-        head = "".join(f"<th>{h}</th>" for h in ("Fabric", "Clips", "Predicted (p, k)", "Prob.", "Table 2 (p, k)",
-                                                  "Exact", "p", "k", "Steps", "Bending measured / predicted",
-                                                  "Stretching measured / predicted", "Density"))
-        rows = []
-        for _, r in g.iterrows():
-            yes = lambda x: "yes" if x == 1 else "no"  # noqa: E731
-            rows.append(f"<tr><td>{_esc(r['fabric'])}</td><td class=\"num\">{r['clips']}</td>"
-                        f"<td>({r['pred_p']:g}, {r['pred_k']:g})</td><td class=\"num\">{r['prob']:.2f}</td>"
-                        f"<td>({r['table2_p']:g}, {r['table2_k']:g})</td><td>{yes(r['exact'])}</td>"
-                        f"<td>{yes(r['p_match'])}</td><td>{yes(r['k_match'])}</td>"
-                        f"<td class=\"num\">{r['class_dist']:g}</td>"
-                        f"<td class=\"num\">{r['bending_N_m']:.3g} / {r['pred_bending_N_m']:.3g}</td>"
-                        f"<td class=\"num\">{r['stretching_N_m']:.4g} / {r['pred_stretching_N_m']:.4g}</td>"
-                        f"<td class=\"num\">{r['density_kg_m2']:.3g}</td></tr>")
-        out.append(f"<table><tr>{head}</tr>{''.join(rows)}</table>")
-        entry = next((e for e in info.get("models", []) if [e.get(k) for k in keys[:4]] == list(key[:4])), {})
-        if entry.get("match"):
-            match = pd.DataFrame(entry["match"])
-            out.append("<p>Match over fabrics (95% interval resampling fabrics):</p>"
-                       + _table(match[["score", "fabrics", "value", "value_lo", "value_hi"]], est=("value",)))
-        if not corr.empty:
-            sub = corr[np.logical_and.reduce([corr[k] == v for k, v in zip(keys, key)])]
-            cols = ["unit", "description", "n", "fabrics", "pearson", "pearson_lo", "pearson_hi", "spearman",
-                    "spearman_lo", "spearman_hi"]
-            out.append("<p>Correlation with measured values (unit <b>clip</b>: one point per clip, intervals "
-                       "resample whole fabrics; <b>fabric</b>: one point per fabric):</p>"
-                       + _table(sub[[c for c in cols if c in sub]], est=("pearson", "spearman")))
-        folder = run.root / g["folder"].iloc[0]
-        out.append('<div class="figs">' + "".join(_img_file(p, str(p.relative_to(run.root)), 520)
-                                                  for p in (folder / "scatter.png", folder / "activations.png")
-                                                  if p.is_file()) + "</div>")
+    for key, g in table.groupby(_MEASURED_KEYS, sort=True):
+        out += _measured_model(run, key, g, info, corr)
     return "".join(out)
+
+
+_MEASURED_KEYS = ["setting", "train_variant", "model", "seed", "test_variant"]   # one model on the measured set
+
+
+def _measured_model(run: Run, key: tuple, g: pd.DataFrame, info: dict, corr: pd.DataFrame) -> list[str]:
+    """One model's part of the measured section: its fabrics against Table 2, match rates, correlations, figures."""
+    keys = _MEASURED_KEYS
+    setting, train_v, model, seed, _ = key
+    out = [f"<h3>{_esc(tables.MODEL_TITLES.get(model, model))} trained on {_esc(train_v)} "
+           f"({_esc(setting)}, seed {_esc(seed)})</h3><p>Model: {_links(run, g['checkpoint'].iloc[0])}; "
+           f"per-clip predictions and Table 4: {_links(run, g['folder'].iloc[0])}</p>",
+           _measured_fabrics_table(g)]
+    entry = next((e for e in info.get("models", []) if [e.get(k) for k in keys[:4]] == list(key[:4])), {})
+    if entry.get("match"):
+        match = pd.DataFrame(entry["match"])
+        out.append("<p>Match over fabrics (95% interval resampling fabrics):</p>"
+                   + _table(match[["score", "fabrics", "value", "value_lo", "value_hi"]], est=("value",)))
+    if not corr.empty:
+        sub = corr[np.logical_and.reduce([corr[k] == v for k, v in zip(keys, key)])]
+        cols = ["unit", "description", "n", "fabrics", "pearson", "pearson_lo", "pearson_hi", "spearman",
+                "spearman_lo", "spearman_hi"]
+        out.append("<p>Correlation with measured values (unit <b>clip</b>: one point per clip, intervals "
+                   "resample whole fabrics; <b>fabric</b>: one point per fabric):</p>"
+                   + _table(sub[[c for c in cols if c in sub]], est=("pearson", "spearman")))
+    folder = run.root / g["folder"].iloc[0]
+    out.append('<div class="figs">' + "".join(_img_file(p, str(p.relative_to(run.root)), 520)
+                                              for p in (folder / "scatter.png", folder / "activations.png")
+                                              if p.is_file()) + "</div>")
+    return out
+
+
+def _measured_fabrics_table(g: pd.DataFrame) -> str:
+    """One model's fabrics: predicted class against Table 2's, and measured against predicted stiffness."""
+    head = "".join(f"<th>{h}</th>" for h in ("Fabric", "Clips", "Predicted (p, k)", "Prob.", "Table 2 (p, k)",
+                                              "Exact", "p", "k", "Steps", "Bending measured / predicted",
+                                              "Stretching measured / predicted", "Density"))
+    rows = []
+    for _, r in g.iterrows():
+        yes = lambda x: "yes" if x == 1 else "no"  # noqa: E731
+        rows.append(f"<tr><td>{_esc(r['fabric'])}</td><td class=\"num\">{r['clips']}</td>"
+                    f"<td>({r['pred_p']:g}, {r['pred_k']:g})</td><td class=\"num\">{r['prob']:.2f}</td>"
+                    f"<td>({r['table2_p']:g}, {r['table2_k']:g})</td><td>{yes(r['exact'])}</td>"
+                    f"<td>{yes(r['p_match'])}</td><td>{yes(r['k_match'])}</td>"
+                    f"<td class=\"num\">{r['class_dist']:g}</td>"
+                    f"<td class=\"num\">{r['bending_N_m']:.3g} / {r['pred_bending_N_m']:.3g}</td>"
+                    f"<td class=\"num\">{r['stretching_N_m']:.4g} / {r['pred_stretching_N_m']:.4g}</td>"
+                    f"<td class=\"num\">{r['density_kg_m2']:.3g}</td></tr>")
+    return f"<table><tr>{head}</tr>{''.join(rows)}</table>"
 
 
 def _section_extra_tables(run: Run) -> str:

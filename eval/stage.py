@@ -28,6 +28,7 @@ import json
 import sys
 import time
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -220,45 +221,15 @@ def predict_all(run: Run, models: list[TrainedModel], predictor: Predictor,
         test_ids = sorted(windows)
         sha = checkpoint_sha256(m)
         for test_variant in rendered_variants(run, m.setting):
-            path = prediction_path(run, m, test_variant)
             where = {"setting": m.setting, "train_variant": m.variant, "model": m.model, "seed": m.seed,
                      "test_variant": test_variant}
             folder = run.render_dir(test_variant, m.setting)
-            clip_dirs = [folder / c for c in test_ids if is_done(folder / c)]
-            wanted = [d.name for d in clip_dirs]
             missing = [{"clip_id": c, "reason": f"not rendered ({folder / c} has no DONE)"}
                        for c in test_ids if not is_done(folder / c)]
-            record = _read_record(path)
-            if (path.is_file() and record is not None and record.get("checkpoint_sha256") == sha
-                    and record.get("clips") == wanted and not record.get("left_out")):
-                frame = preds.load(path)
-                counts["reused"] += 1
-                dropped: list[dict] = []
-            else:
-                # Stale or unverifiable: gone before predicting, so a failure cannot leave it to be reused.
-                path.unlink(missing_ok=True)
-                record_path(path).unlink(missing_ok=True)
-                if not clip_dirs:
-                    counts["no_test_clips"] += 1
-                    left_out += [{**where, **x} for x in missing]
-                    continue
-                t0 = time.perf_counter()
-                with warnings.catch_warnings(record=True) as caught:
-                    warnings.simplefilter("always")
-                    raw = predictor(m.folder, clip_dirs)
-                got = set(preds.to_flat(raw)["clip_id"])
-                dropped = [{"clip_id": d.name, "reason": _left_out_reason(d, caught)}
-                           for d in clip_dirs if d.name not in got]
-                preds.save(raw, path)
-                atomic_write_json(record_path(path), {"checkpoint": _rel(run, m.checkpoint),
-                                                      "checkpoint_sha256": sha, "clips": wanted,
-                                                      "left_out": dropped})
-                frame = preds.load(path)
-                counts["predicted"] += 1
-                if progress:
-                    n = len(wanted) - len(dropped)
-                    print(f"[eval] {_rel(run, m.folder)} on {test_variant}: {n} of {len(test_ids)} test clips, "
-                          f"{len(frame)} sub-sequences, {time.perf_counter() - t0:.1f} s", flush=True)
+            frame, dropped = _model_predictions(run, m, test_variant, test_ids, sha, predictor, progress, counts)
+            if frame is None:
+                left_out += [{**where, **x} for x in missing]
+                continue
             for item in missing + dropped:
                 left_out.append({**where, **item})
                 if progress:
@@ -272,6 +243,45 @@ def predict_all(run: Run, models: list[TrainedModel], predictor: Predictor,
             else:
                 cells[key] = tables.Cell(*key, frame=frame, sources=[_rel(run, m.checkpoint)])
     return cells, counts, left_out
+
+
+def _model_predictions(run: Run, m: TrainedModel, test_variant: str, test_ids: list[str], sha: str,
+                       predictor: Predictor, progress: bool,
+                       counts: dict[str, int]) -> tuple[pd.DataFrame | None, list[dict]]:
+    """Model ``m``'s predictions on the rendered test clips of ``test_variant``, reused when their record matches
+    (``predict_all``), else computed and saved; and the clips left out of them, with the reason. The frame is
+    None when no test clip is rendered. ``counts`` counts what was reused, predicted, or had no test clip."""
+    path = prediction_path(run, m, test_variant)
+    folder = run.render_dir(test_variant, m.setting)
+    clip_dirs = [folder / c for c in test_ids if is_done(folder / c)]
+    wanted = [d.name for d in clip_dirs]
+    record = _read_record(path)
+    if (path.is_file() and record is not None and record.get("checkpoint_sha256") == sha
+            and record.get("clips") == wanted and not record.get("left_out")):
+        counts["reused"] += 1
+        return preds.load(path), []
+    # Stale or unverifiable: gone before predicting, so a failure cannot leave it to be reused.
+    path.unlink(missing_ok=True)
+    record_path(path).unlink(missing_ok=True)
+    if not clip_dirs:
+        counts["no_test_clips"] += 1
+        return None, []
+    t0 = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        raw = predictor(m.folder, clip_dirs)
+    got = set(preds.to_flat(raw)["clip_id"])
+    dropped = [{"clip_id": d.name, "reason": _left_out_reason(d, caught)} for d in clip_dirs if d.name not in got]
+    preds.save(raw, path)
+    atomic_write_json(record_path(path), {"checkpoint": _rel(run, m.checkpoint), "checkpoint_sha256": sha,
+                                          "clips": wanted, "left_out": dropped})
+    frame = preds.load(path)
+    counts["predicted"] += 1
+    if progress:
+        n = len(wanted) - len(dropped)
+        print(f"[eval] {_rel(run, m.folder)} on {test_variant}: {n} of {len(test_ids)} test clips, "
+              f"{len(frame)} sub-sequences, {time.perf_counter() - t0:.1f} s", flush=True)
+    return frame, dropped
 
 
 def _confusion_figures(run: Run, cells: dict[tuple, tables.Cell]) -> list[str]:
@@ -302,8 +312,13 @@ def _gap_figures(run: Run, gap: pd.DataFrame) -> list[str]:
 def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None) -> dict:
     """Evaluate every finished model of the run on every rendered test variant; write the tables.
 
-    ``predictor`` replaces ``learn.predict.predict_clips`` (tests inject a stub).
-    Returns a short summary (the full one is ``eval/summary.json``).
+    Args:
+        run: the run whose finished models and rendered test clips are evaluated.
+        progress: print a line per prediction file and per clip left out.
+        predictor: replaces ``learn.predict.predict_clips`` (tests inject a stub).
+
+    Returns:
+        A short summary (the full one is ``eval/summary.json``).
     """
     cfg = run.config
     models = finished_models(run)
@@ -312,59 +327,13 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
                           f"settings/variants/models/seeds: run `clothgap train {run.root}` first")
     cells, counts, left_out = predict_all(run, models, predictor or _default_predictor, progress)
     if not cells:
-        empty = [s for s in sorted({m.setting for m in models}) if not test_clips(run, s)]
-        if empty:
-            # A split can hold no test sequence at all (too few sequences per class for the test share);
-            # rendering more would not help, so say what would.
-            raise ConfigError(f"the split of {', '.join(empty)} holds no test sequence "
-                              f"({cfg.sim.sequences_per_class} sequence(s) per class, train.test_fraction="
-                              f"{cfg.train.test_fraction:g}): raise sim.sequences_per_class or train.test_fraction "
-                              "in a new run")
-        raise ConfigError(f"no rendered test clips found for any model under {run.root / 'render'}: "
-                          f"run `clothgap render {run.root}` first")
-    rng_for = _Rngs(cfg.seed)
-    opts = {"resamples": cfg.eval.bootstrap, "confidence": cfg.eval.confidence, "rng_for": rng_for}
-    ordered = [cells[k] for k in sorted(cells)]
-    results = tables.results_frame(ordered, **opts)
-    out = run.eval_dir
-    atomic_write_text(out / "results.csv", results.to_csv(index=False, float_format="%.6g"))
-
-    variants = sorted({k[1] for k in cells} | {k[3] for k in cells})
-    settings_of = {v: variant_settings(run, v) for v in variants}
-    texture_of = {v: texture_family(settings_of[v], v) for v in variants}
-    table3 = tables.table3(results, texture_of)
-    atomic_write_text(out / "table3.csv", table3.to_csv(index=False, float_format="%.6g"))
-    atomic_write_text(out / "table3.md", f"# Table 3 ({cfg.name}: `{run.root}`)\n\n" + tables.table3_markdown(table3))
-
-    gap = tables.domain_gap(cells, results, **opts)
-    atomic_write_text(out / "domain_gap.csv", gap.to_csv(index=False, float_format="%.6g"))
-    ranking = tables.rank_axes(gap, settings_of, cells, resamples=cfg.eval.bootstrap, confidence=cfg.eval.confidence,
-                               rng=rng_for("axes"))
-    atomic_write_text(out / "axis_ranking.csv", ranking.to_csv(index=False, float_format="%.6g"))
-
-    figs = {"confusion": _confusion_figures(run, cells), "gap": _gap_figures(run, gap)}
-    in_domain = results[results["in_domain"]]
+        raise _no_test_clips_error(run, models)
+    written = _write_tables(run, cells)
+    figs = {"confusion": _confusion_figures(run, cells), "gap": _gap_figures(run, written.gap)}
+    in_domain = written.results[written.results["in_domain"]]
     headline = {f"{r.setting}/{r.train_variant}/{r.model}": round(float(r.acc), 4) for r in in_domain.itertuples()}
-    summary = {
-        "run": str(run.root), "config": "config.json", "name": cfg.name,
-        "bootstrap": {"resamples": cfg.eval.bootstrap, "confidence": cfg.eval.confidence, "unit": "sequence"},
-        "models": [{"setting": m.setting, "variant": m.variant, "model": m.model, "seed": m.seed,
-                    "checkpoint": _rel(run, m.checkpoint), "checkpoint_sha256": checkpoint_sha256(m)}
-                   for m in models],
-        "test_variants": variants, "texture_of": texture_of,
-        "variant_axes": tables.differing_axes(settings_of),
-        "in_domain_accuracy": headline,
-        "results": json.loads(results.to_json(orient="records")),
-        "axis_ranking": json.loads(ranking.to_json(orient="records")),
-        "files": {"results": "eval/results.csv", "table3": "eval/table3.csv", "table3_md": "eval/table3.md",
-                  "domain_gap": "eval/domain_gap.csv", "axis_ranking": "eval/axis_ranking.csv",
-                  "figures": figs},
-        "predictions": counts,
-        # Test clips of the split with no prediction (not rendered, unreadable): the numbers above are on
-        # fewer clips than the split names, and the CLI exits non-zero unless --allow-failures.
-        "left_out": left_out,
-        "config_snapshot": to_dict(cfg),
-    }
+    summary = _summary(run, models, written, figs, headline, counts, left_out)
+    out = run.eval_dir
     atomic_write_json(out / "summary.json", summary)
     short = {"cells": len(cells), **counts, "left_out": len(left_out), "in_domain_accuracy": headline}
     if left_out:
@@ -383,6 +352,83 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
                                         "markdown": "eval/measured.md", "summary": "eval/measured.json"}
         atomic_write_json(out / "summary.json", summary)
     return short
+
+
+def _no_test_clips_error(run: Run, models: list[TrainedModel]) -> ConfigError:
+    """Why no model has a test clip to predict, and what would give it one."""
+    cfg = run.config
+    empty = [s for s in sorted({m.setting for m in models}) if not test_clips(run, s)]
+    if empty:
+        # A split can hold no test sequence at all (too few sequences per class for the test share);
+        # rendering more would not help, so say what would.
+        return ConfigError(f"the split of {', '.join(empty)} holds no test sequence "
+                           f"({cfg.sim.sequences_per_class} sequence(s) per class, train.test_fraction="
+                           f"{cfg.train.test_fraction:g}): raise sim.sequences_per_class or train.test_fraction "
+                           "in a new run")
+    return ConfigError(f"no rendered test clips found for any model under {run.root / 'render'}: "
+                       f"run `clothgap render {run.root}` first")
+
+
+@dataclass
+class _Tables:
+    """What ``_write_tables`` computed and wrote, for the figures and the summary."""
+
+    results: pd.DataFrame
+    gap: pd.DataFrame
+    ranking: pd.DataFrame
+    variants: list[str]
+    settings_of: dict[str, dict]     # variant -> its render settings
+    texture_of: dict[str, str]       # variant -> its texture family
+
+
+def _write_tables(run: Run, cells: dict[tuple, tables.Cell]) -> _Tables:
+    """results.csv, table3.csv and .md, domain_gap.csv and axis_ranking.csv from the gathered cells."""
+    cfg, out = run.config, run.eval_dir
+    rng_for = _Rngs(cfg.seed)
+    opts = {"resamples": cfg.eval.bootstrap, "confidence": cfg.eval.confidence, "rng_for": rng_for}
+    ordered = [cells[k] for k in sorted(cells)]
+    results = tables.results_frame(ordered, **opts)
+    atomic_write_text(out / "results.csv", results.to_csv(index=False, float_format="%.6g"))
+
+    variants = sorted({k[1] for k in cells} | {k[3] for k in cells})
+    settings_of = {v: variant_settings(run, v) for v in variants}
+    texture_of = {v: texture_family(settings_of[v], v) for v in variants}
+    table3 = tables.table3(results, texture_of)
+    atomic_write_text(out / "table3.csv", table3.to_csv(index=False, float_format="%.6g"))
+    atomic_write_text(out / "table3.md", f"# Table 3 ({cfg.name}: `{run.root}`)\n\n" + tables.table3_markdown(table3))
+
+    gap = tables.domain_gap(cells, results, **opts)
+    atomic_write_text(out / "domain_gap.csv", gap.to_csv(index=False, float_format="%.6g"))
+    ranking = tables.rank_axes(gap, settings_of, cells, resamples=cfg.eval.bootstrap, confidence=cfg.eval.confidence,
+                               rng=rng_for("axes"))
+    atomic_write_text(out / "axis_ranking.csv", ranking.to_csv(index=False, float_format="%.6g"))
+    return _Tables(results, gap, ranking, variants, settings_of, texture_of)
+
+
+def _summary(run: Run, models: list[TrainedModel], written: _Tables, figs: dict, headline: dict,
+             counts: dict[str, int], left_out: list[dict]) -> dict:
+    """``eval/summary.json``: the models and their checkpoints, the tables' rows, the files, what was left out."""
+    cfg = run.config
+    return {
+        "run": str(run.root), "config": "config.json", "name": cfg.name,
+        "bootstrap": {"resamples": cfg.eval.bootstrap, "confidence": cfg.eval.confidence, "unit": "sequence"},
+        "models": [{"setting": m.setting, "variant": m.variant, "model": m.model, "seed": m.seed,
+                    "checkpoint": _rel(run, m.checkpoint), "checkpoint_sha256": checkpoint_sha256(m)}
+                   for m in models],
+        "test_variants": written.variants, "texture_of": written.texture_of,
+        "variant_axes": tables.differing_axes(written.settings_of),
+        "in_domain_accuracy": headline,
+        "results": json.loads(written.results.to_json(orient="records")),
+        "axis_ranking": json.loads(written.ranking.to_json(orient="records")),
+        "files": {"results": "eval/results.csv", "table3": "eval/table3.csv", "table3_md": "eval/table3.md",
+                  "domain_gap": "eval/domain_gap.csv", "axis_ranking": "eval/axis_ranking.csv",
+                  "figures": figs},
+        "predictions": counts,
+        # Test clips of the split with no prediction (not rendered, unreadable): the numbers above are on
+        # fewer clips than the split names, and the CLI exits non-zero unless --allow-failures.
+        "left_out": left_out,
+        "config_snapshot": to_dict(cfg),
+    }
 
 
 def stale_checkpoints(run: Run) -> list[str]:

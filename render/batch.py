@@ -147,6 +147,18 @@ class SlotPose:
         return m
 
 
+def _ambient_and_rectangles(emitters: dict) -> tuple[np.ndarray, dict]:
+    """The summed radiance of the ``constant`` emitters (the ambient) and the other emitters (rectangles) by name."""
+    ambient = np.zeros(3)
+    rectangles = {}
+    for name, entry in emitters.items():
+        if entry["type"] == "constant":
+            ambient += np.asarray(entry["radiance"]["value"], np.float64)
+        else:
+            rectangles[name] = entry
+    return ambient, rectangles
+
+
 def grid_offsets(count: int, spacing: float) -> np.ndarray:
     """``count`` points of a square-ish grid in the z = 0 plane, centred on the origin."""
     cols = math.ceil(math.sqrt(count))
@@ -181,35 +193,50 @@ class BatchRenderer:
         return int(counts_v.max()) + 1, int(counts_f.max())  # +1: a spare vertex for degenerate padding faces
 
     def _build(self) -> None:
+        """The scene of K slots (see the module's docstring), its cloth at the clip's first frame."""
         mi, r = self.mi, self.r
         framing = r.framing
         origin, target = np.asarray(framing.origin, np.float64), np.asarray(framing.target, np.float64)
         rotation = _rotation_to_down(target - origin)
+        ambient, rectangles = _ambient_and_rectangles({**r.lights, **r.room})
+        radius, window = self._enclosure(origin, rectangles)
+        shell = enclosure_mesh(radius, window)
+        offsets = grid_offsets(self.k, CELL_SPACING * radius * max(1.0, TUNNEL_LENGTH * math.sin(math.radians(window))))
+        self.poses = [SlotPose(rotation, origin, o) for o in offsets]
 
-        ambient = np.zeros(3)
-        rectangles = {}
-        for name, entry in {**r.lights, **r.room}.items():
-            if entry["type"] == "constant":
-                ambient += np.asarray(entry["radiance"]["value"], np.float64)
-            else:
-                rectangles[name] = entry
-        # The shell must hold everything of the slot: every frame's cloth, the lights, the room.
+        black = mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}})
+        scene = self._scene_dict(ambient)
+        self._cloth_keys = []
+        for i, pose in enumerate(self.poses):
+            # Objects are instantiated here, one by one, rather than by load_dict: it builds a scene's children
+            # in parallel, and the order they finish in decides the emitters' order and so which light a
+            # random number picks; instantiated in order, the same seed gives the same image.
+            self._add_slot_view(scene, i, pose, target, rotation, rectangles)
+            if ambient.any():
+                scene[f"shell_{i:03d}"] = self._shell(i, pose, shell, ambient, black)
+            key = f"cloth_{i:03d}"
+            scene[key] = self._cloth(key, pose)
+            self._cloth_keys.append(key)
+        self.scene = mi.load_dict(scene)
+        self.params = mi.traverse(self.scene)
+        self.radius, self.window_deg = radius, window
+        r.rebuilds += 1
+
+    def _enclosure(self, origin: np.ndarray, rectangles: dict) -> tuple[float, float]:
+        """The shell's radius, large enough to hold every frame's cloth, the lights and the room seen from the
+        camera at ``origin``, and its window's half-angle in degrees."""
         lo, hi = self.clip.bounds()
         box = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
         points = [box] + [_rectangle_corners(np.asarray(e["to_world"].matrix, np.float64))
                           for e in rectangles.values()]
         reach = max(float(np.linalg.norm(np.concatenate(points) - origin, axis=1).max()), 1e-3)
-        radius = ENCLOSURE_MARGIN * reach
-        half_diag = math.degrees(math.atan(math.tan(math.radians(framing.fov_deg) / 2) * math.sqrt(2)))
-        window = min(WINDOW_MARGIN * half_diag, 80.0)
-        shell_v, shell_f = enclosure_mesh(radius, window)
-        offsets = grid_offsets(self.k, CELL_SPACING * radius * max(1.0, TUNNEL_LENGTH * math.sin(math.radians(window))))
-        self.poses = [SlotPose(rotation, origin, o) for o in offsets]
+        half_diag = math.degrees(math.atan(math.tan(math.radians(self.r.framing.fov_deg) / 2) * math.sqrt(2)))
+        return ENCLOSURE_MARGIN * reach, min(WINDOW_MARGIN * half_diag, 80.0)
 
-        n_v, n_f = self._capacity()
-        res = r.resolution
-        black = mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}})
-        scene: dict = {
+    def _scene_dict(self, ambient: np.ndarray) -> dict:
+        """The scene without its slots: the integrator, the ``batch`` sensor K frames wide, the ambient outside."""
+        r, res = self.r, self.r.resolution
+        return {
             "type": "scene",
             "integrator": {"type": "path", "max_depth": r.variant.max_depth, "hide_emitters": True},
             "sensor": {
@@ -224,47 +251,48 @@ class BatchRenderer:
             "ambient_outside": {"type": "constant", "radiance": {"type": "rgb", "value": ambient.tolist()},
                                 "sampling_weight": 0.0},
         }
-        self._cloth_keys = []
-        for i, pose in enumerate(self.poses):
-            m = pose.matrix()
-            to_world = mi.ScalarTransform4f(m.tolist())
-            # Objects are instantiated here, one by one, rather than by load_dict: it builds a scene's children
-            # in parallel, and the order they finish in decides the emitters' order and so which light a
-            # random number picks; instantiated in order, the same seed gives the same image.
-            scene["sensor"][f"s{i:03d}"] = mi.load_dict({
-                "type": "perspective", "fov": framing.fov_deg,
-                "to_world": mi.ScalarTransform4f().look_at(origin=pose.offset.tolist(),
-                                                           target=pose.points(target[None])[0].tolist(),
-                                                           up=(rotation @ np.array([0.0, 0.0, 1.0])).tolist()),
-                "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}},
-            })
-            for name, entry in rectangles.items():
-                scene[f"{name}_{i:03d}"] = mi.load_dict({**entry, "to_world": to_world @ entry["to_world"]})
-            if ambient.any():
-                props = self.mi.Properties()
-                props["bsdf"] = black
-                props["emitter"] = mi.load_dict({"type": "area", "radiance": {"type": "rgb", "value": ambient.tolist()}})
-                shell = mi.Mesh(f"shell_{i:03d}", len(shell_v), len(shell_f), props=props)
-                sp = mi.traverse(shell)
-                sp["vertex_positions"] = type(sp["vertex_positions"])(
-                    (shell_v + pose.offset).astype(np.float32).ravel())
-                sp["faces"] = type(sp["faces"])(shell_f.astype(np.uint32).ravel())
-                sp.update()
-                scene[f"shell_{i:03d}"] = shell
-            props = mi.Properties()
-            props["bsdf"] = r._bsdf
-            key = f"cloth_{i:03d}"
-            mesh = mi.Mesh(key, n_v, n_f, props=props, has_vertex_normals=True, has_vertex_texcoords=True)
-            mp = mi.traverse(mesh)
-            positions, faces, uv = self._padded(0, pose, n_v, n_f)
-            r._assign(mp, "", positions, faces, uv)
-            mp.update()
-            scene[key] = mesh
-            self._cloth_keys.append(key)
-        self.scene = mi.load_dict(scene)
-        self.params = mi.traverse(self.scene)
-        self.radius, self.window_deg = radius, window
-        r.rebuilds += 1
+
+    def _add_slot_view(self, scene: dict, i: int, pose: SlotPose, target: np.ndarray, rotation: np.ndarray,
+                       rectangles: dict) -> None:
+        """Slot ``i``'s camera (a sub-sensor of the batch) and its rectangle lights, moved into its cell."""
+        mi, res = self.mi, self.r.resolution
+        to_world = mi.ScalarTransform4f(pose.matrix().tolist())
+        scene["sensor"][f"s{i:03d}"] = mi.load_dict({
+            "type": "perspective", "fov": self.r.framing.fov_deg,
+            "to_world": mi.ScalarTransform4f().look_at(origin=pose.offset.tolist(),
+                                                       target=pose.points(target[None])[0].tolist(),
+                                                       up=(rotation @ np.array([0.0, 0.0, 1.0])).tolist()),
+            "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}},
+        })
+        for name, entry in rectangles.items():
+            scene[f"{name}_{i:03d}"] = mi.load_dict({**entry, "to_world": to_world @ entry["to_world"]})
+
+    def _shell(self, i: int, pose: SlotPose, shell: tuple[np.ndarray, np.ndarray], ambient: np.ndarray, black):
+        """Slot ``i``'s black shell, emitting the ambient radiance inward, around its camera."""
+        mi = self.mi
+        shell_v, shell_f = shell
+        props = mi.Properties()
+        props["bsdf"] = black
+        props["emitter"] = mi.load_dict({"type": "area", "radiance": {"type": "rgb", "value": ambient.tolist()}})
+        mesh = mi.Mesh(f"shell_{i:03d}", len(shell_v), len(shell_f), props=props)
+        sp = mi.traverse(mesh)
+        sp["vertex_positions"] = type(sp["vertex_positions"])((shell_v + pose.offset).astype(np.float32).ravel())
+        sp["faces"] = type(sp["faces"])(shell_f.astype(np.uint32).ravel())
+        sp.update()
+        return mesh
+
+    def _cloth(self, key: str, pose: SlotPose):
+        """A slot's cloth mesh, sized for the clip's largest frame, holding the first frame."""
+        mi, r = self.mi, self.r
+        n_v, n_f = self._capacity()
+        props = mi.Properties()
+        props["bsdf"] = r._bsdf
+        mesh = mi.Mesh(key, n_v, n_f, props=props, has_vertex_normals=True, has_vertex_texcoords=True)
+        mp = mi.traverse(mesh)
+        positions, faces, uv = self._padded(0, pose, n_v, n_f)
+        r._assign(mp, "", positions, faces, uv)
+        mp.update()
+        return mesh
 
     def _padded(self, t: float, pose: SlotPose, n_v: int, n_f: int):
         positions, faces, uv = self.r._geometry(t)

@@ -83,6 +83,48 @@ def sheen_marginal(table: np.ndarray, nodes: int = 64) -> np.ndarray:
     return (mean_sheen * np.sin(theta_h) * np.cos(theta_h) * np.pi * u + 1e-6).astype(np.float32)
 
 
+def _half_difference_angles(dr, wi, wo):
+    """The half vector ``h`` of (``wi``, ``wo``), its polar angle theta_h, and the difference angles (theta_d,
+    phi_d): ``wi`` in the frame where ``h`` is the pole, phi_d folded into [0, pi)."""
+    h = dr.normalize(wi + wo)
+    theta_h = dr.safe_acos(h.z)
+    phi_h = dr.atan2(h.y, h.x)
+    # Rotate wi into the frame where h is the pole: about z by -phi_h, then about y by -theta_h.
+    x = wi.x * dr.cos(phi_h) + wi.y * dr.sin(phi_h)
+    y = -wi.x * dr.sin(phi_h) + wi.y * dr.cos(phi_h)
+    dx = x * dr.cos(theta_h) - wi.z * dr.sin(theta_h)
+    dz = x * dr.sin(theta_h) + wi.z * dr.cos(theta_h)
+    theta_d = dr.safe_acos(dz)
+    phi_d = dr.atan2(y, dx)
+    phi_d = dr.select(phi_d < 0, phi_d + dr.pi, phi_d)
+    return h, theta_h, theta_d, phi_d
+
+
+def _sheen_pdf(dr, marginal, u, theta_h, wo, h, active):
+    """The solid-angle density of ``wo`` under the sheen lobe: a half vector whose u = sqrt(theta_h / (pi/2)) is
+    drawn from ``marginal`` and whose azimuth is uniform, ``wo`` the mirror of wi about it."""
+    pdf_u = marginal.eval_pdf_normalized(u, active)
+    pdf_theta_h = pdf_u / dr.maximum(dr.pi * u, 1e-6)
+    pdf_h = pdf_theta_h / dr.maximum(2 * dr.pi * dr.sin(theta_h), 1e-6)
+    return pdf_h / dr.maximum(4 * dr.abs(dr.dot(wo, h)), 1e-6)
+
+
+def _sample_sheen(dr, mi, marginal, wi, sample2, active):
+    """A direction drawn from the sheen lobe (``_sheen_pdf``'s density): ``wi`` mirrored about a drawn half vector."""
+    u, _ = marginal.sample_pdf(sample2.x, active)
+    theta_h = u * u * (dr.pi / 2)
+    phi_h = 2 * dr.pi * sample2.y
+    h = mi.Vector3f(dr.sin(theta_h) * dr.cos(phi_h), dr.sin(theta_h) * dr.sin(phi_h), dr.cos(theta_h))
+    return 2 * dr.dot(wi, h) * h - wi
+
+
+def _color_texture(mi: ModuleType, color):
+    """``color`` as a Mitsuba texture: a texture as it is, a plain colour or number as a constant ``rgb``."""
+    if isinstance(color, mi.Texture):
+        return color
+    return mi.load_dict({"type": "rgb", "value": np.broadcast_to(np.asarray(color, float), 3).tolist()})
+
+
 def register(mi: ModuleType) -> None:
     """Register ``clothgap_fabric`` with the current Mitsuba variant."""
     import drjit as dr
@@ -92,10 +134,7 @@ def register(mi: ModuleType) -> None:
 
         def __init__(self, props):
             mi.BSDF.__init__(self, props)
-            color = props["base_color"] if "base_color" in props else 0.5
-            if not isinstance(color, mi.Texture):  # a plain colour or number rather than a texture
-                color = mi.load_dict({"type": "rgb", "value": np.broadcast_to(np.asarray(color, float), 3).tolist()})
-            self.base_color = color
+            self.base_color = _color_texture(mi, props["base_color"] if "base_color" in props else 0.5)
             self.sheen = float(props["sheen"]) if "sheen" in props else 1.0
             path = Path(props["filename"]) if "filename" in props else DEFAULT_TABLE
             table = load_table(path)
@@ -106,17 +145,7 @@ def register(mi: ModuleType) -> None:
             self.m_flags = flags
 
         def _lookup(self, wi, wo):
-            h = dr.normalize(wi + wo)
-            theta_h = dr.safe_acos(h.z)
-            phi_h = dr.atan2(h.y, h.x)
-            # Rotate wi into the frame where h is the pole: about z by -phi_h, then about y by -theta_h.
-            x = wi.x * dr.cos(phi_h) + wi.y * dr.sin(phi_h)
-            y = -wi.x * dr.sin(phi_h) + wi.y * dr.cos(phi_h)
-            dx = x * dr.cos(theta_h) - wi.z * dr.sin(theta_h)
-            dz = x * dr.sin(theta_h) + wi.z * dr.cos(theta_h)
-            theta_d = dr.safe_acos(dz)
-            phi_d = dr.atan2(y, dx)
-            phi_d = dr.select(phi_d < 0, phi_d + dr.pi, phi_d)
+            h, theta_h, theta_d, phi_d = _half_difference_angles(dr, wi, wo)
             u = dr.safe_sqrt(theta_h / (dr.pi / 2))
             body, sheen = self.table.eval(mi.Point3f(u, theta_d / (dr.pi / 2), phi_d / dr.pi))
             return body, sheen, h, theta_h, u
@@ -127,10 +156,7 @@ def register(mi: ModuleType) -> None:
             body, sheen, h, theta_h, u = self._lookup(wi, wo)
             color = self.base_color.eval(si, active)
             value = (color * body + self.sheen * sheen) * mi.Frame3f.cos_theta(wo)
-            pdf_u = self.marginal.eval_pdf_normalized(u, active)
-            pdf_theta_h = pdf_u / dr.maximum(dr.pi * u, 1e-6)
-            pdf_h = pdf_theta_h / dr.maximum(2 * dr.pi * dr.sin(theta_h), 1e-6)
-            pdf_sheen = pdf_h / dr.maximum(4 * dr.abs(dr.dot(wo, h)), 1e-6)
+            pdf_sheen = _sheen_pdf(dr, self.marginal, u, theta_h, wo, h, active)
             pdf = BODY_PROB * mi.warp.square_to_cosine_hemisphere_pdf(wo) + (1 - BODY_PROB) * pdf_sheen
             return dr.select(active, value, 0.0), dr.select(active, pdf, 0.0)
 
@@ -141,12 +167,7 @@ def register(mi: ModuleType) -> None:
             return self.eval_pdf(ctx, si, wo, active)[1]
 
         def sample(self, ctx, si, sample1, sample2, active=True):
-            wi = si.wi
-            u, _ = self.marginal.sample_pdf(sample2.x, active)
-            theta_h = u * u * (dr.pi / 2)
-            phi_h = 2 * dr.pi * sample2.y
-            h = mi.Vector3f(dr.sin(theta_h) * dr.cos(phi_h), dr.sin(theta_h) * dr.sin(phi_h), dr.cos(theta_h))
-            wo_sheen = 2 * dr.dot(wi, h) * h - wi
+            wo_sheen = _sample_sheen(dr, mi, self.marginal, si.wi, sample2, active)
             wo_body = mi.warp.square_to_cosine_hemisphere(sample2)
             wo = dr.select(sample1 < BODY_PROB, wo_body, wo_sheen)
             value, pdf = self.eval_pdf(ctx, si, wo, active)

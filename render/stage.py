@@ -84,6 +84,36 @@ def render_clip(clip: SimClip, variant: RenderVariant, out_dir: Path, *, config:
     renderer = ClipRenderer(clip, variant, resolution=config.resolution, spp=config.spp, run_seed=run_seed,
                             clip_index=clip_index, backend=config.backend, backgrounds=backgrounds,
                             reuse_scenes=config.reuse_scenes, freeze=config.freeze)
+    frames, per_launch, on_host, unbatched = _frame_source(renderer, config, device_finish)
+    compress = variant.video_crf > 0
+    png = config.write_png
+    (out_dir / LDR_DIR if png else out_dir).mkdir(parents=True, exist_ok=True)
+    ldr = _finish_frames(renderer, frames, out_dir, config, compress, writer)
+    if compress:
+        ldr = np.stack(compress_frames(list(ldr), crf=variant.video_crf, fps=float(clip.meta.get("fps", 25.0))))
+        if png:
+            for t, frame in enumerate(ldr):
+                write_png(out_dir, t, frame)
+    write_frames(out_dir, ldr)
+    meta = dict(clip.meta)
+    meta.update({
+        "variant": variant.name,
+        "render": {**variant.settings(), "resolution": config.resolution, "spp": config.spp,
+                   "write_hdr": config.write_hdr, "write_png": png, **renderer.info,
+                   "scene_builds": renderer.rebuilds, "frames_per_launch": per_launch,
+                   "finished_on": "host" if on_host else "device",
+                   **({"host_finish_because": on_host} if on_host else {}),
+                   **({"unbatched_because": unbatched} if unbatched else {}),
+                   "seconds": round(time.perf_counter() - start, 3)},
+        "num_frames": clip.num_frames,
+    })
+    atomic_write_json(out_dir / "meta.json", meta)
+    return meta
+
+
+def _frame_source(renderer: ClipRenderer, config: RenderConfig, device_finish: bool):
+    """How the clip's frames are rendered: ``(frames, frames per launch, why they are finished on the host or
+    None, why they are not batched or None)``; ``frames`` yields ``(t, linear RGBA or None, uint8 frame or None)``."""
     per_launch = frames_per_launch(config, renderer.mi.variant())
     unbatched = batchable(renderer) if per_launch > 1 else None
     on_host = (renderer.device_finish_unsupported if device_finish else "device_finish=False") \
@@ -92,14 +122,19 @@ def render_clip(clip: SimClip, variant: RenderVariant, out_dir: Path, *, config:
         batch = BatchRenderer(renderer, per_launch)
         frames, per_launch = ((t, hdr, None) for t, hdr in batch.hdr_frames()), batch.k
     elif on_host:
-        frames, per_launch = ((t, renderer.render_hdr(t), None) for t in range(clip.num_frames)), 1
+        frames, per_launch = ((t, renderer.render_hdr(t), None) for t in range(renderer.clip.num_frames)), 1
     else:
         frames, per_launch = _finished_on_device(renderer, config.write_hdr), 1
-    compress = variant.video_crf > 0
+    return frames, per_launch, on_host, unbatched
+
+
+def _finish_frames(renderer: ClipRenderer, frames, out_dir: Path, config: RenderConfig, compress: bool,
+                   writer: Executor | None) -> np.ndarray:
+    """The clip's 8-bit frames (T, H, W, 3): each frame finished on the host where it still needs it, its EXR and
+    PNG written, on ``writer`` (or a pool of its own); returns once every write has finished."""
     png = config.write_png
-    (out_dir / LDR_DIR if png else out_dir).mkdir(parents=True, exist_ok=True)
     res = config.resolution
-    ldr = np.empty((clip.num_frames, res, res, 3), np.uint8)
+    ldr = np.empty((renderer.clip.num_frames, res, res, 3), np.uint8)
 
     def finish(t: int, hdr: np.ndarray | None, frame: np.ndarray | None) -> None:
         ldr[t] = renderer.finish(hdr, t) if frame is None else frame
@@ -122,26 +157,7 @@ def render_clip(clip: SimClip, variant: RenderVariant, out_dir: Path, *, config:
     finally:
         if own:
             pool.shutdown(wait=True)
-    if compress:
-        ldr = np.stack(compress_frames(list(ldr), crf=variant.video_crf, fps=float(clip.meta.get("fps", 25.0))))
-        if png:
-            for t, frame in enumerate(ldr):
-                write_png(out_dir, t, frame)
-    write_frames(out_dir, ldr)
-    meta = dict(clip.meta)
-    meta.update({
-        "variant": variant.name,
-        "render": {**variant.settings(), "resolution": config.resolution, "spp": config.spp,
-                   "write_hdr": config.write_hdr, "write_png": png, **renderer.info,
-                   "scene_builds": renderer.rebuilds, "frames_per_launch": per_launch,
-                   "finished_on": "host" if on_host else "device",
-                   **({"host_finish_because": on_host} if on_host else {}),
-                   **({"unbatched_because": unbatched} if unbatched else {}),
-                   "seconds": round(time.perf_counter() - start, 3)},
-        "num_frames": clip.num_frames,
-    })
-    atomic_write_json(out_dir / "meta.json", meta)
-    return meta
+    return ldr
 
 
 def _finished_on_device(renderer: ClipRenderer, hdr: bool):

@@ -333,30 +333,44 @@ class BatchSolver:
             a.max_angle, a.t0 = float(arm.max_angle), float(arm.t0)
         return a
 
+    def _launcher(self, cmds: list):
+        """``launch(kernel, dim, inputs)``: records a launch on the solver's device into ``cmds`` (none when
+        ``dim`` is 0)."""
+        def launch(kernel, dim, inputs):
+            if dim > 0:
+                cmds.append(wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, record_cmd=True).launch)
+        return launch
+
     def _record_step(self) -> tuple[list, list[list], list]:
         """One time step as fixed lists of recorded launches (and memsets): before the CG iterations,
         one list per iteration, after them."""
+        before: list = [self.rz.zero_, self.pap.zero_, self.rr.zero_]
+        self._record_cg_start(self._launcher(before))
+        iterations: list[list] = []
+        for it in range(self.params.cg_iterations):
+            iterations.append([])
+            self._record_cg_iteration(self._launcher(iterations[-1]), it)
+        after: list = []
+        self._record_step_end(self._launcher(after), after)
+        return before, iterations, after
+
+    def _record_hessian_product(self, launch, vec, out, scale, acc, slot) -> None:
+        nf, nh = self.num_faces, self.num_hinges
+        launch(kernels.face_hessian_product, nf, [vec, self.tri, self.dm_inv, self.face_cloth, self.f0, self.f1,
+                                                  self.kmat, self.smat, scale, slot, self.cg_active, out, acc])
+        launch(kernels.hinge_hessian_product, nh, [vec, self.hinge, self.hinge_cloth, self.hinge_k,
+                                                   self.hinge_grad, scale, slot, self.cg_active, out, acc])
+
+    def _record_cg_check(self, launch, slot: int) -> None:
+        tol2 = float(self.params.cg_tolerance) ** 2
+        launch(kernels.cg_check, self.num_cloths, [slot, tol2, self.rz, self.pap, self.rr, self.cg_active,
+                                                   self.cg_taken, self.cg_residual])
+
+    def _record_cg_start(self, launch) -> None:
+        """The forces, their Jacobians and the arm contacts at the step's start, and the CG's first residual."""
         P = self.params
-        dt, h2 = float(P.dt), float(P.dt) ** 2
-        dev = self.device
+        dt = float(P.dt)
         nv, nf, nh, nc = self.num_vertices, self.num_faces, self.num_hinges, self.num_cloths
-        tol2 = float(P.cg_tolerance) ** 2
-        cmds: list = [self.rz.zero_, self.pap.zero_, self.rr.zero_]
-
-        def launch(kernel, dim, inputs):
-            if dim > 0:
-                cmds.append(wp.launch(kernel, dim=dim, inputs=inputs, device=dev, record_cmd=True).launch)
-
-        def hessian_product(vec, out, scale, acc, slot):
-            launch(kernels.face_hessian_product, nf, [vec, self.tri, self.dm_inv, self.face_cloth, self.f0, self.f1,
-                                                      self.kmat, self.smat, scale, slot, self.cg_active, out, acc])
-            launch(kernels.hinge_hessian_product, nh, [vec, self.hinge, self.hinge_cloth, self.hinge_k,
-                                                       self.hinge_grad, scale, slot, self.cg_active, out, acc])
-
-        def check(slot):
-            launch(kernels.cg_check, nc, [slot, tol2, self.rz, self.pap, self.rr, self.cg_active,
-                                          self.cg_taken, self.cg_residual])
-
         launch(kernels.cg_reset, nc, [self.cg_active, self.cg_taken, self.cg_residual])
 
         launch(kernels.begin_step, nv, [self.mass, wp.vec3(*P.gravity), self.force, self.diag, self.kv])
@@ -372,39 +386,47 @@ class BatchSolver:
                                                  float(P.friction), float(P.slip_velocity), self.x, self.v,
                                                  self.released, self.contact_jn, self.contact_n, self.contact_y,
                                                  self.vy, self.friction_c, self.friction_b, self.contact_recover])
-            hessian_product(self.vy, self.kv, 1.0, self.scratch, 0)
+            self._record_hessian_product(launch, self.vy, self.kv, 1.0, self.scratch, 0)
             launch(kernels.cg_start_contact, nv, [self.force, self.v, self.kv, self.mass, self.free, self.vertex_cloth,
                                                   dt, float(P.damping), self.diag, self.contact_n, self.contact_y,
                                                   self.friction_c, self.friction_b, self.contact_rn, self.dv, self.r,
                                                   self.z, self.p, self.ap, self.rz, self.pap, self.rr])
         else:
-            hessian_product(self.v, self.kv, 1.0, self.scratch, 0)
+            self._record_hessian_product(launch, self.v, self.kv, 1.0, self.scratch, 0)
             launch(kernels.cg_start, nv, [self.force, self.v, self.kv, self.mass, self.free, self.vertex_cloth, dt,
                                           float(P.damping), self.diag, self.dv, self.r, self.z, self.p, self.ap,
                                           self.rz, self.pap, self.rr])
-        check(0)
-        before, iterations = cmds, []
-        for it in range(P.cg_iterations):
-            cmds = []
-            iterations.append(cmds)
-            hessian_product(self.p, self.ap, h2, self.pap, it)
-            if self.has_arm:
-                launch(kernels.cg_update_contact, nv, [self.mass, self.free, self.vertex_cloth, self.diag, self.p,
-                                                       self.ap, self.contact_n, self.contact_rn, it, self.cg_active,
-                                                       self.dv, self.r, self.z, self.rz, self.pap, self.rr])
-            else:
-                launch(kernels.cg_update, nv, [self.mass, self.free, self.vertex_cloth, self.diag, self.p, self.ap,
-                                               it, self.cg_active, self.dv, self.r, self.z, self.rz, self.pap,
-                                               self.rr])
-            check(it + 1)
-            if it + 1 < P.cg_iterations and self.has_arm:
-                launch(kernels.cg_direction_contact, nv, [self.mass, self.vertex_cloth, dt, float(P.damping),
-                                                          self.friction_c, self.z, it, self.cg_active, self.p,
-                                                          self.ap, self.rz, self.pap])
-            elif it + 1 < P.cg_iterations:
-                launch(kernels.cg_direction, nv, [self.mass, self.vertex_cloth, dt, float(P.damping), self.z, it,
-                                                  self.cg_active, self.p, self.ap, self.rz, self.pap])
-        cmds = []
+        self._record_cg_check(launch, 0)
+
+    def _record_cg_iteration(self, launch, it: int) -> None:
+        """CG iteration ``it``: the step along the search direction, the convergence check, the next direction."""
+        P = self.params
+        dt, h2 = float(P.dt), float(P.dt) ** 2
+        nv = self.num_vertices
+        self._record_hessian_product(launch, self.p, self.ap, h2, self.pap, it)
+        if self.has_arm:
+            launch(kernels.cg_update_contact, nv, [self.mass, self.free, self.vertex_cloth, self.diag, self.p,
+                                                   self.ap, self.contact_n, self.contact_rn, it, self.cg_active,
+                                                   self.dv, self.r, self.z, self.rz, self.pap, self.rr])
+        else:
+            launch(kernels.cg_update, nv, [self.mass, self.free, self.vertex_cloth, self.diag, self.p, self.ap,
+                                           it, self.cg_active, self.dv, self.r, self.z, self.rz, self.pap,
+                                           self.rr])
+        self._record_cg_check(launch, it + 1)
+        if it + 1 < P.cg_iterations and self.has_arm:
+            launch(kernels.cg_direction_contact, nv, [self.mass, self.vertex_cloth, dt, float(P.damping),
+                                                      self.friction_c, self.z, it, self.cg_active, self.p,
+                                                      self.ap, self.rz, self.pap])
+        elif it + 1 < P.cg_iterations:
+            launch(kernels.cg_direction, nv, [self.mass, self.vertex_cloth, dt, float(P.damping), self.z, it,
+                                              self.cg_active, self.p, self.ap, self.rz, self.pap])
+
+    def _record_step_end(self, launch, cmds: list) -> None:
+        """After the CG: its statistics, the integration, self-collision and the arm's contacts, into ``cmds``
+        (``launch`` records into it too)."""
+        P = self.params
+        dt = float(P.dt)
+        nv, nc = self.num_vertices, self.num_cloths
         launch(kernels.cg_finish, nc, [self.rr, self.cg_taken, self.cg_residual, self.cg_iteration_sum,
                                        self.cg_iteration_max, self.cg_residual_max])
         if self.has_arm:
@@ -425,7 +447,6 @@ class BatchSolver:
                         float(P.friction), self.x, self.v, self.contact_dx, self.contact_dv, self.contact_count])
                 launch(kernels.apply_corrections, nv, [self.contact_dx, self.contact_dv, self.contact_count,
                                                        self.x, self.v])
-        return before, iterations, cmds
 
     # ---------------------------------------------------------------- stepping and state
     def step(self, n: int = 1) -> None:

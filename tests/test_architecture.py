@@ -3,6 +3,7 @@
 Ground (``GROUND``) imports no stage and nothing of the top floor; a stage imports the ground, itself and the
 stages below it (sim < render < learn < eval) and nothing of the top floor; module-level imports form no cycle.
 Imports inside functions count for the floors too (they only defer a heavy dependency, they do not lift a floor).
+No function of those packages is longer than ``MAX_FUNCTION_LINES`` (Warp kernels aside).
 """
 
 from __future__ import annotations
@@ -161,3 +162,45 @@ def test_the_checks_name_the_offending_edge(tmp_path):
     assert any(b.startswith("render.stage -> clothgap.config") and "top floor" in b for b in bad)
     (cycle,) = cycles(tmp_path)
     assert cycle[0] == cycle[-1] and set(cycle) == {"sim.stage", "sim.solver"}
+
+
+# ---------------------------------------------------------------- short functions
+
+MAX_FUNCTION_LINES = 80     # a longer function is split into named steps (docs/architecture.md)
+
+
+def _is_warp_kernel(node: ast.FunctionDef | ast.AsyncFunctionDef) -> bool:
+    """Decorated with ``wp.kernel`` or ``wp.func`` (with or without arguments): Warp compiles it whole."""
+    for decorator in node.decorator_list:
+        target = decorator.func if isinstance(decorator, ast.Call) else decorator
+        if ast.unparse(target) in ("wp.kernel", "wp.func", "warp.kernel", "warp.func"):
+            return True
+    return False
+
+
+def long_functions(root: Path, limit: int = MAX_FUNCTION_LINES) -> list[str]:
+    """``file:line name (N lines)`` for every function of the library packages longer than ``limit`` lines
+    (nested functions count within the function around them too), Warp kernels left out."""
+    out = []
+    for name, path in modules(root).items():
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and not _is_warp_kernel(node):
+                lines = node.end_lineno - node.lineno + 1
+                if lines > limit:
+                    out.append(f"{path.relative_to(root)}:{node.lineno} {node.name} ({lines} lines)")
+    return out
+
+
+def test_no_library_function_is_longer_than_the_limit():
+    found = long_functions(ROOT)
+    assert not found, (f"functions over {MAX_FUNCTION_LINES} lines (split them into named steps):\n  "
+                       + "\n  ".join(found))
+
+
+def test_the_length_check_names_a_long_function_and_spares_warp_kernels(tmp_path):
+    body = "".join(f"    x{i} = {i}\n" for i in range(MAX_FUNCTION_LINES))
+    (tmp_path / "sim").mkdir()
+    (tmp_path / "sim" / "long.py").write_text(
+        f"def long():\n{body}\n\n@wp.kernel\ndef kernel():\n{body}\n\n@wp.func\ndef helper():\n{body}\n\n"
+        f"@wp.kernel(enable_backward=False)\ndef kernel2():\n{body}\n\ndef short():\n    return 1\n")
+    assert long_functions(tmp_path) == [f"sim/long.py:1 long ({MAX_FUNCTION_LINES + 1} lines)"]
