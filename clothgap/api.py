@@ -355,7 +355,7 @@ class Study:
         from eval.stage import run_eval
 
         run = self.run
-        run.require(run.root / "train", "train")
+        run.require(run.train_root, "train")
         return self._check("eval", run_eval(run, progress=progress), allow_failures)
 
     def report(self) -> Path:

@@ -247,7 +247,7 @@ def sim_export(run_dir: Path, clip: str, setting: str | None, frames: str | None
                           "another clip")
     from sim.export import export_clip
 
-    out = out or run.root / "export" / folder.parent.name / name
+    out = out or run.export_dir(folder.parent.name, name)
     files = export_clip(folder, out, fmt, frames)
     click.echo(f"wrote {len(files)} {fmt} file(s) of {folder} to {out}")
 
@@ -319,7 +319,7 @@ def eval_run(run_dir, preset_name, out, overrides, config_file, allow_failures) 
     Test clips of the split with no prediction (not rendered, unreadable) are listed in
     eval/summary.json ("left_out") and make the command exit 1 unless --allow-failures."""
     run = resolve_run(run_dir, preset_name, out, overrides, config_file)
-    run.require(run.root / "train", "train")
+    run.require(run.train_root, "train")
     from eval.stage import run_eval
 
     t0 = time.perf_counter()
@@ -358,7 +358,7 @@ def eval_measured(run_dir: Path, train_dirs: tuple[Path, ...], sequences: int | 
     held-out variant, predicted like real videos and compared with the paper's Table 2 classes and
     the fabrics' measured stiffness and density (writes RUN_DIR/eval/measured.{csv,md,json})."""
     run = Run.open(run_dir)
-    run.require(run.root / "train", "train")
+    run.require(run.train_root, "train")
     from eval.measured import model_from_dir, run_measured
 
     models = [model_from_dir(run, d) for d in train_dirs] or None
@@ -415,7 +415,7 @@ def eval_ablation(run_dir: Path, recipes: tuple[str, ...], setting: str | None, 
     """Train several recipes on the same data and score them on the same test clips, with intervals and
     paired differences (trains into RUN_DIR/ablation/<recipe>/, writes RUN_DIR/eval/ablation-*.{json,md})."""
     run = Run.open(run_dir)
-    run.require(run.root / "render", "render")
+    run.require(run.render_root, "render")
     known = pairs(run.config)
     setting = setting or known[0][0]
     variant = variant or next((v for s, v in known if s == setting), known[0][1])

@@ -286,6 +286,40 @@ class Run:
         return self.root / "measured" / "render" / variant / setting
 
     @property
+    def render_root(self) -> Path:
+        return self.root / "render"
+
+    @property
+    def train_root(self) -> Path:
+        return self.root / "train"
+
+    @property
+    def train_index_path(self) -> Path:
+        return self.train_root / "index.json"
+
+    @property
+    def measured_root(self) -> Path:
+        return self.root / "measured"
+
+    def frame_cache_path(self, variant: str, setting: str, size: int) -> Path:
+        """The packed uint8 frames of a (variant, setting) at ``size`` px (``learn.dataset``)."""
+        return self.root / "cache" / variant / setting / f"{size}.npy"
+
+    def lattice_cache_path(self, setting: str, lattice: int) -> Path:
+        """The simulated clips' ``lattice`` x ``lattice`` point grids of a setting (``learn.geometry``)."""
+        return self.root / "cache" / "geometry" / setting / f"lattice-{lattice}.npz"
+
+    def ablation_dir(self, recipe: str) -> Path:
+        """A training recipe's own train tree (``eval.ablation``), laid out as ``train/``."""
+        return self.root / "ablation" / recipe
+
+    def clone_dir(self, name: str) -> Path:
+        return self.root / "clone" / name
+
+    def export_dir(self, setting: str, clip: str) -> Path:
+        return self.root / "export" / setting / clip
+
+    @property
     def sim_analysis_dir(self) -> Path:
         return self.root / "sim_analysis"
 

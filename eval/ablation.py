@@ -65,7 +65,7 @@ def recipe_config(study: Any, recipe: str) -> TrainConfig:
 
 
 def recipe_root(run: Run, recipe: str) -> Path:
-    return run.root / "ablation" / recipe
+    return run.ablation_dir(recipe)
 
 
 def _curves(folder: Path) -> list[dict]:

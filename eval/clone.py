@@ -73,7 +73,7 @@ def find_model(run: Run, model: str = "lrcn", setting: str | None = None, varian
                seed: int | None = None) -> Path:
     """The training folder to predict with: ``train/<setting>/<variant>/<model>/s<seed>`` holding a
     ``checkpoint.pt``; finished (``DONE``) folders first, then the run config's order."""
-    root = run.root / "train"
+    root = run.train_root
     found = sorted(root.glob("*/*/*/s*/checkpoint.pt")) if root.is_dir() else []
     if not found:
         raise CloneError(f"no trained model in {run.root} (no train/<setting>/<variant>/<model>/s<seed>/"
@@ -326,7 +326,7 @@ def clone_video(video: Path | str, run_dir: Path | str, options: CloneOptions = 
     options.check()
     run = Run.open(run_dir)
     train_dir = find_model(run, options.model, options.setting, options.variant, options.seed)
-    out_dir = Path(out) if out is not None else run.root / "clone" / _name(video)
+    out_dir = Path(out) if out is not None else run.clone_dir(_name(video))
     out_dir.mkdir(parents=True, exist_ok=True)
     say = (lambda msg: print(f"[clone] {msg}", flush=True)) if progress else (lambda msg: None)
     say(f"model {train_dir}")

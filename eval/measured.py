@@ -105,12 +105,12 @@ def model_folder(run: Run, m, variant: str) -> Path:
 def model_from_dir(run: Run, train_dir: Path):
     """The run's TrainedModel for a train folder path (``RUN/train/<setting>/<variant>/<model>/s<seed>``)."""
     try:
-        parts = Path(train_dir).resolve().relative_to((run.root / "train").resolve()).parts
+        parts = Path(train_dir).resolve().relative_to(run.train_root.resolve()).parts
     except ValueError:
         raise ConfigError(f"--model {train_dir} is not a train folder of the run {run.root} "
-                          f"(expected {run.root / 'train'}/<setting>/<variant>/<model>/s<seed>)") from None
+                          f"(expected {run.train_root}/<setting>/<variant>/<model>/s<seed>)") from None
     if len(parts) != 4 or not parts[3].startswith("s") or not parts[3][1:].isdigit():
-        raise ConfigError(f"--model {train_dir}: expected {run.root / 'train'}/<setting>/<variant>/<model>/s<seed>")
+        raise ConfigError(f"--model {train_dir}: expected {run.train_root}/<setting>/<variant>/<model>/s<seed>")
     if not is_done(Path(train_dir)):
         raise ConfigError(f"--model {train_dir} has no DONE marker: is that training finished?")
     return TrainedModel(parts[0], parts[1], parts[2], int(parts[3][1:]), run.train_dir(*parts[:3], int(parts[3][1:])))
@@ -347,7 +347,7 @@ def run_measured(run: Run, *, models: list | None = None, sequences: int | None 
             matches.append(scored[2])
     if not tables:
         raise ConfigError(f"no measured clip was rendered for any model's setting under "
-                          f"{run.root / 'measured' / 'render' / variant}: see the render summary "
+                          f"{run.measured_root / 'render' / variant}: see the render summary "
                           f"{json.dumps(generation['render'].get('failed', []))[:500]}")
     table, corr, match = _ordered(tables), _ordered(corrs), _ordered(matches)
     out = run.eval_dir
@@ -370,7 +370,7 @@ def _models_and_heldout(run: Run, models: list | None, variant: str, progress: b
     (neither a training variant of theirs nor a render variant of the run)."""
     models = list(models) if models is not None else finished_models(run)
     if not models:
-        raise ConfigError(f"no finished train folder under {run.root / 'train'}: run `clothgap train {run.root}` "
+        raise ConfigError(f"no finished train folder under {run.train_root}: run `clothgap train {run.root}` "
                           "first (the measured set is predicted by the run's models)")
     heldout = variant not in ({m.variant for m in models} | set(run.config.render.variants))
     if progress and not heldout:

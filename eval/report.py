@@ -369,7 +369,7 @@ def _csv_table(path: Path, run: Run | None = None) -> str:
 
 
 def _section_sim_analysis(run: Run) -> str:
-    root = run.root / "sim_analysis"
+    root = run.sim_analysis_dir
     if not root.is_dir():
         return ""
     csvs = sorted(root.rglob("*.csv"), key=lambda p: ("table2" not in p.name.lower(), p.name))
@@ -413,7 +413,7 @@ def _section_measured(run: Run) -> str:
            "between them. Measured stiffness from the tables: stretching = mean at-rest k0, k2, k3 (N/m), "
            "bending = mean of the bending table (N*m); a class predicts p or k times the basis fabric's value. "
            f"Sources: {_link(run, path)}, {_link(run, run.eval_dir / 'measured_correlations.csv')}, "
-           f"{_link(run, run.eval_dir / 'measured.md')}, clips in {_link(run, run.root / 'measured')}.</p>"]
+           f"{_link(run, run.eval_dir / 'measured.md')}, clips in {_link(run, run.measured_root)}.</p>"]
     if not table.empty:
         out.append("<p>Which training variant carries to the measured fabrics: each fabric's predicted stiffness "
                    "against its measured one, one colour per training variant (on the dashed diagonal the "

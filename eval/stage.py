@@ -60,7 +60,7 @@ def _default_predictor(train_dir: Path, clip_dirs: list[Path]) -> pd.DataFrame:
 
 def rendered_variants(run: Run, setting: str) -> list[str]:
     """Variants with at least one finished clip of ``setting`` (configured ones first)."""
-    root = run.root / "render"
+    root = run.render_root
     names = sorted(p.name for p in root.iterdir() if p.is_dir()) if root.is_dir() else []
     names = [n for n in names if run.done_clips(run.render_dir(n, setting))]
     configured = [v for v in run.config.render.variants if v in names]
@@ -323,7 +323,7 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
     cfg = run.config
     models = finished_models(run)
     if not models:
-        raise ConfigError(f"no finished train folder under {run.root / 'train'} for the config's "
+        raise ConfigError(f"no finished train folder under {run.train_root} for the config's "
                           f"settings/variants/models/seeds: run `clothgap train {run.root}` first")
     cells, counts, left_out = predict_all(run, models, predictor or _default_predictor, progress)
     if not cells:
@@ -365,7 +365,7 @@ def _no_test_clips_error(run: Run, models: list[TrainedModel]) -> ConfigError:
                            f"({cfg.sim.sequences_per_class} sequence(s) per class, train.test_fraction="
                            f"{cfg.train.test_fraction:g}): raise sim.sequences_per_class or train.test_fraction "
                            "in a new run")
-    return ConfigError(f"no rendered test clips found for any model under {run.root / 'render'}: "
+    return ConfigError(f"no rendered test clips found for any model under {run.render_root}: "
                        f"run `clothgap render {run.root}` first")
 
 

@@ -83,7 +83,7 @@ class FrameCache:
 
 
 def cache_path(run: Run, variant: str, setting: str, size: int) -> Path:
-    return run.root / "cache" / variant / setting / f"{size}.npy"
+    return run.frame_cache_path(variant, setting, size)
 
 
 def _signature(render_dir: Path, clip_ids: list[str]) -> list:

@@ -37,7 +37,7 @@ TARGET_LIMIT = 10.0        # standardised units
 
 
 def lattice_cache_path(run: Run, setting: str) -> Path:
-    return run.root / "cache" / "geometry" / setting / f"lattice-{LATTICE}.npz"
+    return run.lattice_cache_path(setting, LATTICE)
 
 
 def clip_lattices(run: Run, setting: str, clip_ids: list[str], progress: bool = True) -> dict[str, np.ndarray]:

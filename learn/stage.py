@@ -34,7 +34,7 @@ def run_train(run: Run, progress: bool = True) -> dict:
     whether it is done, so eval finds results without walking the tree.
     """
     grid = training_grid(run)
-    index_path = run.root / "train" / "index.json"
+    index_path = run.train_index_path
 
     def write_index() -> dict:
         entries = []
