@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from clothgap.runs import Run, is_done
+from learn.registry import training_grid
 
 
 @dataclass(frozen=True)
@@ -24,8 +25,11 @@ class TrainedModel:
 def grid_models(run: Run) -> list[TrainedModel]:
     """Every (setting, variant, model, seed) of the config's grid with its train folder, finished or not."""
     cfg = run.config
+    pairs, models, seeds = cfg.pairs(), list(cfg.train.models), list(cfg.train.seeds)
+    # The tables list a (setting, variant)'s models in the config's order, each with its seeds.
+    grid = sorted(training_grid(cfg), key=lambda g: (pairs.index(g[:2]), models.index(g[2]), seeds.index(g[3])))
     return [TrainedModel(setting, variant, model, seed, run.train_dir(setting, variant, model, seed))
-            for setting, variant in cfg.pairs() for model in cfg.train.models for seed in cfg.train.seeds]
+            for setting, variant, model, seed in grid]
 
 
 def finished_models(run: Run) -> list[TrainedModel]:

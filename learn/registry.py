@@ -57,6 +57,23 @@ def training_order(names: Iterable[str]) -> list[str]:
     return sorted(names, key=lambda m: (_depth(m), MODEL_NAMES.index(m)))
 
 
+def training_grid(cfg, settings: Iterable[str] | None = None, variants: Iterable[str] | None = None,
+                  models: Iterable[str] | None = None, seeds: Iterable[int] | None = None
+                  ) -> list[tuple[str, str, str, int]]:
+    """The run's one (setting, variant, model, seed) grid, in training order: by (setting, variant) as
+    ``cfg.pairs()`` gives them, then seed, then each model after the model it needs. ``settings``,
+    ``variants``, ``models``, ``seeds`` keep only those (None: all the config has)."""
+    keep = {name: set(sel) if sel is not None else None
+            for name, sel in (("settings", settings), ("variants", variants), ("models", models), ("seeds", seeds))}
+    chosen_models = [m for m in cfg.train.models if keep["models"] is None or m in keep["models"]]
+    return [(setting, variant, model, seed)
+            for setting, variant in cfg.pairs()
+            if (keep["settings"] is None or setting in keep["settings"])
+            and (keep["variants"] is None or variant in keep["variants"])
+            for seed in cfg.train.seeds if keep["seeds"] is None or seed in keep["seeds"]
+            for model in training_order(chosen_models)]
+
+
 def describe_models() -> str:
     """A human-readable list (for ``clothgap train --list-models``): name, description, what it needs."""
     lines = []

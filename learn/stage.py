@@ -9,22 +9,19 @@ from pathlib import Path
 import torch
 
 from clothgap.runs import Run, atomic_write_json, is_done
-from learn.registry import MODEL_NAMES, training_order
+from learn.registry import MODEL_NAMES
+from learn.registry import training_grid as registry_grid
 from learn.train import is_main, train_one
 
 
 def training_grid(run: Run) -> list[tuple[str, str, str, int]]:
-    """(setting, variant, model, seed) in training order: a model after the one it needs (base1 before base2,
-    which freezes base1's CNN)."""
+    """(setting, variant, model, seed) in training order (``learn.registry.training_grid``): a model after
+    the one it needs (base1 before base2, which freezes base1's CNN)."""
     cfg = run.config.train
     unknown = [m for m in cfg.models if m not in MODEL_NAMES]
     if unknown:
         raise ValueError(f"unknown model(s) {', '.join(unknown)} in train.models; known: {', '.join(MODEL_NAMES)}")
-    models = training_order(cfg.models)
-    return [(setting, variant, model, seed)
-            for setting, variant in run.config.pairs()
-            for seed in cfg.seeds
-            for model in models]
+    return registry_grid(run.config)
 
 
 def run_train(run: Run, progress: bool = True) -> dict:
@@ -84,14 +81,18 @@ def main(argv: list[str] | None = None) -> None:
         if not (opts.setting or opts.variant or opts.model or opts.seed is not None):
             run_train(run, progress=not opts.no_progress)
             return
-        for setting, variant in cfg.pairs():
-            if (opts.setting and setting not in opts.setting) or (opts.variant and variant not in opts.variant):
-                continue
-            for seed in opts.seed or cfg.train.seeds:
-                for model_name in opts.model or cfg.train.models:
-                    folder = train_one(run, setting, variant, model_name, seed, progress=not opts.no_progress)
-                    if is_main():
-                        print(folder)
+        chosen = {"--setting": (opts.setting, cfg.sim.settings()), "--variant": (opts.variant, cfg.render.variants),
+                  "--model": (opts.model, cfg.train.models), "--seed": (opts.seed, cfg.train.seeds)}
+        for flag, (wanted, known) in chosen.items():
+            missing = [w for w in wanted or () if w not in known]
+            if missing:
+                parser.error(f"{flag} {', '.join(map(str, missing))}: not in this run's config "
+                             f"({', '.join(map(str, known))})")
+        for setting, variant, model_name, seed in registry_grid(cfg, opts.setting, opts.variant, opts.model,
+                                                                 opts.seed):
+            folder = train_one(run, setting, variant, model_name, seed, progress=not opts.no_progress)
+            if is_main():
+                print(folder)
     finally:
         if torch.distributed.is_initialized():
             torch.distributed.destroy_process_group()

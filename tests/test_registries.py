@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from learn.config import READOUTS, TrainConfig
-from learn.registry import MODEL_NAMES, MODELS, describe_models, get_model_entry, training_order
+from learn.registry import MODEL_NAMES, MODELS, describe_models, get_model_entry, training_grid, training_order
 from sim.config import SimConfig
 from sim.motions import MOTIONS, describe_motions, get_motion
 
@@ -54,6 +54,23 @@ def test_every_model_entry_is_complete_and_trained_after_what_it_needs(name):
 
 def test_training_order_keeps_the_registry_order_otherwise():
     assert training_order(["base2", "base3", "lrcn", "base1"]) == ["lrcn", "base1", "base3", "base2"]
+
+
+def test_the_training_grid_puts_each_model_after_what_it_needs_and_filters():
+    from clothgap.config import StudyConfig
+    from render.config import RenderConfig
+
+    cfg = StudyConfig(sim=SimConfig(motions=("wind", "arm"), remeshing=("uniform1",)),
+                      render=RenderConfig(variants=("paper", "grid")),
+                      train=TrainConfig(models=("base2", "lrcn", "base1"), seeds=(0, 1)))
+    grid = training_grid(cfg)
+    assert len(grid) == 2 * 2 * 3 * 2 and len(set(grid)) == len(grid)
+    for i, (setting, variant, model, seed) in enumerate(grid):
+        if model == "base2":                                 # base2 freezes base1's CNN of the same cell
+            assert (setting, variant, "base1", seed) in grid[:i]
+    assert [g[:2] for g in grid[::6]] == cfg.pairs()        # (setting, variant) major, as the config pairs them
+    only = training_grid(cfg, settings=["arm-uniform1"], models=["base2"], seeds=[1])
+    assert only == [("arm-uniform1", v, "base2", 1) for v in ("paper", "grid")]
 
 
 def test_an_unknown_model_is_a_config_problem_naming_the_known_ones():
