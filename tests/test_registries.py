@@ -90,14 +90,6 @@ def test_config_checks_import_neither_torch_nor_warp():
     assert r.stdout.strip() == "[]"
 
 
-def test_cli_lists_the_models():
-    r = clothgap("train", "--list-models")
-    assert r.returncode == 0, r.stderr
-    assert r.stdout == describe_models() + "\n"
-    for name in MODEL_NAMES:
-        assert f"{name}: " in r.stdout
-
-
 # ---------------------------------------------------------------- motions
 
 @pytest.mark.parametrize("name", list(MOTIONS))
@@ -131,9 +123,13 @@ def test_an_unknown_motion_is_a_config_problem_and_never_simulated():
         parse_setting("swirl-uniform1")
 
 
-def test_cli_lists_the_motions():
-    r = clothgap("sim", "--list-motions")
+@pytest.mark.parametrize("stage, flag, describe, names", [
+    ("train", "--list-models", describe_models, MODEL_NAMES),
+    ("sim", "--list-motions", describe_motions, tuple(MOTIONS)),
+])
+def test_cli_lists_each_registry(stage, flag, describe, names):
+    r = clothgap(stage, flag)
     assert r.returncode == 0, r.stderr
-    assert r.stdout == describe_motions() + "\n"
-    for name in MOTIONS:
+    assert r.stdout == describe() + "\n"
+    for name in names:
         assert f"{name}: " in r.stdout
