@@ -60,6 +60,7 @@ class TrainConfig:
     bottleneck_noise: float = 0.0           # std of noise on that lattice while training (standardised units)
     conv5_pool: bool = True                 # AlexNet's max-pool after conv5; false: fc6 reads conv5's own
                                             # map (size/16, at most 7 x 7; 7 x 7 at 112 px instead of 3 x 3)
+    geometry_window: int = 1                # frames the lattice head reads (odd; 1: its own frame only)
     reader_truth: float = 0.0               # weight of the bottleneck readers' class loss on the simulation's
                                             # own lattice (noised by bottleneck_noise), beside the predicted one
 
@@ -109,6 +110,10 @@ class TrainConfig:
         if self.bottleneck_noise and not self.bottleneck:
             out.append("train.bottleneck_noise is set but train.bottleneck is off; set train.bottleneck=true")
         out += checks.number("train.reader_truth", self.reader_truth, 0)
+        out += checks.number("train.geometry_window", self.geometry_window, 1)
+        if isinstance(self.geometry_window, int) and self.geometry_window % 2 == 0:
+            out.append(f"train.geometry_window={self.geometry_window}: must be odd (the frame itself and as many "
+                       "frames before it as after it)")
         if self.reader_truth and not self.bottleneck:
             out.append("train.reader_truth is set but train.bottleneck is off; set train.bottleneck=true")
         if self.keep == "best" and self.val_fraction <= 0:

@@ -90,13 +90,30 @@ class FrameCNN(nn.Module):
         return self.fc6(self.pool(self.features((x - _PIXEL_MEAN) / _PIXEL_STD)))
 
 
+class TemporalGeometryHead(nn.Module):
+    """The lattice of frame t from the fc6 features of frames t - w//2 .. t + w//2 (a convolution over
+    time, the clip's first and last frames repeated at its ends): neighbouring frames tell where a
+    point that one frame shows poorly has gone."""
+
+    def __init__(self, in_features: int, out_features: int, window: int):
+        super().__init__()
+        self.window = window
+        self.conv = nn.Conv1d(in_features, out_features, window)
+
+    def forward(self, feats: torch.Tensor) -> torch.Tensor:
+        """(B, T, in_features) -> (B, T, out_features)."""
+        half = self.window // 2
+        x = F.pad(feats.transpose(1, 2), (half, half), mode="replicate")
+        return self.conv(x).transpose(1, 2)
+
+
 class ClipClassifier(nn.Module):
     """A FrameCNN on every frame, optionally a recurrent layer over frames, per-step heads."""
 
     def __init__(self, cnn: FrameCNN, temporal: str | None, hidden: int, readout: str = "mean",
                  factored: bool = False, freeze_cnn: bool = False, num_classes: int = NUM_CLASSES,
                  motion: bool = False, geometry_dim: int = 0, bottleneck: bool = False,
-                 bottleneck_noise: float = 0.0):
+                 bottleneck_noise: float = 0.0, geometry_window: int = 1):
         super().__init__()
         # motion: each frame goes in beside its difference from the previous frame (zero for the
         # first), so the first convolution sees motion directly, not only through the recurrence.
@@ -132,7 +149,8 @@ class ClipClassifier(nn.Module):
             self.head_stretch = nn.Linear(features, NUM_STRETCH)
             self.head_bend = nn.Linear(features, NUM_BEND)
         if geometry_dim:
-            self.head_geometry = nn.Linear(cnn.out_features, geometry_dim)
+            self.head_geometry = (nn.Linear(cnn.out_features, geometry_dim) if geometry_window == 1 else
+                                  TemporalGeometryHead(cnn.out_features, geometry_dim, geometry_window))
         if freeze_cnn:
             self.cnn.requires_grad_(False)
 
@@ -223,19 +241,20 @@ class ClipClassifier(nn.Module):
 def build_model(name: str, *, image_size: int, width: int, fc6: int, hidden: int, dropout: float = 0.5,
                 readout: str = "mean", factored: bool = False, motion: bool = False, geometry_dim: int = 0,
                 bottleneck: bool = False, bottleneck_noise: float = 0.0, conv5_pool: bool = True,
-                num_classes: int = NUM_CLASSES) -> ClipClassifier:
+                geometry_window: int = 1, num_classes: int = NUM_CLASSES) -> ClipClassifier:
     """A model by its ``learn.registry`` name; ``model_args(cfg)`` gives the keyword arguments from a TrainConfig."""
     entry = get_model_entry(name)
     cnn = FrameCNN(image_size, width, fc6, dropout, in_channels=6 if motion else 3, conv5_pool=conv5_pool)
     return ClipClassifier(cnn, entry.temporal, hidden, entry.readout or readout, factored, entry.freeze_cnn,
-                          num_classes, motion=motion, geometry_dim=geometry_dim, bottleneck=bottleneck,
+                          num_classes, motion=motion, geometry_dim=geometry_dim, geometry_window=geometry_window,
+                          bottleneck=bottleneck,
                           bottleneck_noise=bottleneck_noise)
 
 
 def model_args(cfg) -> dict:
     """The ``build_model`` keyword arguments a TrainConfig asks for (stored in checkpoints).
 
-    The bottleneck and conv5_pool keys appear only when they differ from the old behaviour, so
+    The bottleneck, conv5_pool and geometry_window keys appear only when they differ from the old behaviour, so
     checkpoints written before they existed compare and load with the same arguments."""
     args = dict(image_size=cfg.image_size, width=cfg.width, fc6=cfg.fc6, hidden=cfg.hidden,
                 dropout=cfg.dropout, readout=cfg.readout, factored=cfg.factored, motion=cfg.motion,
@@ -244,6 +263,8 @@ def model_args(cfg) -> dict:
         args.update(bottleneck=True, bottleneck_noise=cfg.bottleneck_noise)
     if not cfg.conv5_pool:
         args.update(conv5_pool=False)
+    if cfg.geometry_window != 1:
+        args.update(geometry_window=cfg.geometry_window)
     return args
 
 

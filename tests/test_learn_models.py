@@ -5,6 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
+from learn.config import TrainConfig
+
 from learn.models import NUM_BEND, build_model, load_cnn_weights
 from learn.registry import MODEL_NAMES
 
@@ -138,6 +140,26 @@ def test_without_the_conv5_pool_fc6_reads_conv5s_own_map():
     assert torch.equal(fine.features[0].weight, pooled.features[0].weight)
     model = build_model("lrcn", image_size=64, geometry_dim=192, bottleneck=True, conv5_pool=False, **TINY)
     assert model(torch.rand(1, 3, 3, 64, 64))["geometry"].shape == (1, 3, 192)
+
+
+def test_a_geometry_window_reads_the_neighbouring_frames_only():
+    from learn.models import TemporalGeometryHead
+
+    torch.manual_seed(0)
+    head = TemporalGeometryHead(4, 6, 3)
+    feats = torch.randn(2, 7, 4)
+    out = head(feats)
+    assert out.shape == (2, 7, 6)
+    changed = feats.clone()
+    changed[:, 5] += 1.0                                        # frame 5 changes
+    moved = (head(changed) - out).abs().amax(dim=(0, 2))
+    assert moved[:4].max() == 0 and moved[4:].min() > 0         # only frames 4, 5, 6 see it
+    # At the clip's ends the first and last frames stand in for the frames before and after.
+    padded = torch.cat([feats[:, :1], feats, feats[:, -1:]], dim=1)
+    assert torch.allclose(out, head.conv(padded.transpose(1, 2)).transpose(1, 2))
+    model = build_model("lrcn", image_size=32, geometry_dim=192, bottleneck=True, geometry_window=3, **TINY)
+    assert model(torch.rand(1, 4, 3, 32, 32))["geometry"].shape == (1, 4, 192)
+    assert TrainConfig(geometry_window=2).problems() and not TrainConfig(geometry_window=3).problems()
 
 
 def test_reader_truth_trains_the_readers_on_the_true_lattice_only():

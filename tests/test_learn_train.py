@@ -196,6 +196,17 @@ def test_reader_truth_reaches_the_readers_through_training(tmp_path):
     assert not torch.equal(readers[0.0], readers[1.0])
 
 
+def test_a_lattice_head_over_three_frames_trains_and_loads(tmp_path):
+    cfg = tiny_train_config(bottleneck=True, dropout=0.0, geometry_window=3, epochs=1)
+    run = synthetic_run(tmp_path / "run", cfg)
+    _sim_clips_for(run, cfg.sim.frames)
+    out = train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
+    state = torch.load(out / "checkpoint.pt", weights_only=True)
+    assert state["model_args"]["geometry_window"] == 3
+    assert state["model"]["head_geometry.conv.weight"].shape == (192, 32, 3)
+    assert load_model(out)(torch.rand(1, 6, 3, 32, 32))["geometry"].shape == (1, 6, 192)
+
+
 def test_a_clip_gone_astray_does_not_flatten_every_other_target(tmp_path):
     import numpy as np
 
