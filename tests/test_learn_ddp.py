@@ -27,3 +27,12 @@ def test_torchrun_two_processes_train_one_model(tmp_path):
     assert (run.root / "splits" / f"{SETTING}.json").is_file()
     pred = predict_clips(out, [run.render_dir(VARIANT, SETTING) / "c00000"], device="cpu")
     assert len(pred) == 3
+
+
+def test_a_selection_the_run_lacks_is_refused_before_any_training(tmp_path):
+    run = synthetic_run(tmp_path / "run", tiny_train_config(models=("lrcn",), epochs=1))
+    cmd = [sys.executable, "-m", "learn", str(run.root), "--model", "base1", "--seed", "3", "--no-progress"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2
+    assert "--model base1: not in this run's config (lrcn)" in done.stderr
+    assert not (run.root / "train").exists()
