@@ -221,8 +221,8 @@ EXECUTION_SETTINGS = frozenset({"name", "sim.device", "sim.batch_size", "render.
 # Adding a setting whose default changes results means leaving it out of this set.
 DEFAULT_KEEPS_OLD_BEHAVIOUR = frozenset({"sim.self_collision", "sim.collision_thickness", "train.bottleneck",
                                          "train.bottleneck_noise", "train.reader_truth", "train.conv5_pool",
-                                         "train.geometry_window", "train.aux_geometry", "train.label_smoothing",
-                                         "sim.arm_nuisance"})
+                                         "train.geometry_window", "train.augment_crop", "train.aux_geometry",
+                                         "train.label_smoothing", "sim.arm_nuisance"})
 # Lists a resumed run may extend: an item more is more work downstream, nothing finished changes.
 GROWING_SETTINGS = frozenset({"sim.motions", "sim.remeshing", "render.variants", "train.models", "train.seeds"})
 

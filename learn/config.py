@@ -39,6 +39,8 @@ class TrainConfig:
     fc6: int = 256
     hidden: int = 128                       # LSTM / RNN hidden size
     augment: bool = False
+    augment_crop: bool = True               # with augment: its random resized crop and flip (false: only the
+                                            # temporal shift and colour jitter, which keep the lattice target aligned)
     device: str = "auto"
     num_threads: int = 0                    # torch CPU threads, 0 = torch's default
     schedule: str = "cosine"                # learning-rate schedule over epochs: "cosine" or "step"

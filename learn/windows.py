@@ -117,11 +117,13 @@ class WindowSet:
         return perm
 
     def batches(self, batch_size: int, *, order: torch.Tensor | None = None, augment: torch.Tensor | None = None,
-                drop_last: bool = False) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]]:
+                drop_last: bool = False, crop: bool = True
+                ) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]]:
         """(frames float (B, T, 3, H, W) in [0, 1], labels (B,), targets (B, T, ...) or None) on the device.
 
         ``order``: window indices in the order to visit (default: as listed);
-        ``augment``: ``augment_table(seed, epoch)`` to augment, else None.
+        ``augment``: ``augment_table(seed, epoch)`` to augment, else None;
+        ``crop``: the augmentation's random resized crop and flip (``augment_batch``).
         """
         order = torch.arange(len(self)) if order is None else order
         stop = len(order) - (len(order) % batch_size if drop_last and len(order) >= batch_size else 0)
@@ -142,17 +144,31 @@ class WindowSet:
                 raw = self._on(self.frames[rows])
             x = raw.permute(0, 1, 4, 2, 3).float().div_(255)                                # (B, T, 3, H, W)
             if params is not None:
-                x = augment_batch(x, self._on(params))
+                x = augment_batch(x, self._on(params), crop=crop)
             target = self.targets[self._on(rows)] if self.targets is not None else None
             yield x, self._on(self.labels[idx]), target
 
 
-def augment_batch(x: torch.Tensor, params: torch.Tensor) -> torch.Tensor:
+def augment_batch(x: torch.Tensor, params: torch.Tensor, crop: bool = True) -> torch.Tensor:
     """Per clip, the same for all its frames: a random resized crop (70-100 % of the side), a
     horizontal flip and a brightness/contrast/saturation jitter of +-20 %, of float (B, T, 3, H, W).
+    Without ``crop`` only the jitter: the cloth stays where its lattice target says it is.
 
     ``params``: (B, 8) uniform draws; columns 1-7 are read here (column 0 is the temporal shift).
     """
+    b, t, c, h, w = x.shape
+    if crop:
+        x = _crop_and_flip(x, params)
+    brightness, contrast, saturation = (0.8 + 0.4 * params[:, i].view(b, 1, 1, 1, 1) for i in (5, 6, 7))
+    x = x * brightness
+    mean = x.mean(dim=(1, 2, 3, 4), keepdim=True)
+    x = (x - mean) * contrast + mean
+    grey = x.mean(dim=2, keepdim=True)
+    x = (x - grey) * saturation + grey
+    return x.clamp_(0, 1)
+
+
+def _crop_and_flip(x: torch.Tensor, params: torch.Tensor) -> torch.Tensor:
     b, t, c, h, w = x.shape
     side = 0.7 + 0.3 * params[:, 1]
     # Crop centre in normalised coordinates, so that the crop stays inside the frame.
@@ -166,11 +182,4 @@ def augment_batch(x: torch.Tensor, params: torch.Tensor) -> torch.Tensor:
     flat = x.reshape(b * t, c, h, w)
     grid = F.affine_grid(theta, list(flat.shape), align_corners=False)
     flat = F.grid_sample(flat, grid, mode="bilinear", padding_mode="border", align_corners=False)
-    x = flat.reshape(b, t, c, h, w)
-    brightness, contrast, saturation = (0.8 + 0.4 * params[:, i].view(b, 1, 1, 1, 1) for i in (5, 6, 7))
-    x = x * brightness
-    mean = x.mean(dim=(1, 2, 3, 4), keepdim=True)
-    x = (x - mean) * contrast + mean
-    grey = x.mean(dim=2, keepdim=True)
-    x = (x - grey) * saturation + grey
-    return x.clamp_(0, 1)
+    return flat.reshape(b, t, c, h, w)

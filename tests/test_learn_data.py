@@ -107,6 +107,11 @@ def test_identity_augmentation_leaves_frames_unchanged(run):
     assert torch.allclose(augment_batch(x.clone(), params), x, atol=1e-5)
     params[:, 4] = 0.1                                   # a flip mirrors every frame of the clip
     assert torch.allclose(augment_batch(x.clone(), params), x.flip(-1), atol=1e-5)
+    # Without the crop a flip and a small crop leave every pixel where it was; only colours change.
+    params[:, 1], params[:, 2], params[:, 5] = 0.0, 0.0, 0.0
+    assert torch.allclose(augment_batch(x.clone(), params, crop=False), (0.8 * x).clamp(0, 1), atol=1e-5)
+    moved = augment_batch(x.clone(), params)
+    assert not torch.allclose(moved, (0.8 * x).clamp(0, 1), atol=1e-3)
 
 
 def test_config_fields_have_defaults():
