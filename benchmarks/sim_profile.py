@@ -6,7 +6,7 @@ Builds the ``paper`` preset's scenes for the first ``--n`` clips of a setting (s
 the preset has it), settles them, then times ``--steps`` steps twice: as the stage runs them (one
 CUDA graph per step; wall time with a device sync) and launch by launch
 (``BatchSolver.step_uncaptured``) under ``wp.ScopedTimer(cuda_filter=wp.TIMING_KERNEL)``, which
-gives each kernel's GPU time. Writes benchmarks/results/sim_profile-<device>-<setting>-n<N>.json
+gives each kernel's GPU time (on a CPU each launch's wall time, which is its kernel's). Writes benchmarks/results/sim_profile-<device>-<setting>-n<N>.json
 (kernels sorted by total time, with the command).
 """
 
@@ -57,11 +57,20 @@ def main() -> None:
     wp.synchronize_device(device)
     stage_ms = (time.perf_counter() - start) / args.steps * 1e3
     solver.step_uncaptured(1)                             # warm the host path
-    with wp.ScopedTimer("steps", print=False, synchronize=True, cuda_filter=wp.TIMING_KERNEL) as timer:
-        solver.step_uncaptured(args.steps)
     per_kernel: dict[str, list[float]] = defaultdict(list)
-    for r in timer.timing_results:
-        per_kernel[r.name].append(r.elapsed)
+    if wp.get_device(device).is_cuda:
+        with wp.ScopedTimer("steps", print=False, synchronize=True, cuda_filter=wp.TIMING_KERNEL) as timer:
+            solver.step_uncaptured(args.steps)
+        for r in timer.timing_results:
+            per_kernel[r.name].append(r.elapsed)
+        uncaptured_ms = timer.elapsed
+    else:                     # CPU launches run to completion: each launch's wall time is its kernel's
+        host: dict[str, list[float]] = {}
+        start = time.perf_counter()
+        solver.step_uncaptured(args.steps, host_times=host)
+        uncaptured_ms = (time.perf_counter() - start) * 1e3
+        for name, seconds in host.items():
+            per_kernel[name] = [1e3 * x for x in seconds]
     kernels = sorted(({"kernel": k, "ms_per_step": round(sum(v) / args.steps, 4), "launches_per_step": len(v) / args.steps,
                        "ms_per_launch": round(sum(v) / len(v), 5)} for k, v in per_kernel.items()),
                      key=lambda row: -row["ms_per_step"])
@@ -71,7 +80,7 @@ def main() -> None:
               "vertices": int(solver.vertex_offsets[-1]), "steps_timed": args.steps,
               "cg_iterations": cfg.cg_iterations, "self_collision": cfg.self_collision,
               "stage_ms_per_step": round(stage_ms, 3), "kernel_ms_per_step": round(total, 3),
-              "uncaptured_wall_ms_per_step": round(timer.elapsed / args.steps, 3),
+              "uncaptured_wall_ms_per_step": round(uncaptured_ms / args.steps, 3),
               "steps_per_setting": int(round(cfg.settle_s / dt)) + cfg.frames * cfg.substeps,
               "kernels": kernels}
     out = args.out or Path(__file__).parent / "results" / f"sim_profile-{device.split(':')[0]}-{args.setting}-n{args.n}.json"

@@ -68,6 +68,7 @@ from __future__ import annotations
 
 import math
 import sys
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -201,6 +202,12 @@ def _rest_state(c: int, s: ClothSpec, off: int) -> dict[str, np.ndarray]:
             "hinge_area": np.array([face_area[(int(a), int(b))] + face_area[(int(b), int(a))] for a, b in h[:, :2]]),
             "hinge_dir": np.array([_edge_direction(du, dv) for du, dv in e_uv]),
             "hinge_cloth": np.full(len(h), c)}
+
+
+def _launch_name(cmd) -> str:
+    """A recorded command's name: its kernel's key, or the function's name (memsets)."""
+    kernel = getattr(getattr(cmd, "__self__", None), "kernel", None)
+    return kernel.key if kernel is not None else getattr(cmd, "__qualname__", repr(cmd))
 
 
 class BatchSolver:
@@ -476,13 +483,20 @@ class BatchSolver:
                     cmd()
         self._steps += n
 
-    def step_uncaptured(self, n: int = 1) -> None:
+    def step_uncaptured(self, n: int = 1, host_times: dict[str, list[float]] | None = None) -> None:
         """``step`` with every launch issued from the host, no CUDA graph and no early exit: the same
-        result, slower; for timing each kernel (``benchmarks/sim_profile.py``)."""
+        result, slower; for timing each kernel (``benchmarks/sim_profile.py``). With ``host_times`` each
+        launch's wall time is appended under its kernel's name (a kernel's own time on the CPU, where
+        launches run to completion; only the launch's cost on a GPU)."""
         before, iterations, after = self._program
         for _ in range(n):
             for cmd in before + [c for it in iterations for c in it] + after:
+                if host_times is None:
+                    cmd()
+                    continue
+                start = time.perf_counter()
                 cmd()
+                host_times.setdefault(_launch_name(cmd), []).append(time.perf_counter() - start)
         self._steps += n
 
     def cg_stats(self) -> list[CGStats]:
