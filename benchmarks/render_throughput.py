@@ -252,16 +252,18 @@ def processes_loop(args, spp: int, n: int, outputs: str = "") -> dict:
 
 
 def stage_loop(args, clips, spp: int, k: int, outputs: str = "png+exr", indices: list[int] | None = None,
-               written: dict | None = None, device_finish: bool = True) -> int:
-    """The stage's render_clip (frames finished on the device unless ``device_finish`` is False, a shared writer
-    pool, frames.npy, ``outputs``) into a temporary folder; ``written`` gets the number of files of each kind
-    it wrote."""
+               written: dict | None = None, device_finish: bool = True, in_flight: int = 1,
+               frames_out: dict | None = None) -> int:
+    """The stage's render_clip (frames finished on the device unless ``device_finish`` is False, ``in_flight``
+    frames launched before the oldest is read back, a shared writer pool, frames.npy, ``outputs``) into a
+    temporary folder; ``written`` gets the number of files of each kind it wrote, ``frames_out`` each clip's
+    frames.npy array."""
     from render.stage import render_clip
 
     write_png, write_hdr = OUTPUTS[outputs]
     config = RenderConfig(variants=(args.variant,), resolution=args.resolution, spp=spp, backend=args.backend,
                           frames_per_launch=k, writer_threads=args.writer_threads, write_png=write_png,
-                          write_hdr=write_hdr)
+                          write_hdr=write_hdr, frames_in_flight=in_flight)
     frames = 0
     with tempfile.TemporaryDirectory(prefix="render-bench-") as tmp, \
             ThreadPoolExecutor(args.writer_threads) as writer:
@@ -269,6 +271,8 @@ def stage_loop(args, clips, spp: int, k: int, outputs: str = "png+exr", indices:
             meta = render_clip(clip, get_variant(args.variant), Path(tmp) / f"c{index:05d}", config=config,
                                run_seed=0, clip_index=index, writer=writer, device_finish=device_finish)
             frames += meta["num_frames"]
+            if frames_out is not None:
+                frames_out[index] = np.load(Path(tmp) / f"c{index:05d}" / "frames.npy")
         if written is not None:
             for kind in ("npy", "png", "exr"):
                 written[kind] = sum(1 for _ in Path(tmp).rglob(f"*.{kind}"))
@@ -454,6 +458,17 @@ def main(argv: list[str] | None = None) -> dict:
                 result["with_output"][outputs]["over_host_finish"] = round(
                     result["with_output"][outputs]["frames_per_s"]
                     / result["with_output"][f"{outputs}_host_finish"]["frames_per_s"], 3)
+                if outputs == "npy":
+                    # Two frames in flight against one: the same frames (paired, every byte), and the speed.
+                    one, two = {}, {}
+                    stage_loop(args, clips, spp, 1, outputs, None, None, True, 1, one)
+                    row = timed(stage_loop, args, clips, spp, 1, outputs, None, None, True, 2, two)
+                    row["max_code_difference_vs_one_in_flight"] = max(
+                        int(np.abs(one[i].astype(np.int16) - two[i]).max()) for i in one)
+                    row["over_one_in_flight"] = round(row["frames_per_s"] / result["with_output"]["npy"]["frames_per_s"],
+                                                      3)
+                    result["with_output"]["npy_two_in_flight"] = row
+                    print("with_output npy_two_in_flight", json.dumps(row), flush=True)
                 for n in args.write_procs:
                     row = processes_loop(args, spp, n, outputs)
                     result["with_output"][f"{outputs}_processes_{n}"] = row

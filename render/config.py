@@ -30,6 +30,9 @@ class RenderConfig:
     frames_per_launch: int = 0              # frames of a clip per Mitsuba launch (render.batch); 1 = one scene,
                                             # one frame per render call; 0 = auto (AUTO_FRAMES_PER_LAUNCH)
     writer_threads: int = 4                 # threads that tone-map (and write EXR/PNG) while the next frames render
+    frames_in_flight: int = 1               # frames finished on the device: how many are launched before the
+                                            # oldest is read back (2: frame t+1's geometry and launch overlap
+                                            # frame t's path tracing); the frames are the same either way
     reuse_scenes: bool = True               # one Mitsuba scene per structure, retargeted clip to clip (render.scene
                                             # ScenePool); False = a new scene per clip (on CUDA: an OptiX compile each)
     freeze: bool = True                     # replay mi.render's recorded kernels (dr.freeze) instead of re-tracing
@@ -73,6 +76,7 @@ class RenderConfig:
         out += checks.choice("render.backend", self.backend, BACKENDS)
         out += checks.number("render.frames_per_launch", self.frames_per_launch, 0)
         out += checks.number("render.writer_threads", self.writer_threads, 1)
+        out += checks.number("render.frames_in_flight", self.frames_in_flight, 1)
         return out
 
 

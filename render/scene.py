@@ -494,9 +494,23 @@ class ClipRenderer:
     def render_finished(self, t: int, hdr: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
         """Frame t rendered and finished on the device: (the uint8 sRGB frame ``finish`` gives, (H, W, 3);
         the linear RGBA (H, W, 4) float32 ``render_hdr`` gives when ``hdr``, else None)."""
+        return self.read_finished(self.launch_finished(t), hdr)
+
+    def launch_finished(self, t: int):
+        """Frame t rendered and finished on the device, its kernels launched but not waited for: a handle
+        for ``read_finished``. Evaluated now, so that moving the cloth for a later frame cannot reach it."""
+        import drjit as dr
+
         finisher = self.device_finisher
         linear = self.render_linear(t)
-        ldr = finisher.to_host(finisher(linear))
+        codes = finisher(linear)
+        dr.eval(linear, codes)
+        return linear, codes
+
+    def read_finished(self, launched, hdr: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+        """``render_finished``'s result from ``launch_finished``'s handle (waits for the device)."""
+        linear, codes = launched
+        ldr = self.device_finisher.to_host(codes)
         if not hdr:
             return ldr, None
         res = self.resolution

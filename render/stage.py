@@ -33,6 +33,7 @@ import shutil
 import time
 import traceback
 import warnings
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import replace
 from concurrent.futures import Executor, ThreadPoolExecutor
@@ -124,7 +125,7 @@ def _frame_source(renderer: ClipRenderer, config: RenderConfig, device_finish: b
     elif on_host:
         frames, per_launch = ((t, renderer.render_hdr(t), None) for t in range(renderer.clip.num_frames)), 1
     else:
-        frames, per_launch = _finished_on_device(renderer, config.write_hdr), 1
+        frames, per_launch = _finished_on_device(renderer, config.write_hdr, config.frames_in_flight), 1
     return frames, per_launch, on_host, unbatched
 
 
@@ -160,11 +161,20 @@ def _finish_frames(renderer: ClipRenderer, frames, out_dir: Path, config: Render
     return ldr
 
 
-def _finished_on_device(renderer: ClipRenderer, hdr: bool):
-    """``(t, linear RGBA or None, uint8 frame)`` for every frame, finished on the device (RGBA only with ``hdr``)."""
+def _finished_on_device(renderer: ClipRenderer, hdr: bool, in_flight: int = 1):
+    """``(t, linear RGBA or None, uint8 frame)`` for every frame, finished on the device (RGBA only with ``hdr``);
+    up to ``in_flight`` frames are launched before the oldest is read back."""
+    launched: deque = deque()
     for t in range(renderer.clip.num_frames):
-        frame, linear = renderer.render_finished(t, hdr=hdr)
-        yield t, linear, frame
+        launched.append((t, renderer.launch_finished(t)))
+        if len(launched) >= in_flight:
+            done, handle = launched.popleft()
+            frame, linear = renderer.read_finished(handle, hdr=hdr)
+            yield done, linear, frame
+    while launched:
+        done, handle = launched.popleft()
+        frame, linear = renderer.read_finished(handle, hdr=hdr)
+        yield done, linear, frame
 
 
 def run_render(run: Run, progress: bool = True, indices: Sequence[int] | None = None) -> dict:

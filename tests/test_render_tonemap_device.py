@@ -100,6 +100,24 @@ def test_stage_frames_and_exrs_are_unchanged_by_the_switch_and_noise_stays_on_th
                 assert np.array_equal(np.asarray(im), frames[t])
 
 
+def test_frames_in_flight_give_the_same_frames_in_order(tmp_path):
+    from render.stage import render_clip
+
+    clip = waving_sheet(frames=5, n=8)
+    frames = {}
+    for depth in (1, 3):
+        config = RenderConfig(resolution=24, spp=2, backend=BACKEND, writer_threads=2, reuse_scenes=False,
+                              write_png=False, frames_in_flight=depth)
+        folder = tmp_path / f"depth{depth}"
+        meta = render_clip(clip, get_variant("paper"), folder, config=config, run_seed=1, clip_index=4)
+        assert meta["render"]["finished_on"] == "device"
+        frames[depth] = np.load(folder / FRAMES_FILE)
+        frames[f"hdr{depth}"] = np.stack([read_exr(folder / "hdr" / f"{t:04d}.exr") for t in range(5)])
+    assert len({frames[1][t].tobytes() for t in range(5)}) == 5       # the cloth moves: every frame differs
+    assert np.array_equal(frames[1], frames[3]) and np.array_equal(frames["hdr1"], frames["hdr3"])
+    assert RenderConfig(frames_in_flight=0).problems()
+
+
 def test_a_device_finished_run_resumes_to_the_same_frames(tmp_path):
     from render.stage import run_render
     from tests.test_render_frames import with_render
