@@ -20,12 +20,11 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
-import numpy as np
 import warp as wp
 
 from clothgap.config import PRESETS
-from sim.solver import BatchSolver, SolverParams, resolve_device
-from sim.stage import build_scene, parse_setting, setting_simulator
+from sim.solver import resolve_device
+from sim.stage import build_scene, parse_setting, setting_simulator, settled_solver
 
 
 def main() -> None:
@@ -43,12 +42,10 @@ def main() -> None:
         sys.exit("error: adaptive settings remesh between frames; profile a uniform setting")
     mesh, _ = setting_simulator(cfg, setting)
     scenes = [build_scene(cfg, 0, i, setting, mesh)[0] for i in range(args.n)]
-    dt = 1.0 / (cfg.fps * cfg.substeps)
-    params = SolverParams(dt=dt, cg_iterations=cfg.cg_iterations, cg_tolerance=cfg.cg_tolerance,
-                          self_collision=cfg.self_collision, collision_thickness=cfg.collision_thickness)
-    solver = BatchSolver([s.spec for s in scenes], params, device)
-    solver.step(int(round(cfg.settle_s / dt)))
-    solver.set_wind(np.stack([s.wind for s in scenes]))
+    solver = settled_solver(scenes, fps=cfg.fps, substeps=cfg.substeps, settle_s=cfg.settle_s,
+                            cg_iterations=cfg.cg_iterations, cg_tolerance=cfg.cg_tolerance,
+                            self_collision=cfg.self_collision, collision_thickness=cfg.collision_thickness,
+                            device=device)
     solver.step(1)                                        # capture, compile
     # As the stage steps: one CUDA graph per step on a GPU (all CG iterations), the host loop on a CPU.
     wp.synchronize_device(device)
@@ -81,7 +78,7 @@ def main() -> None:
               "cg_iterations": cfg.cg_iterations, "self_collision": cfg.self_collision,
               "stage_ms_per_step": round(stage_ms, 3), "kernel_ms_per_step": round(total, 3),
               "uncaptured_wall_ms_per_step": round(uncaptured_ms / args.steps, 3),
-              "steps_per_setting": int(round(cfg.settle_s / dt)) + cfg.frames * cfg.substeps,
+              "steps_per_setting": int(round(cfg.settle_s * cfg.fps * cfg.substeps)) + cfg.frames * cfg.substeps,
               "kernels": kernels}
     out = args.out or Path(__file__).parent / "results" / f"sim_profile-{device.split(':')[0]}-{args.setting}-n{args.n}.json"
     out.write_text(json.dumps(result, indent=2) + "\n")

@@ -32,7 +32,7 @@ from typing import Any
 
 from clothgap.errors import ConfigError, InputError, MissingInputError, StorageError
 # The atomic writer lives in clothgap.files; the stages import it from here with the rest of a run folder's tools.
-from clothgap.files import KILL_AT_ENV, atomic_write_json, atomic_write_text  # noqa: F401
+from clothgap.files import atomic_write_json, atomic_write_text  # noqa: F401
 from clothgap.settings import changed_settings, load_config, save_config, shown, study_config, to_dict, validate
 
 DONE = "DONE"

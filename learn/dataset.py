@@ -82,10 +82,6 @@ class FrameCache:
         return {**self.__dict__, "_frames": None}
 
 
-def cache_path(run: Run, variant: str, setting: str, size: int) -> Path:
-    return run.frame_cache_path(variant, setting, size)
-
-
 def _signature(render_dir: Path, clip_ids: list[str]) -> list:
     return [[cid, (render_dir / cid / "DONE").stat().st_mtime_ns] for cid in clip_ids]
 
@@ -96,7 +92,7 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
     clip_ids = run.done_clips(render_dir)
     if not clip_ids:
         raise MissingInputError(f"no finished clips in {render_dir}: run `clothgap render {run.root}` first")
-    array_path = cache_path(run, variant, setting, size)
+    array_path = run.frame_cache_path(variant, setting, size)
     index_path = array_path.with_suffix(".json")
     signature = _signature(render_dir, clip_ids)
     if index_path.is_file():

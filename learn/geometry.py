@@ -20,7 +20,6 @@ setting. Targets are cached per setting in
 from __future__ import annotations
 
 import warnings
-from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
@@ -36,13 +35,9 @@ from sim.lattice import LATTICE, clip_lattice
 TARGET_LIMIT = 10.0        # standardised units
 
 
-def lattice_cache_path(run: Run, setting: str) -> Path:
-    return run.lattice_cache_path(setting, LATTICE)
-
-
 def clip_lattices(run: Run, setting: str, clip_ids: list[str], progress: bool = True) -> dict[str, np.ndarray]:
     """{clip_id: (T, 64, 3) float32} for the given clips of ``setting``, from the cache or the sim clips."""
-    path = lattice_cache_path(run, setting)
+    path = run.lattice_cache_path(setting, LATTICE)
     stored: dict[str, np.ndarray] = {}
     if path.is_file():
         with np.load(path) as data:

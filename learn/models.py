@@ -175,24 +175,23 @@ class ClipClassifier(nn.Module):
         feats = self.cnn(frames).unflatten(0, (b, t))
         geometry = self.head_geometry(feats) if self.geometry_dim else None
         if self.bottleneck:
-            shape = geometry.detach().float()
-            if self.training and self.bottleneck_noise:
-                # Training clips' shapes come out cleaner than new clips' (the CNN has seen them):
-                # noise keeps the readers from relying on precision they will not get.
-                shape = shape + self.bottleneck_noise * torch.randn_like(shape)
-            out = self.read_lattice(shape)
+            out = self.read_lattice(self._noised(geometry.detach().float()))
             if self.training and lattice is not None:
                 # The readers also learn from the true shape, which carries the material more
                 # precisely than any prediction, noised like the predicted one.
-                truth = lattice.float()
-                if self.bottleneck_noise:
-                    truth = truth + self.bottleneck_noise * torch.randn_like(truth)
-                out["truth_logits"] = self.read_lattice(truth)["logits"]
+                out["truth_logits"] = self.read_lattice(self._noised(lattice.float()))["logits"]
         else:
             out = self._classify(feats)
         if geometry is not None:
             out["geometry"] = geometry
         return out
+
+    def _noised(self, shape: torch.Tensor) -> torch.Tensor:
+        """``shape`` with the bottleneck's training noise: training clips' shapes come out cleaner than new
+        clips' (the CNN has seen them), and noise keeps the readers from relying on precision they will not get."""
+        if self.training and self.bottleneck_noise:
+            return shape + self.bottleneck_noise * torch.randn_like(shape)
+        return shape
 
     def read_lattice(self, shape: torch.Tensor) -> dict[str, torch.Tensor]:
         """The bottleneck's classes from a (B, T, geometry_dim) lattice sequence: the reader MLP on each
@@ -247,8 +246,7 @@ def build_model(name: str, *, image_size: int, width: int, fc6: int, hidden: int
     cnn = FrameCNN(image_size, width, fc6, dropout, in_channels=6 if motion else 3, conv5_pool=conv5_pool)
     return ClipClassifier(cnn, entry.temporal, hidden, entry.readout or readout, factored, entry.freeze_cnn,
                           num_classes, motion=motion, geometry_dim=geometry_dim, geometry_window=geometry_window,
-                          bottleneck=bottleneck,
-                          bottleneck_noise=bottleneck_noise)
+                          bottleneck=bottleneck, bottleneck_noise=bottleneck_noise)
 
 
 def model_args(cfg) -> dict:

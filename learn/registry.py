@@ -63,15 +63,16 @@ def training_grid(cfg, settings: Iterable[str] | None = None, variants: Iterable
     """The run's one (setting, variant, model, seed) grid, in training order: by (setting, variant) as
     ``cfg.pairs()`` gives them, then seed, then each model after the model it needs. ``settings``,
     ``variants``, ``models``, ``seeds`` keep only those (None: all the config has)."""
-    keep = {name: set(sel) if sel is not None else None
-            for name, sel in (("settings", settings), ("variants", variants), ("models", models), ("seeds", seeds))}
-    chosen_models = [m for m in cfg.train.models if keep["models"] is None or m in keep["models"]]
+    def kept(values, wanted) -> list:
+        wanted = None if wanted is None else set(wanted)
+        return [v for v in values if wanted is None or v in wanted]
+
+    settings_kept, variants_kept = set(kept(cfg.sim.settings(), settings)), set(kept(cfg.render.variants, variants))
+    seeds_kept, models_kept = kept(cfg.train.seeds, seeds), training_order(kept(cfg.train.models, models))
     return [(setting, variant, model, seed)
-            for setting, variant in cfg.pairs()
-            if (keep["settings"] is None or setting in keep["settings"])
-            and (keep["variants"] is None or variant in keep["variants"])
-            for seed in cfg.train.seeds if keep["seeds"] is None or seed in keep["seeds"]
-            for model in training_order(chosen_models)]
+            for setting, variant in cfg.pairs() if setting in settings_kept and variant in variants_kept
+            for seed in seeds_kept
+            for model in models_kept]
 
 
 def describe_models() -> str:

@@ -102,10 +102,9 @@ def run_epoch(net: torch.nn.Module, model: ClipClassifier, batches, device: torc
     with torch.set_grad_enabled(training):
         for x, y, target in tqdm(batches, desc=desc, disable=not progress, leave=False, total=total):
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
-                out = net(x, target) if training and truth_weight and target is not None else net(x)
+                out = net(x, target) if training and truth_weight else net(x)
             loss = model.loss(out, y, geometry=target, geometry_weight=geometry_weight,
-                              label_smoothing=label_smoothing if training else 0.0,
-                              truth_weight=truth_weight if training else 0.0)
+                              label_smoothing=label_smoothing if training else 0.0, truth_weight=truth_weight)
             if training:
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()

@@ -165,16 +165,18 @@ def _finished_on_device(renderer: ClipRenderer, hdr: bool, in_flight: int = 1):
     """``(t, linear RGBA or None, uint8 frame)`` for every frame, finished on the device (RGBA only with ``hdr``);
     up to ``in_flight`` frames are launched before the oldest is read back."""
     launched: deque = deque()
+
+    def oldest():
+        done, handle = launched.popleft()
+        frame, linear = renderer.read_finished(handle, hdr=hdr)
+        return done, linear, frame
+
     for t in range(renderer.clip.num_frames):
         launched.append((t, renderer.launch_finished(t)))
         if len(launched) >= in_flight:
-            done, handle = launched.popleft()
-            frame, linear = renderer.read_finished(handle, hdr=hdr)
-            yield done, linear, frame
+            yield oldest()
     while launched:
-        done, handle = launched.popleft()
-        frame, linear = renderer.read_finished(handle, hdr=hdr)
-        yield done, linear, frame
+        yield oldest()
 
 
 def run_render(run: Run, progress: bool = True, indices: Sequence[int] | None = None) -> dict:

@@ -462,7 +462,7 @@ class BatchSolver:
         if wp.get_device(self.device).is_cuda:
             if self._graph is None:
                 with wp.ScopedCapture(device=self.device) as capture:
-                    for cmd in before + [c for it in iterations for c in it] + after:
+                    for cmd in self._all_launches():
                         cmd()
                 self._graph = capture.graph
             for _ in range(n):
@@ -483,14 +483,19 @@ class BatchSolver:
                     cmd()
         self._steps += n
 
+    def _all_launches(self) -> list:
+        """A step's launches in order: before the CG, every CG iteration, after it."""
+        before, iterations, after = self._program
+        return before + [c for it in iterations for c in it] + after
+
     def step_uncaptured(self, n: int = 1, host_times: dict[str, list[float]] | None = None) -> None:
         """``step`` with every launch issued from the host, no CUDA graph and no early exit: the same
         result, slower; for timing each kernel (``benchmarks/sim_profile.py``). With ``host_times`` each
         launch's wall time is appended under its kernel's name (a kernel's own time on the CPU, where
         launches run to completion; only the launch's cost on a GPU)."""
-        before, iterations, after = self._program
+        launches = self._all_launches()
         for _ in range(n):
-            for cmd in before + [c for it in iterations for c in it] + after:
+            for cmd in launches:
                 if host_times is None:
                     cmd()
                     continue

@@ -113,18 +113,28 @@ def _batch_health(cur: np.ndarray, prev: np.ndarray, frame_dt: float, edges: np.
     return out
 
 
-def simulate_scenes(scenes: list[ClipScene], *, fps: float, frames: int, substeps: int, settle_s: float,
-                    cg_iterations: int = 30, cg_tolerance: float = SolverParams.cg_tolerance,
-                    self_collision: bool = False, collision_thickness: float = SolverParams.collision_thickness,
-                    device: str = "cpu", on_frame: Callable[[], None] | None = None) -> list[ClipResult]:
-    """Simulate a batch: settle without wind for ``settle_s``, then record ``frames`` frames with the wind on.
-    ``on_frame`` is called after each recorded frame (progress)."""
+def settled_solver(scenes: list[ClipScene], *, fps: float, substeps: int, settle_s: float, cg_iterations: int,
+                   cg_tolerance: float, self_collision: bool, collision_thickness: float,
+                   device: str) -> BatchSolver:
+    """The batch's solver where recording starts: settled without wind for ``settle_s``, each scene's wind set."""
     dt = 1.0 / (fps * substeps)
     params = SolverParams(dt=dt, cg_iterations=cg_iterations, cg_tolerance=cg_tolerance,
                           self_collision=self_collision, collision_thickness=collision_thickness)
     solver = BatchSolver([s.spec for s in scenes], params, device)
     solver.step(int(round(settle_s / dt)))
     solver.set_wind(np.stack([s.wind for s in scenes]))
+    return solver
+
+
+def simulate_scenes(scenes: list[ClipScene], *, fps: float, frames: int, substeps: int, settle_s: float,
+                    cg_iterations: int = 30, cg_tolerance: float = SolverParams.cg_tolerance,
+                    self_collision: bool = False, collision_thickness: float = SolverParams.collision_thickness,
+                    device: str = "cpu", on_frame: Callable[[], None] | None = None) -> list[ClipResult]:
+    """Simulate a batch: settle without wind for ``settle_s``, then record ``frames`` frames with the wind on.
+    ``on_frame`` is called after each recorded frame (progress)."""
+    solver = settled_solver(scenes, fps=fps, substeps=substeps, settle_s=settle_s, cg_iterations=cg_iterations,
+                            cg_tolerance=cg_tolerance, self_collision=self_collision,
+                            collision_thickness=collision_thickness, device=device)
     # The stage simulates a batch on one mesh: check it in one vectorised pass (else cloth by cloth).
     meshes = {id(s.spec.mesh) for s in scenes}
     groups = []

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from clothgap.runs import KILL_AT_ENV
+from clothgap.files import KILL_AT_ENV
 
 SETTINGS = ["sim.classes=0,53", "sim.sequences_per_class=4", "sim.frames=10", "sim.grid_vertices=8",
             "render.variants=paper", "train.epochs=2", "train.num_threads=1"]

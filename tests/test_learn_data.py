@@ -10,7 +10,7 @@ import torch
 
 from clothgap.config import StudyConfig
 from learn.config import TrainConfig
-from learn.dataset import build_cache, cache_path, read_frames, subsequence_starts
+from learn.dataset import build_cache, read_frames, subsequence_starts
 from learn.windows import WindowSet
 from learn.synthetic import synthetic_run
 from sim.config import SimConfig
@@ -39,9 +39,9 @@ def test_cache_holds_resized_frames_and_is_reused(run):
     clip = cache.clips["c00001"]
     expected = read_frames(run.render_dir(VARIANT, SETTING) / "c00001", 32)
     np.testing.assert_array_equal(cache.frames[clip.offset:clip.offset + clip.num_frames], expected)
-    stamp = cache_path(run, VARIANT, SETTING, 32).stat().st_mtime_ns
+    stamp = run.frame_cache_path(VARIANT, SETTING, 32).stat().st_mtime_ns
     build_cache(run, VARIANT, SETTING, 32, progress=False)
-    assert cache_path(run, VARIANT, SETTING, 32).stat().st_mtime_ns == stamp
+    assert run.frame_cache_path(VARIANT, SETTING, 32).stat().st_mtime_ns == stamp
 
     data = WindowSet(cache, ["c00000", "c00003", "c99999"], clip_len=5, clip_stride=3)
     assert len(data) == 2 * 3   # starts 0, 3, 6; an unknown clip id is skipped
@@ -128,7 +128,7 @@ def test_a_cache_that_would_not_fit_on_disk_is_refused_by_name(run, monkeypatch)
     monkeypatch.setattr(shutil, "disk_usage", lambda p: real(p)._replace(free=1000))
     with pytest.raises(StorageError, match=r"32\.npy needs .* GiB free"):
         build_cache(run, VARIANT, SETTING, 32, progress=False)
-    folder = cache_path(run, VARIANT, SETTING, 32).parent
+    folder = run.frame_cache_path(VARIANT, SETTING, 32).parent
     assert not list(folder.iterdir())                      # no temporary array, no index
     monkeypatch.setattr(shutil, "disk_usage", real)
     assert build_cache(run, VARIANT, SETTING, 32, progress=False).frames.shape[0] == 4 * 12
@@ -138,11 +138,11 @@ def test_a_killed_cache_build_leaves_no_temporary_after_the_next_build(run):
     import subprocess
     import sys
 
-    folder = cache_path(run, VARIANT, SETTING, 32).parent
+    folder = run.frame_cache_path(VARIANT, SETTING, 32).parent
     folder.mkdir(parents=True, exist_ok=True)
     gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
                           text=True).stdout.strip()          # a pid whose process has exited
-    stem = cache_path(run, VARIANT, SETTING, 32).stem
+    stem = run.frame_cache_path(VARIANT, SETTING, 32).stem
     (folder / f"{stem}.tmp{gone}.npy").write_bytes(b"half a cache")     # what kill -9 mid-build leaves
     alive = folder / f"{stem}.tmp1.npy"                                  # pid 1 exists: another build, kept
     alive.write_bytes(b"in progress")
