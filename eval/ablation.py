@@ -94,7 +94,8 @@ def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], model
     Args:
         run: the run whose rendered clips of ``setting`` / ``variant`` are trained and tested on.
         recipes: recipe names (``recipe_config``); the first is the reference the others are compared with.
-        models, seeds: default to the run's ``train.models`` and ``train.seeds``.
+        models: default to the run's ``train.models``.
+        seeds: default to each recipe's ``train.seeds`` (the run's, unless the recipe sets ``seeds=...``).
         progress: print a line per trained model.
         name: the file stem under ``RUN/eval/`` (default ``ablation-<setting>-<variant>``).
 
@@ -108,20 +109,20 @@ def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], model
     base = run.config.train
     configs = {r: recipe_config(run.config, r) for r in recipes}
     models = models or list(base.models)
-    seeds = seeds if seeds is not None else list(base.seeds)
     test = part_windows(get_or_make_split(run, setting), "test")
     rows, reference, caches = [], {}, {}
     out_dir = run.eval_dir
     for recipe in recipes:
         cfg = configs[recipe]
+        recipe_seeds = list(seeds) if seeds is not None else list(cfg.seeds)
         for model in models:
-            frame, folders = _train_and_predict(run, setting, variant, recipe, cfg, model, seeds, test, caches,
-                                                progress)
-            row = {"recipe": recipe, "model": model, "seeds": seeds,
+            frame, folders = _train_and_predict(run, setting, variant, recipe, cfg, model, recipe_seeds, test,
+                                                caches, progress)
+            row = {"recipe": recipe, "model": model, "seeds": recipe_seeds,
                    "changes": {k: v for k, v in dataclasses.asdict(cfg).items() if getattr(base, k) != v},
                    **_scores(run, frame, model, reference, len(rows))}
             row["speed"] = [_speed(f) for f in folders]
-            row["curves"] = {f"s{s}": _curves(f) for s, f in zip(seeds, folders)}
+            row["curves"] = {f"s{s}": _curves(f) for s, f in zip(recipe_seeds, folders)}
             rows.append(row)
     scored = max((r["sequences"] for r in rows), default=0)
     report = {"run": str(run.root), "setting": setting, "variant": variant, "split_by": base.split_by,

@@ -65,6 +65,8 @@ class TrainConfig:
     geometry_window: int = 1                # frames the lattice head reads (odd; 1: its own frame only)
     reader_truth: float = 0.0               # weight of the bottleneck readers' class loss on the simulation's
                                             # own lattice (noised by bottleneck_noise), beside the predicted one
+    train_fraction: float = 1.0             # share of each class's training sequences used (a nested, seeded
+                                            # draw; validation and test unchanged): the data-size learning curve
 
     @property
     def geometry_weight(self) -> float:
@@ -112,6 +114,7 @@ class TrainConfig:
         if self.bottleneck_noise and not self.bottleneck:
             out.append("train.bottleneck_noise is set but train.bottleneck is off; set train.bottleneck=true")
         out += checks.number("train.reader_truth", self.reader_truth, 0)
+        out += checks.number("train.train_fraction", self.train_fraction, 0, 1, lo_open=True)
         out += checks.number("train.geometry_window", self.geometry_window, 1)
         if isinstance(self.geometry_window, int) and self.geometry_window % 2 == 0:
             out.append(f"train.geometry_window={self.geometry_window}: must be odd (the frame itself and as many "

@@ -101,6 +101,24 @@ def part_windows(split: dict, part: str) -> dict[str, list[int] | None]:
     return {c: (sorted(s) if s is not None else None) for c, s in out.items()}
 
 
+def training_subset(windows: dict[str, list[int] | None], labels: dict[str, int], fraction: float,
+                    seed: int) -> dict[str, list[int] | None]:
+    """The windows of ``round(n * fraction)`` (at least one) of each class's ``n`` clips in ``windows``, drawn per
+    class from ``seed``: a smaller training set with every class, for the data-size learning curve. The draw is
+    one permutation per class cut at the fraction, so a smaller fraction's clips are a subset of a larger's."""
+    if fraction >= 1:
+        return windows
+    by_class: dict[int, list[str]] = {}
+    for cid in sorted(windows):
+        by_class.setdefault(int(labels[cid]), []).append(cid)
+    keep: list[str] = []
+    for label in sorted(by_class):
+        ids = by_class[label]
+        order = seeding.rng(seed, label, seeding.TRAIN, "train-subset").permutation(len(ids))
+        keep += [ids[i] for i in order[:max(1, round(len(ids) * fraction))]]
+    return {cid: windows[cid] for cid in sorted(keep)}
+
+
 def part_clips(split: dict, part: str) -> list[str]:
     """The clip ids with at least one item in ``part``."""
     return sorted(part_windows(split, part))

@@ -45,7 +45,7 @@ from learn.dataset import build_cache
 from learn.geometry import geometry_targets
 from learn.models import NUM_CLASSES, ClipClassifier, build_model, load_cnn_weights, model_args
 from learn.registry import get_model_entry
-from learn.split import PARTS, get_or_make_split, part_clips, part_windows
+from learn.split import PARTS, get_or_make_split, part_clips, part_windows, training_subset
 from learn.windows import WindowSet
 
 METRIC_COLUMNS = ("epoch", "train_loss", "train_acc", "val_loss", "val_acc", "lr", "seconds")
@@ -274,7 +274,12 @@ def window_sets(run: Run, setting: str, variant: str, cfg: TrainConfig, device: 
         warnings.warn(f"{len(not_rendered)} clip(s) of the train/val split of {setting}/{variant} are not rendered "
                       f"or were left out of the frame cache and are not used: {', '.join(not_rendered[:5])}"
                       f"{' ...' if len(not_rendered) > 5 else ''}", stacklevel=2)
-    train_set = WindowSet(cache, part_windows(split, "train"), cfg.clip_len, cfg.clip_stride, device, targets)
+    train_windows = part_windows(split, "train")
+    if cfg.train_fraction < 1:
+        rendered = {c: w for c, w in train_windows.items() if c in cache.clips}
+        train_windows = training_subset(rendered, {c: cache.clips[c].class_index for c in rendered},
+                                        cfg.train_fraction, run.config.seed)
+    train_set = WindowSet(cache, train_windows, cfg.clip_len, cfg.clip_stride, device, targets)
     # Validation clips' lattices too: how well the shape is read on new clips, never a training signal.
     val_set = WindowSet(cache, part_windows(split, "val"), cfg.clip_len, cfg.clip_stride, device, targets)
     if not len(train_set):

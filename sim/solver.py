@@ -74,7 +74,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from sim import kernels
+from sim import collision, kernels
 from sim.collision import SelfCollision, unique_edges
 from sim.specs import ArmSpec, ClothSpec   # plain data, kept apart so that sim.motions needs no Warp
 
@@ -149,6 +149,13 @@ class CGStats:
                 "cg_residual_max": float(f"{self.max_residual:.4g}")}
 
 
+def load_kernels(device: str) -> None:
+    """Compiles the solver's Warp modules (a machine's first run; up to four at once) or loads them from Warp's
+    kernel cache, so that the time goes here rather than into the first step."""
+    wp.init()
+    wp.force_load(device=resolve_device(device), modules=[wp.get_module(m.__name__) for m in (kernels, collision)])
+
+
 def resolve_device(device: str) -> str:
     """'auto' -> 'cuda' when a CUDA device exists, else 'cpu'."""
     if device == "auto":
@@ -166,42 +173,51 @@ def _edge_direction(du: float, dv: float) -> float:
     return y
 
 
-def _rest_state(c: int, s: ClothSpec, off: int) -> dict[str, np.ndarray]:
-    """Cloth ``c``'s host-side rest state (vertex ``off`` onward in the batch): positions, velocities,
-    lumped masses, free flags, faces with their inverse rest matrices and areas, hinges with their rest
-    length, the two faces' area and the edge's direction in (u, v)."""
-    uv, faces = s.mesh.uv, s.mesh.faces
-    nv = len(uv)
-    if s.positions.shape != (nv, 3):
-        raise ValueError(f"cloth {c}: positions must be ({nv}, 3), got {s.positions.shape}")
-    if s.stretching.shape != (6, 4) or s.bending.shape != (3, 5):
-        raise ValueError(f"cloth {c}: stretching must be 6x4 and bending 3x5")
-    if not s.density > 0:
-        raise ValueError(f"cloth {c}: density must be positive, got {s.density}")
+def _mesh_rest(c: int, mesh) -> dict[str, np.ndarray]:
+    """The rest state every cloth on ``mesh`` shares (``c`` names the first in messages): faces' inverse rest
+    matrices and areas, hinges' rest length, the two faces' area and the edge's direction in (u, v)."""
+    uv, faces = mesh.uv, mesh.faces
     d1 = uv[faces[:, 1]] - uv[faces[:, 0]]
     d2 = uv[faces[:, 2]] - uv[faces[:, 0]]
     dm = np.stack([np.stack([d1[:, 0], d2[:, 0]], 1), np.stack([d1[:, 1], d2[:, 1]], 1)], 1)  # (F,2,2)
     area = 0.5 * (d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
     if np.any(area <= 0):
         raise ValueError(f"cloth {c}: faces must be counter-clockwise with positive area in (u, v)")
-    mass = np.zeros(nv)
-    np.add.at(mass, faces.ravel(), np.repeat(area * s.density / 3.0, 3))
-    free = np.ones(nv)
-    if s.pinned is not None:
-        free[np.asarray(s.pinned, dtype=np.int64)] = 0.0
-    h = s.mesh.hinges
+    h = mesh.hinges
     face_area = {}
     for fi, f in enumerate(faces):
         for e in range(3):
             face_area[(int(f[e]), int(f[(e + 1) % 3]))] = area[fi]
     e_uv = uv[h[:, 1]] - uv[h[:, 0]]
-    return {"x": s.positions, "v": np.zeros((nv, 3)) if s.velocities is None else s.velocities,
-            "mass": mass, "free": free, "vertex_cloth": np.full(nv, c),
-            "tri": faces + off, "dm_inv": np.linalg.inv(dm), "area": area, "face_cloth": np.full(len(faces), c),
-            "hinge": h + off, "hinge_length": np.linalg.norm(e_uv, axis=1),
+    return {"dm_inv": np.linalg.inv(dm), "area": area, "hinge_length": np.linalg.norm(e_uv, axis=1),
             "hinge_area": np.array([face_area[(int(a), int(b))] + face_area[(int(b), int(a))] for a, b in h[:, :2]]),
             "hinge_dir": np.array([_edge_direction(du, dv) for du, dv in e_uv]),
-            "hinge_cloth": np.full(len(h), c)}
+            "edges": unique_edges(faces)}
+
+
+def _rest_state(c: int, s: ClothSpec, off: int, shared: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Cloth ``c``'s host-side rest state (vertex ``off`` onward in the batch): positions, velocities,
+    lumped masses, free flags, and its mesh's ``shared`` rest state (``_mesh_rest``) offset into the batch."""
+    faces = s.mesh.faces
+    nv = len(s.mesh.uv)
+    if s.positions.shape != (nv, 3):
+        raise ValueError(f"cloth {c}: positions must be ({nv}, 3), got {s.positions.shape}")
+    if s.stretching.shape != (6, 4) or s.bending.shape != (3, 5):
+        raise ValueError(f"cloth {c}: stretching must be 6x4 and bending 3x5")
+    if not s.density > 0:
+        raise ValueError(f"cloth {c}: density must be positive, got {s.density}")
+    mass = np.zeros(nv)
+    np.add.at(mass, faces.ravel(), np.repeat(shared["area"] * s.density / 3.0, 3))
+    free = np.ones(nv)
+    if s.pinned is not None:
+        free[np.asarray(s.pinned, dtype=np.int64)] = 0.0
+    h = s.mesh.hinges
+    return {"x": s.positions, "v": np.zeros((nv, 3)) if s.velocities is None else s.velocities,
+            "mass": mass, "free": free, "vertex_cloth": np.full(nv, c),
+            "tri": faces + off, "dm_inv": shared["dm_inv"], "area": shared["area"],
+            "face_cloth": np.full(len(faces), c), "hinge": h + off, "hinge_length": shared["hinge_length"],
+            "hinge_area": shared["hinge_area"], "hinge_dir": shared["hinge_dir"], "hinge_cloth": np.full(len(h), c),
+            "edges": shared["edges"] + off}
 
 
 def _launch_name(cmd) -> str:
@@ -230,9 +246,15 @@ class BatchSolver:
 
     # ---------------------------------------------------------------- set-up
     def _build(self, specs: list[ClothSpec]) -> None:
-        rest = [_rest_state(c, s, int(self.vertex_offsets[c])) for c, s in enumerate(specs)]
+        # What depends on the mesh alone is computed once per mesh: a batch of thousands of cloths shares one.
+        by_mesh: dict[int, dict] = {}
+        rest = []
+        for c, s in enumerate(specs):
+            if id(s.mesh) not in by_mesh:
+                by_mesh[id(s.mesh)] = _mesh_rest(c, s.mesh)
+            rest.append(_rest_state(c, s, int(self.vertex_offsets[c]), by_mesh[id(s.mesh)]))
         self._upload_cloths(specs, rest)
-        edges = [unique_edges(s.mesh.faces) + int(self.vertex_offsets[c]) for c, s in enumerate(specs)]
+        edges = [r["edges"] for r in rest]
         if self.has_arm:
             self._allocate_contact(edges)
         self._allocate_step()

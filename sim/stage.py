@@ -21,6 +21,7 @@ is retried once with twice the substeps; if it fails again its folder gets a
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import shutil
@@ -45,7 +46,7 @@ from sim.intersections import count_intersections
 from sim.materials import load_material
 from sim.mesh import ClothMesh, square_cloth, vertices_per_side
 from sim.motions import MOTIONS, ClipScene, get_motion, view_box
-from sim.solver import BatchSolver, CGStats, SolverParams, resolve_device
+from sim.solver import BatchSolver, CGStats, SolverParams, load_kernels, resolve_device
 
 # Health check of every recorded frame: beyond these a cloth has exploded.
 MAX_SPEED_MPS = 30.0
@@ -113,28 +114,48 @@ def _batch_health(cur: np.ndarray, prev: np.ndarray, frame_dt: float, edges: np.
     return out
 
 
+@contextlib.contextmanager
+def timed(phases: dict[str, float] | None, name: str):
+    """Adds the block's wall time to ``phases[name]`` (seconds), when ``phases`` is a dict."""
+    start = time.perf_counter()
+    try:
+        yield
+    finally:
+        if phases is not None:
+            phases[name] = phases.get(name, 0.0) + time.perf_counter() - start
+
+
 def settled_solver(scenes: list[ClipScene], *, fps: float, substeps: int, settle_s: float, cg_iterations: int,
                    cg_tolerance: float, self_collision: bool, collision_thickness: float,
-                   device: str) -> BatchSolver:
-    """The batch's solver where recording starts: settled without wind for ``settle_s``, each scene's wind set."""
+                   device: str, phases: dict[str, float] | None = None) -> BatchSolver:
+    """The batch's solver where recording starts: settled without wind for ``settle_s``, each scene's wind set.
+    ``phases`` (optional) gets the seconds of loading the kernels, building the solver and settling."""
     dt = 1.0 / (fps * substeps)
     params = SolverParams(dt=dt, cg_iterations=cg_iterations, cg_tolerance=cg_tolerance,
                           self_collision=self_collision, collision_thickness=collision_thickness)
-    solver = BatchSolver([s.spec for s in scenes], params, device)
-    solver.step(int(round(settle_s / dt)))
-    solver.set_wind(np.stack([s.wind for s in scenes]))
+    with timed(phases, "kernels"):       # compiled on a machine's first run, then loaded from Warp's cache
+        load_kernels(device)
+    with timed(phases, "solver"):
+        solver = BatchSolver([s.spec for s in scenes], params, device)
+    with timed(phases, "settle"):
+        solver.step(int(round(settle_s / dt)))
+        solver.set_wind(np.stack([s.wind for s in scenes]))
+        solver.positions()               # waits for the device
     return solver
 
 
 def simulate_scenes(scenes: list[ClipScene], *, fps: float, frames: int, substeps: int, settle_s: float,
                     cg_iterations: int = 30, cg_tolerance: float = SolverParams.cg_tolerance,
                     self_collision: bool = False, collision_thickness: float = SolverParams.collision_thickness,
-                    device: str = "cpu", on_frame: Callable[[], None] | None = None) -> list[ClipResult]:
+                    device: str = "cpu", on_frame: Callable[[], None] | None = None,
+                    phases: dict[str, float] | None = None) -> list[ClipResult]:
     """Simulate a batch: settle without wind for ``settle_s``, then record ``frames`` frames with the wind on.
-    ``on_frame`` is called after each recorded frame (progress)."""
+    ``on_frame`` is called after each recorded frame (progress); ``phases`` (optional) gets the seconds of
+    each phase (``settled_solver``'s, then ``record``)."""
     solver = settled_solver(scenes, fps=fps, substeps=substeps, settle_s=settle_s, cg_iterations=cg_iterations,
                             cg_tolerance=cg_tolerance, self_collision=self_collision,
-                            collision_thickness=collision_thickness, device=device)
+                            collision_thickness=collision_thickness, device=device, phases=phases)
+    record_start = time.perf_counter()
     # The stage simulates a batch on one mesh: check it in one vectorised pass (else cloth by cloth).
     meshes = {id(s.spec.mesh) for s in scenes}
     groups = []
@@ -146,9 +167,11 @@ def simulate_scenes(scenes: list[ClipScene], *, fps: float, frames: int, substep
     reasons: list[str | None] = [None] * len(scenes)
     prev = solver.positions()
     recorded = []
+    solver.step(substeps)
     for t in range(frames):
-        solver.step(substeps)
-        cur = solver.positions()
+        cur = solver.positions()                 # waits for frame t
+        if t + 1 < frames:
+            solver.step(substeps)                # on a GPU frame t+1 runs while the host checks frame t
         for members, e, rest in groups:
             found = _batch_health(np.stack([cur[c] for c in members]), np.stack([prev[c] for c in members]),
                                   1.0 / fps, e, rest)
@@ -161,6 +184,8 @@ def simulate_scenes(scenes: list[ClipScene], *, fps: float, frames: int, substep
             on_frame()
     cg = solver.cg_stats()
     dropped = solver.collision_dropped() or [None] * len(scenes)
+    if phases is not None:
+        phases["record"] = phases.get("record", 0.0) + time.perf_counter() - record_start
     return [ClipResult(None if r else np.stack([f[c] for f in recorded]), r, cg=cg[c], collision_dropped=dropped[c])
             for c, r in enumerate(reasons)]
 
@@ -169,8 +194,10 @@ def simulate_adaptive_scenes(scenes: list[ClipScene], base, *, fps: float, frame
                              settle_s: float, cg_iterations: int = 30,
                              cg_tolerance: float = SolverParams.cg_tolerance, self_collision: bool = False,
                              collision_thickness: float = SolverParams.collision_thickness, device: str = "cpu",
-                             on_frame: Callable[[], None] | None = None) -> list[ClipResult]:
-    """``simulate_scenes`` with adaptive remeshing after every frame; same health check per frame."""
+                             on_frame: Callable[[], None] | None = None,
+                             phases: dict[str, float] | None = None) -> list[ClipResult]:
+    """``simulate_scenes`` with adaptive remeshing after every frame; same health check per frame. Its phases
+    are not split: the stage times the whole batch (``phases`` is accepted for the common signature)."""
     def check(cloth, x, x_prev, frame_dt):
         e = _edges(cloth_mesh(cloth.quad))
         return health(x, x_prev, frame_dt, e, np.linalg.norm(cloth.quad.uv[e[:, 1]] - cloth.quad.uv[e[:, 0]], axis=1))
@@ -267,6 +294,11 @@ def merge_shard_summaries(parts: list[dict]) -> dict:
     merged: dict = {k: sum(p.get(k, 0) for p in parts) for k in ("simulated", "skipped", "failed", "retried")}
     merged["failed_clips"] = [f for p in parts for f in p.get("failed_clips", [])]
     merged["seconds"] = 0.0
+    phases: dict[str, float] = {}
+    for p in parts:
+        for k, v in p.get("phases_s", {}).items():
+            phases[k] = round(phases.get(k, 0.0) + v, 2)
+    merged["phases_s"] = phases       # summed over shards, which may have run at the same time
     return merged
 
 
@@ -282,6 +314,9 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
     cfg = run.config.sim
     device = resolve_device(cfg.device)
     summary = {"simulated": 0, "skipped": 0, "failed": 0, "retried": 0, "failed_clips": [], "seconds": 0.0}
+    # Where the seconds went: building scenes, the batch's simulation (its kernels, solver, settle and record
+    # on uniform meshes; a retry's included) and checking and writing the clips.
+    phases: dict[str, float] = {}
     start = time.perf_counter()
     for setting in [parse_setting(s) for s in jobs]:
         out = folder_of(setting.name)
@@ -293,34 +328,40 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
                    unit_scale=True, disable=not progress)
         for b in range(0, len(todo), cfg.batch_size):
             batch = todo[b:b + cfg.batch_size]
-            built = [build_scene(cfg, run.config.seed, j.index, setting, mesh, j.fabric) for j in batch]
+            with timed(phases, "scenes"):
+                built = [build_scene(cfg, run.config.seed, j.index, setting, mesh, j.fabric) for j in batch]
             scenes = [s for s, _ in built]
-            results, substeps = simulate_batch(cfg, simulate, scenes, device,
-                                               on_frame=lambda n=len(batch): bar.update(n))
+            with timed(phases, "simulate"):
+                results, substeps = simulate_batch(cfg, simulate, scenes, device,
+                                                   on_frame=lambda n=len(batch): bar.update(n), phases=phases)
             summary["retried"] += sum(sub != cfg.substeps for sub in substeps)   # simulated a second time
-            metas = [clip_meta(run, setting, job, scene, labels, sub, mesh)
-                     for job, (scene, labels), sub in zip(batch, built, substeps)]
-            # Compressing and writing thousands of clips is host work that threads overlap (zlib drops the GIL).
-            with ThreadPoolExecutor(max_workers=min(32, os.cpu_count() or 1, max(len(batch), 1))) as pool:
-                ok = list(pool.map(write_clip, [out / j.name for j in batch], metas, results, [mesh] * len(batch)))
+            with timed(phases, "write"):
+                metas = [clip_meta(run, setting, job, scene, labels, sub, mesh)
+                         for job, (scene, labels), sub in zip(batch, built, substeps)]
+                # Checking and writing thousands of clips is host work that threads overlap (numpy drops the GIL).
+                with ThreadPoolExecutor(max_workers=min(32, os.cpu_count() or 1, max(len(batch), 1))) as pool:
+                    ok = list(pool.map(write_clip, [out / j.name for j in batch], metas, results,
+                                       [mesh] * len(batch)))
             summary["simulated"] += sum(ok)
             summary["failed"] += len(ok) - sum(ok)
             summary["failed_clips"] += [{"setting": setting.name, "clip_id": j.name, "error": r.reason}
                                         for j, r, good in zip(batch, results, ok) if not good]
         bar.close()
     summary["seconds"] = round(time.perf_counter() - start, 3)
+    summary["phases_s"] = {k: round(v, 2) for k, v in phases.items()}
     return summary
 
 
 def simulate_batch(cfg: SimConfig, simulate: Callable[..., list[ClipResult]], scenes: list[ClipScene], device: str,
-                   on_frame: Callable[[], None] | None = None) -> tuple[list[ClipResult], list[int]]:
+                   on_frame: Callable[[], None] | None = None,
+                   phases: dict[str, float] | None = None) -> tuple[list[ClipResult], list[int]]:
     """Simulate a batch of scenes at ``cfg.substeps``, then once more at twice the substeps those that failed
     the health check; returns each scene's result and the substeps it was simulated with."""
     solver_options = dict(cg_iterations=cfg.cg_iterations, cg_tolerance=cfg.cg_tolerance,
                           self_collision=cfg.self_collision, collision_thickness=cfg.collision_thickness,
                           device=device)
     results = simulate(scenes, fps=cfg.fps, frames=cfg.frames, substeps=cfg.substeps, settle_s=cfg.settle_s,
-                       on_frame=on_frame, **solver_options)
+                       on_frame=on_frame, phases=phases, **solver_options)
     substeps = [cfg.substeps] * len(scenes)
     failed = [j for j, r in enumerate(results) if r.reason]
     if failed:

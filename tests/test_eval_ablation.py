@@ -31,7 +31,7 @@ def test_recipes_compose_levers_and_settings():
 
 def test_ablation_scores_every_recipe_on_the_same_test_windows(tmp_path):
     run = synthetic_run(tmp_path / "run", tiny())
-    summary = run_ablation(run, SETTING, VARIANT, ["baseline", "augment+best"], progress=False)
+    summary = run_ablation(run, SETTING, VARIANT, ["baseline", "augment+best+seeds=1"], progress=False)
     report = json.loads((run.eval_dir / f"ablation-{SETTING}-{VARIANT}.json").read_text())
     assert summary["json"].endswith(f"ablation-{SETTING}-{VARIANT}.json")
     first, second = report["recipes"]
@@ -40,16 +40,17 @@ def test_ablation_scores_every_recipe_on_the_same_test_windows(tmp_path):
     assert report["test_sequences_in_split"] == len(test)
     assert first["rows"] == second["rows"] == len(test) * 3          # windows at 0, 5, 10 of 16 frames
     assert "acc_minus_first" not in first and second["acc_minus_first_lo"] <= second["acc_minus_first_hi"]
-    assert second["changes"] == {"augment": True, "keep": "best"}
+    assert second["changes"] == {"augment": True, "keep": "best", "seeds": [1]}
+    assert first["seeds"] == [0] and second["seeds"] == [1]              # a recipe may train another seed
     assert 0 <= first["within1"] <= 1 and first["within1"] >= first["acc"]
-    assert len(second["curves"]["s0"]) == 2 and second["speed"][0]["train_windows"] > 0
-    folder = run.root / "ablation" / "augment+best" / SETTING / VARIANT / "lrcn" / "s0"
+    assert len(second["curves"]["s1"]) == 2 and second["speed"][0]["train_windows"] > 0
+    folder = run.root / "ablation" / "augment+best+seeds=1" / SETTING / VARIANT / "lrcn" / "s1"
     assert (folder / "DONE").is_file() and (folder / "test_predictions.csv").is_file()
     stamp = (folder / "DONE").stat().st_mtime_ns
-    run_ablation(run, SETTING, VARIANT, ["baseline", "augment+best"], progress=False)   # all reused
+    run_ablation(run, SETTING, VARIANT, ["baseline", "augment+best+seeds=1"], progress=False)   # all reused
     assert (folder / "DONE").stat().st_mtime_ns == stamp
     md = (run.eval_dir / f"ablation-{SETTING}-{VARIANT}.md").read_text()
-    assert "| augment+best | lrcn |" in md
+    assert "| augment+best+seeds=1 | lrcn |" in md
 
 
 def test_ablation_cli_checks_recipes_and_pairs_first(tmp_path):

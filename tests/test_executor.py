@@ -120,9 +120,12 @@ def test_options_are_checked():
 
 
 def test_summaries_merge_counts_and_failures():
-    sim = merge_summaries("sim", [{"simulated": 2, "skipped": 1, "failed": 0, "retried": 1, "seconds": 3.0},
-                                  {"simulated": 1, "skipped": 0, "failed": 1, "retried": 1, "seconds": 2.0}])
-    assert sim == {"simulated": 3, "skipped": 1, "failed": 1, "retried": 2, "failed_clips": [], "seconds": 0.0}
+    sim = merge_summaries("sim", [{"simulated": 2, "skipped": 1, "failed": 0, "retried": 1, "seconds": 3.0,
+                                   "phases_s": {"scenes": 0.5, "simulate": 2.0}},
+                                  {"simulated": 1, "skipped": 0, "failed": 1, "retried": 1, "seconds": 2.0,
+                                   "phases_s": {"simulate": 1.5}}])
+    assert sim == {"simulated": 3, "skipped": 1, "failed": 1, "retried": 2, "failed_clips": [], "seconds": 0.0,
+                   "phases_s": {"scenes": 0.5, "simulate": 3.5}}
     parts = [{"backend": "scalar_rgb", "rendered": 2, "skipped": 0, "failed": [], "frames": 6,
               "skipped_backgrounds": {}, "seconds": 1.0, "seconds_per_clip": 0.5, "seconds_per_frame": 0.1},
              {"backend": "scalar_rgb", "rendered": 0, "skipped": 1, "failed": [{"clip_id": "c00003"}], "frames": 0,

@@ -10,7 +10,7 @@ import pytest
 from clothgap.config import ConfigError, StudyConfig
 from clothgap.runs import Run, clip_id, mark_done
 from learn.config import TrainConfig
-from learn.split import get_or_make_split, split_sequences
+from learn.split import get_or_make_split, split_sequences, training_subset
 
 
 def _labels(classes: int, per_class: int) -> dict[str, int]:
@@ -35,6 +35,19 @@ def test_split_depends_on_seed_only_and_keeps_one_for_training():
     assert len(tiny["train"]) == 3 and not tiny["val"] and not tiny["test"]
     with pytest.raises(ConfigError, match="val_fraction"):
         split_sequences(labels, 0.5, 0.5, seed=0)
+
+
+def test_a_training_subset_keeps_every_class_and_nests_in_a_larger_one():
+    labels = _labels(54, 8)
+    windows = {c: None for c in labels}
+    half, quarter = (training_subset(windows, labels, f, seed=5) for f in (0.5, 0.25))
+    assert Counter(labels[c] for c in half) == {c: 4 for c in range(54)}
+    assert Counter(labels[c] for c in quarter) == {c: 2 for c in range(54)}
+    assert set(quarter) < set(half)                                   # the learning curve's points nest
+    assert training_subset(windows, labels, 0.5, seed=5) == half      # seeded
+    assert set(training_subset(windows, labels, 0.5, seed=6)) != set(half)
+    assert Counter(labels[c] for c in training_subset(windows, labels, 0.01, seed=5)) == {c: 1 for c in range(54)}
+    assert training_subset(windows, labels, 1.0, seed=5) == windows
 
 
 def test_get_or_make_split_writes_once_in_contract_format(tmp_path):

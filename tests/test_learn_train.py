@@ -196,6 +196,16 @@ def test_reader_truth_reaches_the_readers_through_training(tmp_path):
     assert not torch.equal(readers[0.0], readers[1.0])
 
 
+def test_train_fraction_trains_on_fewer_sequences_of_the_same_split(tmp_path):
+    windows = {}
+    for fraction in (1.0, 0.5):
+        cfg = tiny_train_config(train_fraction=fraction, epochs=1)
+        run = synthetic_run(tmp_path / f"run{fraction}", cfg)
+        out = train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
+        windows[fraction] = json.loads((out / "config.json").read_text())["train_subsequences"]
+    assert 0 < windows[0.5] < windows[1.0]
+
+
 def test_a_lattice_head_over_three_frames_trains_and_loads(tmp_path):
     cfg = tiny_train_config(bottleneck=True, dropout=0.0, geometry_window=3, epochs=1)
     run = synthetic_run(tmp_path / "run", cfg)

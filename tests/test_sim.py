@@ -269,7 +269,12 @@ def test_run_sim_writes_skips_and_redoes(tmp_path):
     from sim.stage import run_sim
 
     run = tiny_sim_run(tmp_path / "a")
-    assert run_sim(run, progress=False)["simulated"] == 2
+    first = run_sim(run, progress=False)
+    assert first["simulated"] == 2
+    phases = first["phases_s"]                 # where the stage's seconds went
+    assert set(phases) == {"scenes", "kernels", "solver", "settle", "record", "simulate", "write"}
+    assert min(phases.values()) >= 0 and sum(phases[k] for k in ("scenes", "simulate", "write")) <= first["seconds"] + 0.02
+    assert phases["simulate"] >= phases["solver"] + phases["record"] - 0.02     # (rounded to 0.01 s)
     folder = run.sim_dir("wind-uniform1")
     assert [p.name for p in sorted(folder.iterdir())] == ["c00000", "c00001"]
     for i, cls in enumerate((0, 53)):

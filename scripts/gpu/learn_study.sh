@@ -8,6 +8,8 @@
 #                    models of the first (or chosen) recipe, which become the run's train/ models
 # The data comes first: STAGES="sim render" SPP=16 RUN=/tmp/paper_study bash scripts/gpu/paper_study.sh
 # Every recipe resumes epoch by epoch, so a call cut short loses at most one epoch: call again.
+#   RECIPES="best best+seeds=1 best+train_fraction=0.5"   another training seed (how much a rerun moves),
+#                    half of each class's training sequences (the data-size learning curve)
 # Writes $OUT/ablation-<setting>-<variant>.{json,md} (every finished recipe) and $OUT/learn_study.log.
 set -uo pipefail
 source scripts/gpu/env.sh
@@ -22,17 +24,19 @@ import sys, pathlib
 run, setting, variant, first, *models = sys.argv[1:]
 root = pathlib.Path(run) / "ablation"
 names = sorted(p.name for p in root.iterdir()) if root.is_dir() else []
-done = [n for n in names if all((root / n / setting / variant / m / "s0" / "DONE").is_file() for m in models)]
+done = [n for n in names if all(any((root / n / setting / variant / m).glob("s*/DONE")) for m in models)]
 print(" ".join(([first] if first in done else []) + [n for n in done if n != first]))
 PY
 }
 if [ "$RECIPES" = auto ]; then
   RECIPES=$(python3 - "$RUN/eval/ablation-$SETTING-$VARIANT.json" <<'PY'
 import json, sys
-rows = [r for r in json.load(open(sys.argv[1]))["recipes"] if r["model"] == "lrcn" and "epochs=" not in r["recipe"]]
+# measurements rather than recipes (another seed, less data, other epochs) are not candidates
+rows = [r for r in json.load(open(sys.argv[1]))["recipes"] if r["model"] == "lrcn"
+        and not any(k in r["recipe"] for k in ("epochs=", "seeds=", "train_fraction="))]
 def val(r):   # validation accuracy of the kept epoch: recipes are chosen on validation clips, never test
     kept = r["speed"][0]["kept_epoch"]
-    return r["curves"]["s0"][kept]["val_acc"]
+    return next(iter(r["curves"].values()))[kept]["val_acc"]
 print(max(rows, key=val)["recipe"])
 PY
 )
