@@ -30,7 +30,7 @@ def main(argv: list[str] | None = None) -> None:
         rows = json.loads(path.read_text())["recipes"]
         several_models = len({r["model"] for r in rows}) > 1
         for i, row in enumerate(rows):
-            curve = row["curves"]["s0"]
+            curve = next(iter(row["curves"].values()))     # the first seed
             label = f"{row['recipe']} / {row['model']}" if several_models else row["recipe"]
             colour = f"C{i % 10}"
             epochs = [e["epoch"] for e in curve]

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # GPU: one setting of the paper's study at full size through the real CLI, stage by stage.
 #   STAGES="sim render" bash scripts/gpu/paper_study.sh     (then "train", then "eval report")
+#   SEQ=96 simulates 96 sequences per class instead of the preset's 48 (twice the render time: two calls).
 #   RENDER_ARGS="--executor process --workers 12 --gpus-per-worker 0.0833" overlaps the per-clip host work.
 #   The paper preset writes each clip's frames.npy alone; EXTRA='--set render.write_png=true' adds the PNGs
 #   (the cost every clip paid before). The render line's summary has frames and seconds: frames/s over the
@@ -13,7 +14,8 @@ source scripts/gpu/env.sh
 RUN=${RUN:-/tmp/paper_study}
 STAGES=${STAGES:-"sim render train eval report"}
 SETS=(--set sim.motions=${MOTIONS:-wind} --set sim.remeshing=${REMESHING:-uniform1} --set sim.batch_size=2592
-      --set render.resolution=${RES:-112} --set render.spp=${SPP:-8} ${EXTRA:-})
+      --set render.resolution=${RES:-112} --set render.spp=${SPP:-8}
+      ${SEQ:+--set sim.sequences_per_class=$SEQ} ${EXTRA:-})
 for stage in $STAGES; do
   t0=$(date +%s.%N)
   if [ -f "$RUN/config.json" ]; then args=("$RUN"); else args=(--preset paper --out "$RUN" "${SETS[@]}"); fi
