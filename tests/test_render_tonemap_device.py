@@ -64,9 +64,10 @@ def test_device_frames_are_the_host_frames(name, tmp_path):
     assert r.device_finish_unsupported is None
     for t in range(2):
         hdr = r.render_hdr(t)
-        host = r.finish(hdr, t)
-        device, linear = r.render_finished(t, hdr=True)     # the same scene, frame and seed: the same render
-        assert np.array_equal(linear, hdr)
+        device, linear = r.render_finished(t, hdr=True)     # the same scene, frame and seed: the same render,
+        # up to the order of the film's atomic adds, which LLVM's threads change on a busy CPU
+        np.testing.assert_allclose(linear, hdr, rtol=1e-5, atol=1e-7)
+        host = r.finish(linear, t)                           # the host's finish of the image the device finished
         assert device.shape == host.shape and device.dtype == np.uint8
         diff = np.abs(device.astype(int) - host)
         # Byte-identical on llvm_ad_rgb; the contract (and CUDA's fused multiply-adds) allow 1 code, rarely.

@@ -265,6 +265,22 @@ def test_batched_equals_one_at_a_time():
 
 # ---------------------------------------------------------------- stage
 
+def test_a_batch_written_by_processes_is_the_batch_written_by_threads(tmp_path, monkeypatch):
+    import sim.stage
+    from sim.stage import run_sim
+
+    threads = tiny_sim_run(tmp_path / "threads")
+    run_sim(threads, progress=False)
+    monkeypatch.setattr(sim.stage, "PROCESS_WRITE_MIN_CLIPS", 1)     # what a GPU batch of thousands takes
+    monkeypatch.setattr(sim.stage, "PROCESS_WRITE_MIN_CPUS", 1)
+    processes = tiny_sim_run(tmp_path / "processes")
+    assert run_sim(processes, progress=False)["simulated"] == 2
+    for cid in ("c00000", "c00001"):
+        a, b = threads.sim_dir("wind-uniform1") / cid, processes.sim_dir("wind-uniform1") / cid
+        assert is_done(b) and (a / "clip.npz").read_bytes() == (b / "clip.npz").read_bytes()
+        assert (a / "meta.json").read_text() == (b / "meta.json").read_text()
+
+
 def test_run_sim_writes_skips_and_redoes(tmp_path):
     from sim.stage import run_sim
 
