@@ -64,11 +64,13 @@ def wang_bend_ke(table: wp.array2d(dtype=float), c: int, curvature: float, y: fl
 
 @wp.kernel
 def begin_step(mass: wp.array(dtype=float), gravity: wp.vec3,
-               force: wp.array(dtype=wp.vec3), diag: wp.array(dtype=wp.vec3), kv: wp.array(dtype=wp.vec3)):
+               force: wp.array(dtype=wp.vec3), diag: wp.array(dtype=wp.vec3), kv: wp.array(dtype=wp.vec3),
+               block: wp.array(dtype=wp.mat33)):
     i = wp.tid()
     force[i] = mass[i] * gravity
     diag[i] = wp.vec3(0.0)
     kv[i] = wp.vec3(0.0)
+    block[i] = wp.mat33(0.0)
 
 
 @wp.kernel
@@ -78,9 +80,11 @@ def face_prepare(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), tri: wp
                  air_density: float, air_drag: float,
                  force: wp.array(dtype=wp.vec3), diag: wp.array(dtype=wp.vec3),
                  f0_out: wp.array(dtype=wp.vec3), f1_out: wp.array(dtype=wp.vec3),
-                 kmat_out: wp.array(dtype=wp.vec4), smat_out: wp.array(dtype=wp.vec3)):
-    """Stretching force (Wang), wind force, the Jacobi diagonal, and the per-face data the
-    Hessian-vector product reuses: F's columns, the PSD-projected stiffness and stress."""
+                 kmat_out: wp.array(dtype=wp.vec4), smat_out: wp.array(dtype=wp.vec3),
+                 block: wp.array(dtype=wp.mat33)):
+    """Stretching force (Wang), wind force, the Jacobi diagonal and the 3 x 3 vertex blocks of the stiffness
+    (the block-Jacobi preconditioner), and the per-face data the Hessian-vector product reuses: F's columns,
+    the PSD-projected stiffness and stress."""
     f = wp.tid()
     c = cloth[f]
     i = tri[f, 0]
@@ -175,6 +179,17 @@ def face_prepare(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), tri: wp
     wp.atomic_add(diag, i, ci0 * ci0 * h00 + 2.0 * ci0 * ci1 * h01 + ci1 * ci1 * h11)
     wp.atomic_add(diag, j, cj0 * cj0 * h00 + 2.0 * cj0 * cj1 * h01 + cj1 * cj1 * h11)
     wp.atomic_add(diag, k, ck0 * ck0 * h00 + 2.0 * ck0 * ck1 * h01 + ck1 * ck1 * h11)
+    # the same terms as whole 3 x 3 blocks: diag above is their diagonal
+    o00 = wp.outer(f0, f0)
+    o11 = wp.outer(f1, f1)
+    o01 = 0.5 * (wp.outer(f0, f1) + wp.outer(f1, f0))
+    eye = wp.identity(n=3, dtype=float)
+    b00 = km[0] * o00 + 0.25 * km[3] * o11 + p00 * eye
+    b01 = (km[1] + 0.25 * km[3]) * o01 + p01 * eye
+    b11 = km[2] * o11 + 0.25 * km[3] * o00 + p11 * eye
+    wp.atomic_add(block, i, ci0 * ci0 * b00 + 2.0 * ci0 * ci1 * b01 + ci1 * ci1 * b11)
+    wp.atomic_add(block, j, cj0 * cj0 * b00 + 2.0 * cj0 * cj1 * b01 + cj1 * cj1 * b11)
+    wp.atomic_add(block, k, ck0 * ck0 * b00 + 2.0 * ck0 * ck1 * b01 + ck1 * ck1 * b11)
 
 
 @wp.kernel
@@ -182,7 +197,8 @@ def hinge_prepare(x: wp.array(dtype=wp.vec3), hinge: wp.array2d(dtype=int), rest
                   rest_area: wp.array(dtype=float), direction: wp.array(dtype=float), cloth: wp.array(dtype=int),
                   bend: wp.array2d(dtype=float),
                   force: wp.array(dtype=wp.vec3), diag: wp.array(dtype=wp.vec3),
-                  stiffness_out: wp.array(dtype=float), grad_out: wp.array2d(dtype=wp.vec3)):
+                  stiffness_out: wp.array(dtype=float), grad_out: wp.array2d(dtype=wp.vec3),
+                  block: wp.array(dtype=wp.mat33)):
     """Bending force (Wang) of one hinge, E = kb/2 theta^2 with kb = ke l^2 / (4 (A0 + A1)),
     and its Gauss-Newton data (kb and the dihedral-angle gradient) for the Hessian-vector product."""
     h = wp.tid()
@@ -224,6 +240,10 @@ def hinge_prepare(x: wp.array(dtype=wp.vec3), hinge: wp.array2d(dtype=int), rest
         wp.atomic_add(diag, hinge[h, 1], kb * wp.cw_mul(g1, g1))
         wp.atomic_add(diag, hinge[h, 2], kb * wp.cw_mul(g2, g2))
         wp.atomic_add(diag, hinge[h, 3], kb * wp.cw_mul(g3, g3))
+        wp.atomic_add(block, hinge[h, 0], kb * wp.outer(g0, g0))
+        wp.atomic_add(block, hinge[h, 1], kb * wp.outer(g1, g1))
+        wp.atomic_add(block, hinge[h, 2], kb * wp.outer(g2, g2))
+        wp.atomic_add(block, hinge[h, 3], kb * wp.outer(g3, g3))
         stiffness_out[h] = kb
         grad_out[h, 0] = g0
         grad_out[h, 1] = g1
@@ -317,9 +337,11 @@ def cg_start(force: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), kv: wp.
              dt: float, damping: float, diag: wp.array(dtype=wp.vec3),
              dv: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.vec3),
              p: wp.array(dtype=wp.vec3), ap: wp.array(dtype=wp.vec3),
-             rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float), rr: wp.array2d(dtype=float)):
-    """Right-hand side b = h (f - a M v) - h^2 K v, Jacobi preconditioner (diag becomes its inverse),
-    first search direction, and the first dot products (r.z, p.M p, r.r)."""
+             rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float), rr: wp.array2d(dtype=float),
+             use_block: int, block: wp.array(dtype=wp.mat33)):
+    """Right-hand side b = h (f - a M v) - h^2 K v, the preconditioner (Jacobi: diag becomes its inverse;
+    ``use_block``: block becomes the inverse of the vertex's 3 x 3 block of A = M + h^2 K), first search
+    direction, and the first dot products (r.z, p.M p, r.r)."""
     i = wp.tid()
     c = cloth[i]
     m_eff = mass[i] * (1.0 + dt * damping)
@@ -327,6 +349,11 @@ def cg_start(force: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), kv: wp.
     ri = free[i] * b
     dinv = wp.cw_div(wp.vec3(1.0), wp.vec3(m_eff) + dt * dt * diag[i])
     zi = wp.cw_mul(ri, dinv)
+    if use_block != 0:
+        # SPD: the element blocks are PSD (Gauss-Newton, projected stress) and m_eff > 0
+        pinv = wp.inverse(m_eff * wp.identity(n=3, dtype=float) + dt * dt * block[i])
+        block[i] = pinv
+        zi = pinv * ri
     diag[i] = dinv
     dv[i] = wp.vec3(0.0)
     r[i] = ri
@@ -343,7 +370,7 @@ def cg_update(mass: wp.array(dtype=float), free: wp.array(dtype=float), cloth: w
               dinv: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3), ap: wp.array(dtype=wp.vec3),
               slot: int, active: wp.array(dtype=int), dv: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec3),
               z: wp.array(dtype=wp.vec3), rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float),
-              rr: wp.array2d(dtype=float)):
+              rr: wp.array2d(dtype=float), use_block: int, pinv: wp.array(dtype=wp.mat33)):
     """dv += alpha p, r -= alpha A p, z = P r, accumulating the next r.z and r.r (running cloths only)."""
     i = wp.tid()
     c = cloth[i]
@@ -354,6 +381,8 @@ def cg_update(mass: wp.array(dtype=float), free: wp.array(dtype=float), cloth: w
     dv[i] = dv[i] + alpha * p[i]
     ri = r[i] - alpha * free[i] * ap[i]
     zi = wp.cw_mul(ri, dinv[i])
+    if use_block != 0:
+        zi = pinv[i] * ri
     r[i] = ri
     z[i] = zi
     wp.atomic_add(rz, slot + 1, c, wp.dot(ri, zi))

@@ -41,8 +41,10 @@ handled in two places:
   contact lets a capsule of the edge length's size slide between two vertices),
   both with non-penetrating velocity relative to the surface and Coulomb friction.
 
-The system is solved per cloth with a Jacobi-preconditioned conjugate gradient
-of at most ``cg_iterations`` iterations; per-cloth dot products are atomic adds
+The system is solved per cloth with a preconditioned conjugate gradient of at
+most ``cg_iterations`` iterations: block-Jacobi by default (each vertex's 3 x 3
+block of A = M + h^2 K, inverted; ``cg_preconditioner="jacobi"`` keeps only its
+diagonal, which the arm's contact-filtered solve always uses); per-cloth dot products are atomic adds
 into per-cloth slots. Pinned vertices are filtered out of the system. Each
 cloth stops on its own once its residual has fallen to ``cg_tolerance`` times
 its initial residual (|r| <= tol |r0|, unpreconditioned), or before a division
@@ -109,6 +111,7 @@ class SolverParams:
     dt: float = 1.0 / 200.0               # seconds per step
     cg_iterations: int = 30               # the most CG iterations per step (the launches are fixed: graph capture)
     cg_tolerance: float = 1.0e-3          # a cloth's CG stops at |r| <= tol |r0|; 0: only at float32's limit
+    cg_preconditioner: str = "block"      # "block" (each vertex's 3 x 3 block of A) or "jacobi" (its diagonal)
     gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
     air_density: float = 1.225            # kg/m^3, the wind pressure coefficient
     air_drag: float = 0.1                 # kg/(m^2 s), tangential drag coefficient
@@ -330,6 +333,10 @@ class BatchSolver:
             return wp.zeros(n, dtype=wp.vec3, device=dev)
 
         self.force, self.diag, self.kv = vec3s(nv), vec3s(nv), vec3s(nv)
+        # the vertices' 3 x 3 stiffness blocks, then the block-Jacobi preconditioner (cloths without an arm;
+        # the arm's contact-filtered solve keeps Jacobi)
+        self.block = wp.zeros(nv, dtype=wp.mat33, device=dev)
+        self._block = self.params.cg_preconditioner == "block" and not self.has_arm
         self.dv, self.r, self.z, self.p, self.ap = vec3s(nv), vec3s(nv), vec3s(nv), vec3s(nv), vec3s(nv)
         self.f0, self.f1 = vec3s(nf), vec3s(nf)
         self.kmat = wp.zeros(nf, dtype=wp.vec4, device=dev)
@@ -402,13 +409,14 @@ class BatchSolver:
         nv, nf, nh, nc = self.num_vertices, self.num_faces, self.num_hinges, self.num_cloths
         launch(kernels.cg_reset, nc, [self.cg_active, self.cg_taken, self.cg_residual])
 
-        launch(kernels.begin_step, nv, [self.mass, wp.vec3(*P.gravity), self.force, self.diag, self.kv])
+        launch(kernels.begin_step, nv, [self.mass, wp.vec3(*P.gravity), self.force, self.diag, self.kv, self.block])
         launch(kernels.face_prepare, nf, [self.x, self.v, self.tri, self.dm_inv, self.area, self.face_cloth,
                                           self.stretch, self.wind, float(P.air_density), float(P.air_drag),
-                                          self.force, self.diag, self.f0, self.f1, self.kmat, self.smat])
+                                          self.force, self.diag, self.f0, self.f1, self.kmat, self.smat,
+                                          self.block])
         launch(kernels.hinge_prepare, nh, [self.x, self.hinge, self.hinge_length, self.hinge_area, self.hinge_dir,
                                            self.hinge_cloth, self.bend, self.force, self.diag, self.hinge_k,
-                                           self.hinge_grad])
+                                           self.hinge_grad, self.block])
         if self.has_arm:
             launch(kernels.contact_prepare, nv, [self.arms, self.vertex_cloth, self.free, self.clock,
                                                  float(P.contact_thickness), float(P.contact_tolerance), dt,
@@ -424,7 +432,7 @@ class BatchSolver:
             self._record_hessian_product(launch, self.v, self.kv, 1.0, self.scratch, 0)
             launch(kernels.cg_start, nv, [self.force, self.v, self.kv, self.mass, self.free, self.vertex_cloth, dt,
                                           float(P.damping), self.diag, self.dv, self.r, self.z, self.p, self.ap,
-                                          self.rz, self.pap, self.rr])
+                                          self.rz, self.pap, self.rr, int(self._block), self.block])
         self._record_cg_check(launch, 0)
 
     def _record_cg_iteration(self, launch, it: int) -> None:
@@ -440,7 +448,7 @@ class BatchSolver:
         else:
             launch(kernels.cg_update, nv, [self.mass, self.free, self.vertex_cloth, self.diag, self.p, self.ap,
                                            it, self.cg_active, self.dv, self.r, self.z, self.rz, self.pap,
-                                           self.rr])
+                                           self.rr, int(self._block), self.block])
         self._record_cg_check(launch, it + 1)
         if it + 1 < P.cg_iterations and self.has_arm:
             launch(kernels.cg_direction_contact, nv, [self.mass, self.vertex_cloth, dt, float(P.damping),

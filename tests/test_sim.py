@@ -137,16 +137,50 @@ def _kernel_forces(solver: BatchSolver) -> np.ndarray:
     """Internal forces (no gravity, no wind) as the step's kernels compute them."""
     dev = solver.device
     wp.launch(kernels.begin_step, solver.num_vertices, [solver.mass, wp.vec3(0.0, 0.0, 0.0), solver.force,
-                                                        solver.diag, solver.kv], device=dev)
+                                                        solver.diag, solver.kv, solver.block], device=dev)
     wp.launch(kernels.face_prepare, solver.num_faces,
               [solver.x, solver.v, solver.tri, solver.dm_inv, solver.area, solver.face_cloth, solver.stretch,
-               solver.wind, 0.0, 0.0, solver.force, solver.diag, solver.f0, solver.f1, solver.kmat, solver.smat],
-              device=dev)
+               solver.wind, 0.0, 0.0, solver.force, solver.diag, solver.f0, solver.f1, solver.kmat, solver.smat,
+               solver.block], device=dev)
     wp.launch(kernels.hinge_prepare, solver.num_hinges,
               [solver.x, solver.hinge, solver.hinge_length, solver.hinge_area, solver.hinge_dir,
-               solver.hinge_cloth, solver.bend, solver.force, solver.diag, solver.hinge_k, solver.hinge_grad],
-              device=dev)
+               solver.hinge_cloth, solver.bend, solver.force, solver.diag, solver.hinge_k, solver.hinge_grad,
+               solver.block], device=dev)
     return solver.force.numpy().astype(np.float64)
+
+
+def test_preconditioner_blocks_are_the_stiffness_own_vertex_blocks():
+    """The block-Jacobi preconditioner's 3 x 3 blocks are K's diagonal blocks, as the CG's Hessian-vector
+    product applies K, and their diagonals are the Jacobi diagonal."""
+    spec = _hanging(n=4, size=0.1, p=1.0, k=200.0)
+    rng = np.random.default_rng(2)
+    x = spec.positions * np.array([1.08, 1.0, 0.97]) + rng.normal(scale=0.004, size=spec.positions.shape)
+    solver = BatchSolver([replace(spec, positions=x)], device="cpu")
+    _kernel_forces(solver)
+    nv = solver.num_vertices
+    blocks = solver.block.numpy().astype(np.float64)
+    active = wp.array(np.ones(1, np.int32), dtype=int, device="cpu")
+    sink = wp.zeros((1, 1), dtype=float, device="cpu")
+    product = np.zeros((nv, 3, 3))
+    for d in range(3):                          # K e_d restricted to each vertex: column d of its block
+        unit = np.zeros((nv, 3), np.float32)
+        unit[:, d] = 1.0
+        for i in range(nv):                     # one vertex at a time, so neighbours do not mix in
+            e = np.zeros((nv, 3), np.float32)
+            e[i] = unit[i]
+            p = wp.array(e, dtype=wp.vec3, device="cpu")
+            out = wp.zeros(nv, dtype=wp.vec3, device="cpu")
+            wp.launch(kernels.face_hessian_product, solver.num_faces,
+                      [p, solver.tri, solver.dm_inv, solver.face_cloth, solver.f0, solver.f1, solver.kmat,
+                       solver.smat, 1.0, 0, active, out, sink], device="cpu")
+            wp.launch(kernels.hinge_hessian_product, solver.num_hinges,
+                      [p, solver.hinge, solver.hinge_cloth, solver.hinge_k, solver.hinge_grad, 1.0, 0, active,
+                       out, sink], device="cpu")
+            product[i, :, d] = out.numpy()[i]
+    scale = np.abs(product).max()
+    np.testing.assert_allclose(blocks, product, atol=1e-4 * scale)
+    np.testing.assert_allclose(np.diagonal(blocks, axis1=1, axis2=2), solver.diag.numpy(), atol=1e-5 * scale)
+    assert np.all(np.linalg.eigvalsh(0.5 * (blocks + blocks.transpose(0, 2, 1))) >= -1e-6 * scale)   # PSD
 
 
 def test_kernel_forces_are_minus_gradient_of_reference_energy():

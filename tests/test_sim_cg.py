@@ -68,11 +68,11 @@ def test_each_cloth_of_a_batch_stops_on_its_own():
 
 
 def test_tolerance_changes_a_default_wind_clip_by_at_most_a_few_mm():
-    """The stage's defaults (16x16 cloth, dt 1/200, 30 iterations), the softest class and a mid one, 6
-    frames after the settle: the default tolerance against tolerance 0 (which runs every one of the 30
-    iterations, bit for bit the fixed-count CG at these settings). Measured: at most 3.5 mm / 0.02 mm,
-    0.15 mm / 0.002 mm on average; for scale, one more iteration of the fixed-count CG moved a soft clip
-    by 26 mm over 10 frames (a flapping cloth amplifies any small change)."""
+    """The stage's defaults (16x16 cloth, dt 1/200, 30 iterations, block-Jacobi), the softest class and a mid
+    one, 6 frames after the settle: the default tolerance against tolerance 0 (which runs the 30 iterations
+    unless float32 has nothing left to reduce). Measured: at most 2.7 mm / 0.07 mm, 0.09 mm / 0.007 mm on
+    average (Jacobi: 3.5 / 0.02, 0.15 / 0.002); for scale, one more iteration of the fixed-count CG moved a
+    soft clip by 26 mm over 10 frames (a flapping cloth amplifies any small change)."""
     from sim.stage import build_scene, parse_setting, simulate_scenes
 
     cfg = SimConfig(classes=(0, 26), sequences_per_class=1)
@@ -86,7 +86,8 @@ def test_tolerance_changes_a_default_wind_clip_by_at_most_a_few_mm():
         assert with_tol.reason is None and full.reason is None
         diff = np.linalg.norm(with_tol.positions - full.positions, axis=-1)
         assert diff.max() < 0.006 and diff.mean() < 0.001, (diff.max(), diff.mean())
-        assert full.cg.max_iterations == 30 and full.cg.iterations == 30 * full.cg.steps
+        assert full.cg.max_iterations == 30 and full.cg.iterations >= 29 * full.cg.steps
+        assert full.cg.iterations >= with_tol.cg.iterations
     soft = run[cfg.cg_tolerance][0].cg
     assert soft.iterations < 30 * soft.steps          # the tolerance did stop some steps early
     health = soft.health()

@@ -1,0 +1,82 @@
+"""The CG's preconditioners on the same clips: iterations a step, clips at the cap, worst residual, seconds.
+
+    python benchmarks/sim_preconditioner.py [--setting wind-uniform1] [--clips 32] [--frames 20]
+
+Builds the ``paper`` preset's scenes (every 7th clip index, so the classes spread), settles them and records
+``--frames`` frames once per preconditioner (``SolverParams.cg_preconditioner``), on the CPU. The CG statistics
+cover the settling too. Writes benchmarks/results/sim_preconditioner-<setting>-n<N>-cpu.json with the command,
+and the positions' difference between the two at the end.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import clothgap.config as study_config  # noqa: E402
+from clothgap.settings import apply_overrides  # noqa: E402
+from sim.solver import BatchSolver, SolverParams  # noqa: E402
+from sim.stage import build_scene, parse_setting, setting_simulator  # noqa: E402
+
+
+def measure(scenes, cfg, preconditioner: str, frames: int) -> tuple[dict, np.ndarray]:
+    dt = 1.0 / (cfg.fps * cfg.substeps)
+    params = replace(SolverParams(dt=dt, cg_iterations=cfg.cg_iterations, cg_tolerance=cfg.cg_tolerance,
+                                  self_collision=cfg.self_collision, collision_thickness=cfg.collision_thickness),
+                     cg_preconditioner=preconditioner)
+    solver = BatchSolver([s.spec for s in scenes], params, "cpu")
+    solver.step(1)                              # compiles (after a kernel change) outside the timing
+    solver.step(int(round(cfg.settle_s / dt)) - 1)
+    solver.set_wind(np.stack([s.wind for s in scenes]))
+    start = time.perf_counter()
+    solver.step(frames * cfg.substeps)
+    seconds = time.perf_counter() - start
+    cg = solver.cg_stats()
+    per_step = np.array([c.iterations / c.steps for c in cg])
+    worst = np.array([c.max_residual for c in cg])
+    row = {"preconditioner": preconditioner, "seconds_recording": round(seconds, 2),
+           "iterations_per_step_mean": round(float(per_step.mean()), 2),
+           "clips_at_the_cap": round(float(np.mean([c.max_iterations >= cfg.cg_iterations for c in cg])), 3),
+           "worst_relative_residual_median": float(f"{np.median(worst):.4g}"),
+           "worst_relative_residual_max": float(f"{worst.max():.4g}")}
+    return row, np.stack(solver.positions())
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--setting", default="wind-uniform1")
+    ap.add_argument("--clips", type=int, default=32)
+    ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args(argv)
+    cfg = apply_overrides(study_config.preset("paper"), ["sim.device=cpu"]).sim
+    setting = parse_setting(args.setting)
+    mesh, _ = setting_simulator(cfg, setting)
+    scenes = [build_scene(cfg, 0, 7 * i, setting, mesh)[0] for i in range(args.clips)]
+    rows, positions = [], {}
+    for name in ("jacobi", "block"):
+        row, positions[name] = measure(scenes, cfg, name, args.frames)
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    moved = np.linalg.norm(positions["block"] - positions["jacobi"], axis=2)
+    result = {"command": "python benchmarks/sim_preconditioner.py " + " ".join(argv or sys.argv[1:]),
+              "machine": platform.platform(), "setting": args.setting, "clips": args.clips, "frames": args.frames,
+              "cg_iterations": cfg.cg_iterations, "cg_tolerance": cfg.cg_tolerance,
+              "self_collision": cfg.self_collision, "rows": rows,
+              "positions_block_vs_jacobi_m": {"mean": float(f"{moved.mean():.3g}"), "max": float(f"{moved.max():.3g}")}}
+    out = args.out or Path(__file__).parent / "results" / f"sim_preconditioner-{args.setting}-n{args.clips}-cpu.json"
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
