@@ -62,6 +62,13 @@ def wang_bend_ke(table: wp.array2d(dtype=float), c: int, curvature: float, y: fl
 
 # ---------------------------------------------------------------- per-step preparation
 
+@wp.func
+def add_vertex_block(block: wp.array(dtype=wp.mat33), diag: wp.array(dtype=wp.vec3), i: int, b: wp.mat33):
+    """Adds an element's 3 x 3 stiffness block to vertex i's block and its diagonal to the Jacobi diagonal."""
+    wp.atomic_add(block, i, b)
+    wp.atomic_add(diag, i, wp.vec3(b[0, 0], b[1, 1], b[2, 2]))
+
+
 @wp.kernel
 def begin_step(mass: wp.array(dtype=float), gravity: wp.vec3,
                force: wp.array(dtype=wp.vec3), diag: wp.array(dtype=wp.vec3), kv: wp.array(dtype=wp.vec3),
@@ -168,18 +175,7 @@ def face_prepare(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), tri: wp
     kmat_out[f] = km
     smat_out[f] = wp.vec3(p00, p01, p11)
 
-    # Jacobi diagonal of the (projected) stiffness
-    q0 = wp.cw_mul(f0, f0)
-    q1 = wp.cw_mul(f1, f1)
-    q01 = wp.cw_mul(f0, f1)
-    one = wp.vec3(1.0)
-    h00 = km[0] * q0 + 0.25 * km[3] * q1 + p00 * one
-    h01 = (km[1] + 0.25 * km[3]) * q01 + p01 * one
-    h11 = km[2] * q1 + 0.25 * km[3] * q0 + p11 * one
-    wp.atomic_add(diag, i, ci0 * ci0 * h00 + 2.0 * ci0 * ci1 * h01 + ci1 * ci1 * h11)
-    wp.atomic_add(diag, j, cj0 * cj0 * h00 + 2.0 * cj0 * cj1 * h01 + cj1 * cj1 * h11)
-    wp.atomic_add(diag, k, ck0 * ck0 * h00 + 2.0 * ck0 * ck1 * h01 + ck1 * ck1 * h11)
-    # the same terms as whole 3 x 3 blocks: diag above is their diagonal
+    # each vertex's 3 x 3 block of the (projected) stiffness, and its diagonal (the Jacobi preconditioner's)
     o00 = wp.outer(f0, f0)
     o11 = wp.outer(f1, f1)
     o01 = 0.5 * (wp.outer(f0, f1) + wp.outer(f1, f0))
@@ -187,9 +183,9 @@ def face_prepare(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), tri: wp
     b00 = km[0] * o00 + 0.25 * km[3] * o11 + p00 * eye
     b01 = (km[1] + 0.25 * km[3]) * o01 + p01 * eye
     b11 = km[2] * o11 + 0.25 * km[3] * o00 + p11 * eye
-    wp.atomic_add(block, i, ci0 * ci0 * b00 + 2.0 * ci0 * ci1 * b01 + ci1 * ci1 * b11)
-    wp.atomic_add(block, j, cj0 * cj0 * b00 + 2.0 * cj0 * cj1 * b01 + cj1 * cj1 * b11)
-    wp.atomic_add(block, k, ck0 * ck0 * b00 + 2.0 * ck0 * ck1 * b01 + ck1 * ck1 * b11)
+    add_vertex_block(block, diag, i, ci0 * ci0 * b00 + 2.0 * ci0 * ci1 * b01 + ci1 * ci1 * b11)
+    add_vertex_block(block, diag, j, cj0 * cj0 * b00 + 2.0 * cj0 * cj1 * b01 + cj1 * cj1 * b11)
+    add_vertex_block(block, diag, k, ck0 * ck0 * b00 + 2.0 * ck0 * ck1 * b01 + ck1 * ck1 * b11)
 
 
 @wp.kernel
@@ -236,14 +232,10 @@ def hinge_prepare(x: wp.array(dtype=wp.vec3), hinge: wp.array2d(dtype=int), rest
         wp.atomic_add(force, hinge[h, 1], s * g1)
         wp.atomic_add(force, hinge[h, 2], s * g2)
         wp.atomic_add(force, hinge[h, 3], s * g3)
-        wp.atomic_add(diag, hinge[h, 0], kb * wp.cw_mul(g0, g0))
-        wp.atomic_add(diag, hinge[h, 1], kb * wp.cw_mul(g1, g1))
-        wp.atomic_add(diag, hinge[h, 2], kb * wp.cw_mul(g2, g2))
-        wp.atomic_add(diag, hinge[h, 3], kb * wp.cw_mul(g3, g3))
-        wp.atomic_add(block, hinge[h, 0], kb * wp.outer(g0, g0))
-        wp.atomic_add(block, hinge[h, 1], kb * wp.outer(g1, g1))
-        wp.atomic_add(block, hinge[h, 2], kb * wp.outer(g2, g2))
-        wp.atomic_add(block, hinge[h, 3], kb * wp.outer(g3, g3))
+        add_vertex_block(block, diag, hinge[h, 0], kb * wp.outer(g0, g0))
+        add_vertex_block(block, diag, hinge[h, 1], kb * wp.outer(g1, g1))
+        add_vertex_block(block, diag, hinge[h, 2], kb * wp.outer(g2, g2))
+        add_vertex_block(block, diag, hinge[h, 3], kb * wp.outer(g3, g3))
         stiffness_out[h] = kb
         grad_out[h, 0] = g0
         grad_out[h, 1] = g1
