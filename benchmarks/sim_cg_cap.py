@@ -1,0 +1,72 @@
+"""Which clips the CG's iteration cap binds on, and what running them to tolerance would change.
+
+    python benchmarks/sim_cg_cap.py [--setting wind-uniform1] [--frames 20] [--iterations 120]
+
+Simulates a few ``paper``-preset clips of stiff and soft classes (CPU, self-collision as the preset has it)
+at the stage's ``sim.cg_iterations`` and again at ``--iterations``, and reports per clip: iterations a step
+(mean, max), the worst final relative residual, and how far the positions move between the two (mean and
+max over vertices and frames, beside the clip's own mean displacement). Writes
+benchmarks/results/sim_cg_cap-<setting>-cpu.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import clothgap.config as study_config  # noqa: E402
+from clothgap.settings import apply_overrides  # noqa: E402
+from sim.stage import build_scene, parse_setting, setting_simulator, simulate_scenes  # noqa: E402
+
+CLIPS = (42, 49, 61, 96)   # classes 42, 49 (stiff stretching), 7 (soft), 42 again (another sequence)
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--setting", default="wind-uniform1")
+    ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument("--iterations", type=int, default=120)
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args(argv)
+    cfg = apply_overrides(study_config.preset("paper"), ["sim.device=cpu"]).sim
+    setting = parse_setting(args.setting)
+    mesh, _ = setting_simulator(cfg, setting)
+    built = [build_scene(cfg, 0, i, setting, mesh) for i in CLIPS]
+    runs = {}
+    for iterations in (cfg.cg_iterations, args.iterations):
+        runs[iterations] = simulate_scenes([s for s, _ in built], fps=cfg.fps, frames=args.frames,
+                                           substeps=cfg.substeps, settle_s=cfg.settle_s, cg_iterations=iterations,
+                                           cg_tolerance=cfg.cg_tolerance, self_collision=cfg.self_collision,
+                                           collision_thickness=cfg.collision_thickness, device="cpu")
+    rows = []
+    for k, (index, (_, labels)) in enumerate(zip(CLIPS, built)):
+        capped, full = runs[cfg.cg_iterations][k], runs[args.iterations][k]
+        moved = np.linalg.norm(capped.positions - full.positions, axis=-1)
+        motion = np.linalg.norm(full.positions - full.positions[0], axis=-1).mean()
+        row = {"clip_index": index, "class_index": labels["class_index"], "p": labels["p"], "k": labels["k"]}
+        for name, r in (("capped", capped), ("to_tolerance", full)):
+            row[name] = {"cap": cfg.cg_iterations if name == "capped" else args.iterations,
+                         "iterations_per_step": round(r.cg.iterations / r.cg.steps, 1),
+                         "iterations_max": r.cg.max_iterations,
+                         "worst_relative_residual": float(f"{r.cg.max_residual:.3g}")}
+        row["positions_moved_mm"] = {"mean": round(1000 * float(moved.mean()), 3),
+                                     "max": round(1000 * float(moved.max()), 2)}
+        row["clip_mean_displacement_mm"] = round(1000 * float(motion), 1)
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    result = {"command": "python benchmarks/sim_cg_cap.py " + " ".join(argv or sys.argv[1:]),
+              "setting": args.setting, "frames": args.frames, "cg_iterations": cfg.cg_iterations,
+              "cg_tolerance": cfg.cg_tolerance, "self_collision": cfg.self_collision, "clips": rows}
+    out = args.out or Path(__file__).parent / "results" / f"sim_cg_cap-{args.setting}-cpu.json"
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
