@@ -7,10 +7,12 @@ file written and not yet in place), resumes with the same command, and compares 
 wrote with the reference's, and finds no temporary file left. A tiny study (2 classes x 4 sequences, 10 frames,
 32 px, one variant, 2 epochs) keeps the module to a few seconds per stage on 2 cores.
 
-Every result must be byte-identical but one: the linear HDR frames (``hdr/*.exr``) agree to 1e-6. Mitsuba gives
+Every result must be byte-identical but one: the linear HDR frames (``hdr/*.exr``) agree to 1e-5. Mitsuba gives
 a clip a few 1-ulp different radiances depending on whether its scene was built fresh or retargeted from the
 previous clip (``render.reuse_scenes``; with it off, renders are bit-identical), and a resumed run builds a fresh
-scene at its first unfinished clip. The 8-bit frames the network reads (``frames.npy``, PNG) are compared exactly.
+scene at its first unfinished clip; once in a full suite run on a loaded CPU a frame differed by more than 1e-6
+(the same family as two renders of one frame on LLVM, tests/test_render_tonemap_device.py). A failure names the
+largest difference. The 8-bit frames the network reads (``frames.npy``, PNG) are compared exactly.
 """
 
 from __future__ import annotations
@@ -111,11 +113,17 @@ def mismatches(got: dict, expected: dict) -> list[str]:
     def same(a: object, b: object) -> bool:
         if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
             return (isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and a.shape == b.shape
-                    and np.allclose(a, b, rtol=1e-6, atol=1e-6))
+                    and np.allclose(a, b, rtol=1e-5, atol=1e-5))
         return a == b
 
+    def named(path: str) -> str:
+        a, b = got[path], expected[path]
+        if isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and a.shape == b.shape:
+            return f"{path} (largest difference {float(np.abs(a - b).max()):.3g})"
+        return path
+
     both = sorted(set(got) & set(expected))
-    return sorted(set(got) ^ set(expected)) + [p for p in both if not same(got[p], expected[p])]
+    return sorted(set(got) ^ set(expected)) + [named(p) for p in both if not same(got[p], expected[p])]
 
 
 def digest(root: Path, folders: list[str]) -> dict[str, str | np.ndarray]:
