@@ -11,7 +11,6 @@ benchmarks/results/sim_cg_cap-<setting>-cpu.json.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -20,24 +19,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import clothgap.config as study_config  # noqa: E402
-from clothgap.settings import apply_overrides  # noqa: E402
-from sim.stage import build_scene, parse_setting, setting_simulator, simulate_scenes  # noqa: E402
+from sim.stage import simulate_scenes  # noqa: E402
+from sim_preconditioner import arguments, paper_scenes  # noqa: E402  (benchmarks/, on the path as the script's folder)
 
 CLIPS = (42, 49, 61, 96)   # classes 42, 49 (stiff stretching), 7 (soft), 42 again (another sequence)
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--setting", default="wind-uniform1")
-    ap.add_argument("--frames", type=int, default=20)
-    ap.add_argument("--iterations", type=int, default=120)
-    ap.add_argument("--out", type=Path)
-    args = ap.parse_args(argv)
-    cfg = apply_overrides(study_config.preset("paper"), ["sim.device=cpu"]).sim
-    setting = parse_setting(args.setting)
-    mesh, _ = setting_simulator(cfg, setting)
-    built = [build_scene(cfg, 0, i, setting, mesh) for i in CLIPS]
+    args = arguments(__doc__, argv, iterations=120)
+    cfg, built = paper_scenes(args.setting, CLIPS)
     runs = {}
     for iterations in (cfg.cg_iterations, args.iterations):
         runs[iterations] = simulate_scenes([s for s, _ in built], fps=cfg.fps, frames=args.frames,

@@ -51,17 +51,29 @@ def measure(scenes, cfg, preconditioner: str, frames: int) -> tuple[dict, np.nda
     return row, np.stack(solver.positions())
 
 
-def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--setting", default="wind-uniform1")
-    ap.add_argument("--clips", type=int, default=32)
-    ap.add_argument("--frames", type=int, default=20)
-    ap.add_argument("--out", type=Path)
-    args = ap.parse_args(argv)
+def paper_scenes(setting_name: str, indices) -> tuple:
+    """The ``paper`` preset's sim settings on the CPU, and the (scene, labels) of each clip index of a setting."""
     cfg = apply_overrides(study_config.preset("paper"), ["sim.device=cpu"]).sim
-    setting = parse_setting(args.setting)
+    setting = parse_setting(setting_name)
     mesh, _ = setting_simulator(cfg, setting)
-    scenes = [build_scene(cfg, 0, 7 * i, setting, mesh)[0] for i in range(args.clips)]
+    return cfg, [build_scene(cfg, 0, i, setting, mesh) for i in indices]
+
+
+def arguments(doc: str, argv: list[str] | None, **counts: int) -> argparse.Namespace:
+    """The CG benchmarks' options: --setting, --frames, --out, and an integer option per ``counts`` entry."""
+    ap = argparse.ArgumentParser(description=doc.split("\n")[0])
+    ap.add_argument("--setting", default="wind-uniform1")
+    ap.add_argument("--frames", type=int, default=20)
+    for name, default in counts.items():
+        ap.add_argument(f"--{name}", type=int, default=default)
+    ap.add_argument("--out", type=Path)
+    return ap.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = arguments(__doc__, argv, clips=32)
+    cfg, built = paper_scenes(args.setting, range(0, 7 * args.clips, 7))
+    scenes = [scene for scene, _ in built]
     rows, positions = [], {}
     for name in ("jacobi", "block"):
         row, positions[name] = measure(scenes, cfg, name, args.frames)
