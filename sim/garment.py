@@ -40,7 +40,7 @@ import warp as wp
 
 from sim.materials import Material
 from sim.mesh import ClothMesh, hinges_of
-from sim.solver import BatchSolver, ClothSpec, SolverParams, _edge_direction
+from sim.solver import BatchSolver, ClothSpec, SolverParams, _edge_directions
 
 MOTIONS = ("twirl", "walk")
 
@@ -241,7 +241,7 @@ class SkirtSolver:
         e_uv = np.array([edge_uv[(int(a), int(b))] for a, b in h[:, :2]])
         hlen = np.linalg.norm(e_uv, axis=1)
         harea = np.array([face_area[(int(a), int(b))] + face_area[(int(b), int(a))] for a, b in h[:, :2]])
-        hdir = np.array([_edge_direction(du, dv) for du, dv in e_uv])
+        hdir = _edge_directions(e_uv)
         nc = len(materials)
         masses = []
         for mat in materials:

@@ -51,15 +51,41 @@ def subdivide(uv: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return new_uv, new_faces.astype(np.int32)
 
 
+def directed_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every face's three directed edges a -> b with the opposite corner c, face by face (edge e of face f at
+    row 3 f + e: (f[e], f[e+1], f[e+2]))."""
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    return f.ravel(), f[:, [1, 2, 0]].ravel(), f[:, [2, 0, 1]].ravel()
+
+
+def edge_rows(faces: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """For each vertex pair (a, b): the row (3 face + edge, as ``directed_edges``) of the directed edge a -> b,
+    the last one if several faces hold it, -1 if none does."""
+    ea, eb, _ = directed_edges(faces)
+    a, b = np.asarray(a, dtype=np.int64), np.asarray(b, dtype=np.int64)
+    n = int(max(ea.max(initial=-1), a.max(initial=-1), b.max(initial=-1))) + 1
+    key = ea * n + eb
+    order = np.argsort(key, kind="stable")
+    wanted = a * n + b
+    pos = np.searchsorted(key[order], wanted, side="right") - 1
+    found = (pos >= 0) & (key[order[np.maximum(pos, 0)]] == wanted)
+    return np.where(found, order[np.maximum(pos, 0)], -1)
+
+
 def hinges_of(faces: np.ndarray) -> np.ndarray:
     """Interior edges with their two opposite vertices, oriented as the solver expects:
-    (x0, x1, x2, x3) where face A = (x0, x1, x2) and face B = (x1, x0, x3) in the faces' own order."""
-    opposite: dict[tuple[int, int], int] = {}
-    for f in faces:
-        for e in range(3):
-            opposite[(int(f[e]), int(f[(e + 1) % 3]))] = int(f[(e + 2) % 3])
-    hinges = [(a, b, c, opposite[(b, a)]) for (a, b), c in opposite.items() if a < b and (b, a) in opposite]
-    return np.array(hinges, dtype=np.int32).reshape(-1, 4)
+    (x0, x1, x2, x3) where face A = (x0, x1, x2) and face B = (x1, x0, x3) in the faces' own order.
+    One hinge per edge, in the order its a < b side first appears among the faces' edges."""
+    a, b, c = directed_edges(faces)
+    if len(a) == 0:
+        return np.zeros((0, 4), dtype=np.int32)
+    last = edge_rows(faces, a, b)
+    reverse = edge_rows(faces, b, a)
+    # an edge's first appearance, as a dict keyed by (a, b) keeps it; the last face's corner, as it overwrites
+    first = np.zeros(len(a), dtype=bool)
+    first[np.unique(a * (int(a.max()) + 1) + b, return_index=True)[1]] = True
+    keep = first & (a < b) & (reverse >= 0)
+    return np.stack([a[keep], b[keep], c[last[keep]], c[reverse[keep]]], axis=1).astype(np.int32)
 
 
 def square_cloth(size_m: float, vertices_per_side: int, level: int = 1) -> ClothMesh:

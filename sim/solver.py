@@ -78,6 +78,7 @@ import warp as wp
 
 from sim import collision, kernels
 from sim.collision import SelfCollision, unique_edges
+from sim.mesh import edge_rows
 from sim.specs import ArmSpec, ClothSpec   # plain data, kept apart so that sim.motions needs no Warp
 
 
@@ -166,14 +167,14 @@ def resolve_device(device: str) -> str:
     return device
 
 
-def _edge_direction(du: float, dv: float) -> float:
-    """Edge direction coordinate y in [0, 2] of the bending table (0, 45, 90 degrees)."""
-    y = abs(math.atan2(dv, du)) * 4.0 / math.pi
-    if y > 4.0:
-        y = 8.0 - y
-    if y > 2.0:
-        y = 4.0 - y
-    return y
+def _edge_directions(e_uv: np.ndarray) -> np.ndarray:
+    """Each edge's direction coordinate y in [0, 2] of the bending table (0, 45, 90 degrees) from its (du, dv)
+    row. The angle comes from libm's atan2, as ``math.atan2`` (NumPy's differs in the last bit)."""
+    angle = np.fromiter(map(math.atan2, e_uv[:, 1].tolist(), e_uv[:, 0].tolist()), dtype=np.float64,
+                        count=len(e_uv))
+    y = np.abs(angle) * 4.0 / math.pi
+    y = np.where(y > 4.0, 8.0 - y, y)
+    return np.where(y > 2.0, 4.0 - y, y)
 
 
 def _mesh_rest(c: int, mesh) -> dict[str, np.ndarray]:
@@ -186,15 +187,12 @@ def _mesh_rest(c: int, mesh) -> dict[str, np.ndarray]:
     area = 0.5 * (d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
     if np.any(area <= 0):
         raise ValueError(f"cloth {c}: faces must be counter-clockwise with positive area in (u, v)")
-    h = mesh.hinges
-    face_area = {}
-    for fi, f in enumerate(faces):
-        for e in range(3):
-            face_area[(int(f[e]), int(f[(e + 1) % 3]))] = area[fi]
+    h = np.asarray(mesh.hinges).reshape(-1, 4)
     e_uv = uv[h[:, 1]] - uv[h[:, 0]]
+    # the two faces of each hinge: those holding its edge in either direction
+    face_a, face_b = edge_rows(faces, h[:, 0], h[:, 1]) // 3, edge_rows(faces, h[:, 1], h[:, 0]) // 3
     return {"dm_inv": np.linalg.inv(dm), "area": area, "hinge_length": np.linalg.norm(e_uv, axis=1),
-            "hinge_area": np.array([face_area[(int(a), int(b))] + face_area[(int(b), int(a))] for a, b in h[:, :2]]),
-            "hinge_dir": np.array([_edge_direction(du, dv) for du, dv in e_uv]),
+            "hinge_area": area[face_a] + area[face_b], "hinge_dir": _edge_directions(e_uv),
             "edges": unique_edges(faces)}
 
 

@@ -133,6 +133,40 @@ def _reference_energy(spec: ClothSpec, x: np.ndarray, frozen: dict | None = None
     return total, ks
 
 
+def _hinges_by_dict(faces: np.ndarray) -> np.ndarray:
+    """The hinges' definition, edge by edge: a dict of directed edges -> opposite corner."""
+    opposite: dict[tuple[int, int], int] = {}
+    for f in faces:
+        for e in range(3):
+            opposite[(int(f[e]), int(f[(e + 1) % 3]))] = int(f[(e + 2) % 3])
+    hinges = [(a, b, c, opposite[(b, a)]) for (a, b), c in opposite.items() if a < b and (b, a) in opposite]
+    return np.array(hinges, dtype=np.int32).reshape(-1, 4)
+
+
+def test_hinges_are_those_of_the_edge_by_edge_definition():
+    from sim import remesh
+    from sim.adaptive import cloth_mesh
+
+    rng = np.random.default_rng(4)
+    meshes = [square_cloth(0.5, 16, level).faces for level in (1, 2, 3)]
+    quad = remesh.uniform(9, 0.5, 1)
+    meshes.append(cloth_mesh(quad).faces)
+    faces = square_cloth(0.5, 6, 1).faces
+    meshes.append(faces[rng.permutation(len(faces))])                     # any face order
+    meshes.append(np.concatenate([faces, faces[:3]]))                     # a directed edge held twice
+    meshes.append(np.zeros((0, 3), np.int32))
+    for faces in meshes:
+        np.testing.assert_array_equal(hinges_of(faces), _hinges_by_dict(faces))
+    # and the solver's rest area of each hinge: its two faces', found by their directed edges
+    from sim.solver import _mesh_rest
+
+    mesh = square_cloth(0.5, 6, 2)
+    rest = _mesh_rest(0, mesh)
+    face_area = {(int(f[e]), int(f[(e + 1) % 3])): rest["area"][i] for i, f in enumerate(mesh.faces) for e in range(3)}
+    expected = [face_area[(int(a), int(b))] + face_area[(int(b), int(a))] for a, b in mesh.hinges[:, :2]]
+    np.testing.assert_array_equal(rest["hinge_area"], expected)
+
+
 def _kernel_forces(solver: BatchSolver) -> np.ndarray:
     """Internal forces (no gravity, no wind) as the step's kernels compute them."""
     dev = solver.device
