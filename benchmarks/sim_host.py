@@ -1,0 +1,72 @@
+"""How much of a batch's simulation is the host's: Warp launches against everything else, per setting.
+
+    python benchmarks/sim_host.py [--settings wind-uniform1,wind-adaptive] [--clips 16] [--frames 10]
+
+Simulates ``--clips`` ``paper``-preset clips (every 7th index) of each setting on the CPU under cProfile, as
+the stage's batch simulator does (adaptive settings remesh every cloth after every frame). Reports the
+seconds in Warp kernel launches (on a GPU these shrink) and on the host (these stay), the host's seconds
+per clip-frame, and the host functions that take the most. Writes
+benchmarks/results/sim_host-cpu-n<clips>.json with the command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import json
+import pstats
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import clothgap.config as study_config  # noqa: E402
+from clothgap.settings import apply_overrides  # noqa: E402
+from sim.stage import build_scene, parse_setting, setting_simulator  # noqa: E402
+
+
+def profile_setting(cfg, name: str, clips: int, frames: int) -> dict:
+    setting = parse_setting(name)
+    mesh, simulate = setting_simulator(cfg, setting)
+    scenes = [build_scene(cfg, 0, 7 * i, setting, mesh)[0] for i in range(clips)]
+    profiler = cProfile.Profile()
+    start = time.perf_counter()
+    profiler.enable()
+    results = simulate(scenes, fps=cfg.fps, frames=frames, substeps=cfg.substeps, settle_s=cfg.settle_s,
+                       cg_iterations=cfg.cg_iterations, cg_tolerance=cfg.cg_tolerance,
+                       self_collision=cfg.self_collision, collision_thickness=cfg.collision_thickness, device="cpu")
+    profiler.disable()
+    total = time.perf_counter() - start
+    stats = pstats.Stats(profiler).stats
+    launches = sum(v[3] for (path, _, func), v in stats.items() if func == "invoke" and "warp" in path)
+    own = sorted(((v[2], f"{Path(path).name}:{line}({func})") for (path, line, func), v in stats.items()
+                  if "/sim/" in path), reverse=True)[:8]
+    host = total - launches
+    return {"setting": name, "seconds": round(total, 2), "warp_launches_s": round(launches, 2),
+            "host_s": round(host, 2), "host_ms_per_clip_frame": round(1000 * host / (clips * frames), 1),
+            "failed": sum(r.reason is not None for r in results),
+            "top_project_functions_own_s": [{"function": f, "seconds": round(t, 2)} for t, f in own]}
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--settings", default="wind-uniform1,wind-adaptive")
+    ap.add_argument("--clips", type=int, default=16)
+    ap.add_argument("--frames", type=int, default=10)
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args(argv)
+    cfg = apply_overrides(study_config.preset("paper"), ["sim.device=cpu"]).sim
+    rows = []
+    for name in args.settings.split(","):
+        rows.append(profile_setting(cfg, name, args.clips, args.frames))
+        print(json.dumps(rows[-1]), flush=True)
+    result = {"command": "python benchmarks/sim_host.py " + " ".join(argv or sys.argv[1:]), "clips": args.clips,
+              "frames": args.frames, "self_collision": cfg.self_collision, "rows": rows}
+    out = args.out or Path(__file__).parent / "results" / f"sim_host-cpu-n{args.clips}.json"
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
