@@ -20,6 +20,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from sim.stage import simulate_scenes  # noqa: E402
+from common import RESULTS, write_result  # noqa: E402  (benchmarks/common.py)
 from sim_preconditioner import arguments, paper_scenes  # noqa: E402  (benchmarks/, on the path as the script's folder)
 
 CLIPS = (42, 49, 61, 96)   # classes 42, 49 (stiff stretching), 7 (soft), 42 again (another sequence)
@@ -50,13 +51,9 @@ def main(argv: list[str] | None = None) -> None:
         row["clip_mean_displacement_mm"] = round(1000 * float(motion), 1)
         rows.append(row)
         print(json.dumps(row), flush=True)
-    result = {"command": "python benchmarks/sim_cg_cap.py " + " ".join(argv or sys.argv[1:]),
-              "setting": args.setting, "frames": args.frames, "cg_iterations": cfg.cg_iterations,
+    result = {"setting": args.setting, "frames": args.frames, "cg_iterations": cfg.cg_iterations,
               "cg_tolerance": cfg.cg_tolerance, "self_collision": cfg.self_collision, "clips": rows}
-    out = args.out or Path(__file__).parent / "results" / f"sim_cg_cap-{args.setting}-cpu.json"
-    out.write_text(json.dumps(result, indent=2) + "\n")
-    print(f"wrote {out}")
-
+    write_result("sim_cg_cap.py", argv, result, args.out or RESULTS / f"sim_cg_cap-{args.setting}-cpu.json")
 
 if __name__ == "__main__":
     main()

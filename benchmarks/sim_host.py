@@ -21,8 +21,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import clothgap.config as study_config  # noqa: E402
-from clothgap.settings import apply_overrides  # noqa: E402
+from common import RESULTS, paper_sim_cpu, write_result  # noqa: E402  (benchmarks/common.py)
 from sim.stage import build_scene, parse_setting, setting_simulator  # noqa: E402
 
 
@@ -56,17 +55,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--frames", type=int, default=10)
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
-    cfg = apply_overrides(study_config.preset("paper"), ["sim.device=cpu"]).sim
+    cfg = paper_sim_cpu()
     rows = []
     for name in args.settings.split(","):
         rows.append(profile_setting(cfg, name, args.clips, args.frames))
         print(json.dumps(rows[-1]), flush=True)
-    result = {"command": "python benchmarks/sim_host.py " + " ".join(argv or sys.argv[1:]), "clips": args.clips,
-              "frames": args.frames, "self_collision": cfg.self_collision, "rows": rows}
-    out = args.out or Path(__file__).parent / "results" / f"sim_host-cpu-n{args.clips}.json"
-    out.write_text(json.dumps(result, indent=2) + "\n")
-    print(f"wrote {out}")
-
+    result = {"clips": args.clips, "frames": args.frames, "self_collision": cfg.self_collision, "rows": rows}
+    write_result("sim_host.py", argv, result, args.out or RESULTS / f"sim_host-cpu-n{args.clips}.json")
 
 if __name__ == "__main__":
     main()

@@ -22,8 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import clothgap.config as study_config  # noqa: E402
-from clothgap.settings import apply_overrides  # noqa: E402
+from common import RESULTS, paper_sim_cpu, write_result  # noqa: E402  (benchmarks/common.py)
 from sim.solver import BatchSolver, SolverParams  # noqa: E402
 from sim.stage import build_scene, parse_setting, setting_simulator  # noqa: E402
 
@@ -53,7 +52,7 @@ def measure(scenes, cfg, preconditioner: str, frames: int) -> tuple[dict, np.nda
 
 def paper_scenes(setting_name: str, indices) -> tuple:
     """The ``paper`` preset's sim settings on the CPU, and the (scene, labels) of each clip index of a setting."""
-    cfg = apply_overrides(study_config.preset("paper"), ["sim.device=cpu"]).sim
+    cfg = paper_sim_cpu()
     setting = parse_setting(setting_name)
     mesh, _ = setting_simulator(cfg, setting)
     return cfg, [build_scene(cfg, 0, i, setting, mesh) for i in indices]
@@ -80,15 +79,12 @@ def main(argv: list[str] | None = None) -> None:
         rows.append(row)
         print(json.dumps(row), flush=True)
     moved = np.linalg.norm(positions["block"] - positions["jacobi"], axis=2)
-    result = {"command": "python benchmarks/sim_preconditioner.py " + " ".join(argv or sys.argv[1:]),
-              "machine": platform.platform(), "setting": args.setting, "clips": args.clips, "frames": args.frames,
+    result = {"machine": platform.platform(), "setting": args.setting, "clips": args.clips, "frames": args.frames,
               "cg_iterations": cfg.cg_iterations, "cg_tolerance": cfg.cg_tolerance,
               "self_collision": cfg.self_collision, "rows": rows,
               "positions_block_vs_jacobi_m": {"mean": float(f"{moved.mean():.3g}"), "max": float(f"{moved.max():.3g}")}}
-    out = args.out or Path(__file__).parent / "results" / f"sim_preconditioner-{args.setting}-n{args.clips}-cpu.json"
-    out.write_text(json.dumps(result, indent=2) + "\n")
-    print(f"wrote {out}")
-
+    write_result("sim_preconditioner.py", argv, result,
+                 args.out or RESULTS / f"sim_preconditioner-{args.setting}-n{args.clips}-cpu.json")
 
 if __name__ == "__main__":
     main()
