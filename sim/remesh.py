@@ -91,7 +91,13 @@ def build_levels(target: np.ndarray, max_level: int) -> np.ndarray:
 
 
 def triangulate(level: np.ndarray, max_level: int, size: float) -> QuadMesh:
-    """The conforming triangulation of the quadtree whose leaf levels are ``level``."""
+    """The conforming triangulation of the quadtree whose leaf levels are ``level``.
+
+    Leaves are taken coarsest level first, row-major within a level. A leaf with no finer neighbour is split
+    along a diagonal that alternates like a checkerboard (no directional bias); one with a finer neighbour is
+    fanned around its centre through its corners and the hanging midpoints. Vertices are numbered in the order
+    the leaves first use them (corners counter-clockwise from (i, j), each hanging midpoint after the corner
+    before it, then the centre), so that the numbering is the same however the arrays are computed."""
     n = level.shape[0]
     leaves = []
     for lv in range(1, max_level + 1):
@@ -100,55 +106,50 @@ def triangulate(level: np.ndarray, max_level: int, size: float) -> QuadMesh:
         bi, bj = np.nonzero(is_leaf)
         leaves.append(np.stack([bi * s, bj * s, np.full_like(bi, s)], axis=1))
     leaves = np.concatenate(leaves).astype(np.int64)
-
+    i, j, s = leaves[:, 0], leaves[:, 1], leaves[:, 2]
+    h = s // 2
+    own = level[i, j]
     padded = np.pad(level, 1, constant_values=0)
 
-    def finer_across(i, j, s, side):
-        """Is the neighbour across this edge of leaf (i, j, s) finer than the leaf?"""
-        lv = level[i, j]
-        h = s // 2
-        if side == 0:    # v = j (bottom): cells (i .. i+s-1, j-1)
-            cells = padded[1 + i + h - 1: 1 + i + h + 1, j]
-        elif side == 1:  # u = i + s (right)
-            cells = padded[1 + i + s, 1 + j + h - 1: 1 + j + h + 1]
-        elif side == 2:  # v = j + s (top)
-            cells = padded[1 + i + h - 1: 1 + i + h + 1, 1 + j + s]
-        else:            # u = i (left)
-            cells = padded[i, 1 + j + h - 1: 1 + j + h + 1]
-        return s > 1 and cells.max() > lv
+    def finer(rows, cols) -> np.ndarray:      # either of two padded cells finer than the leaf (leaves above 1 cell)
+        return (s > 1) & (np.maximum(padded[rows[0], cols[0]], padded[rows[1], cols[1]]) > own)
 
-    points: dict[tuple[int, int], int] = {}
+    hanging = np.stack([finer((i + h, i + h + 1), (j, j)),                      # bottom, v = j
+                        finer((1 + i + s, 1 + i + s), (j + h, j + h + 1)),      # right, u = i + s
+                        finer((i + h, i + h + 1), (1 + j + s, 1 + j + s)),      # top, v = j + s
+                        finer((i, i), (j + h, j + h + 1))], axis=1)             # left, u = i
+    fan = hanging.any(axis=1)
+    # the points each leaf uses, in order: c00, mid bottom, c10, mid right, c11, mid top, c01, mid left, centre
+    points = np.stack([np.stack(p, axis=1) for p in
+                       ((i, j), (i + h, j), (i + s, j), (i + s, j + h), (i + s, j + s), (i + h, j + s), (i, j + s),
+                        (i, j + h), (i + h, j + h))], axis=1)                   # (L, 9, 2)
+    used = np.zeros((len(leaves), 9), dtype=bool)
+    used[:, 0:8:2] = True
+    used[:, 1:8:2] = hanging
+    used[:, 8] = fan
+    key = points[..., 0] * (n + 1) + points[..., 1]
+    unique, first, inverse = np.unique(key[used], return_index=True, return_inverse=True)
+    rank = np.empty(len(unique), dtype=np.int64)
+    rank[np.argsort(first, kind="stable")] = np.arange(len(unique))
+    ids = np.full(used.shape, -1, dtype=np.int64)
+    ids[used] = rank[inverse]
+    lattice = np.stack([unique // (n + 1), unique % (n + 1)], axis=1)[np.argsort(rank)]
 
-    def vid(p: tuple[int, int]) -> int:
-        if p not in points:
-            points[p] = len(points)
-        return points[p]
-
-    faces, face_leaf = [], []
-    for li, (i, j, s) in enumerate(leaves):
-        c00, c10, c11, c01 = (i, j), (i + s, j), (i + s, j + s), (i, j + s)
-        h = s // 2
-        mids = [(i + h, j), (i + s, j + h), (i + h, j + s), (i, j + h)]
-        hanging = [finer_across(i, j, s, side) for side in range(4)]
-        if not any(hanging):
-            a, b, c, d = vid(c00), vid(c10), vid(c11), vid(c01)
-            if ((i // s) + (j // s)) % 2 == 0:  # alternate diagonals: no directional bias
-                tris = [(a, b, c), (a, c, d)]
-            else:
-                tris = [(a, b, d), (b, c, d)]
-        else:
-            ring = []
-            for corner, mid, hang in zip((c00, c10, c11, c01), mids, hanging):
-                ring.append(vid(corner))
-                if hang:
-                    ring.append(vid(mid))
-            centre = vid((i + h, j + h))
-            tris = [(ring[k], ring[(k + 1) % len(ring)], centre) for k in range(len(ring))]
-        faces += tris
-        face_leaf += [li] * len(tris)
-    lattice = np.array(sorted(points, key=points.get), dtype=np.int64)
-    return QuadMesh(n, size, level, max_level, lattice, np.array(faces, np.int32),
-                    np.array(face_leaf, np.int64), leaves)
+    # each leaf's triangles, up to 8, in order
+    ring_slots = np.argsort(~used[:, :8], axis=1, kind="stable")               # the used ring points first
+    ring = np.take_along_axis(ids[:, :8], ring_slots, axis=1)
+    count = np.where(fan, used[:, :8].sum(axis=1), 2)
+    k = np.arange(8)[None, :]
+    following = np.take_along_axis(ring, (k + 1) % count[:, None], axis=1)
+    tris = np.stack([ring, following, np.repeat(ids[:, 8:9], 8, axis=1)], axis=2)   # (L, 8, 3) fans
+    a, b, c, d = ids[:, 0], ids[:, 2], ids[:, 4], ids[:, 6]
+    even = ((i // s) + (j // s)) % 2 == 0
+    split = np.where(even[:, None, None], np.stack([np.stack([a, b, c], 1), np.stack([a, c, d], 1)], 1),
+                     np.stack([np.stack([a, b, d], 1), np.stack([b, c, d], 1)], 1))
+    tris[~fan, :2] = split[~fan]
+    keep = k < count[:, None]
+    return QuadMesh(n, size, level, max_level, lattice, tris[keep].astype(np.int32),
+                    np.repeat(np.arange(len(leaves)), count).astype(np.int64), leaves)
 
 
 def uniform(n_base: int, size: float, level: int, max_level: int = 3) -> QuadMesh:

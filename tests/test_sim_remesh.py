@@ -78,3 +78,64 @@ def test_balance_keeps_neighbours_within_one_level():
     level = R.build_levels(target, 3)
     assert level[30, 30] == 3
     assert np.abs(np.diff(level, axis=0)).max() <= 1 and np.abs(np.diff(level, axis=1)).max() <= 1
+
+
+def _triangulate_leaf_by_leaf(level: np.ndarray, max_level: int, size: float) -> R.QuadMesh:
+    """The triangulation's definition, one leaf at a time (vertices numbered on first use)."""
+    n = level.shape[0]
+    leaves = []
+    for lv in range(1, max_level + 1):
+        s = 2 ** (max_level - lv)
+        is_leaf = (R._block_reduce(level, s, np.min) == lv) & (R._block_reduce(level, s, np.max) == lv)
+        bi, bj = np.nonzero(is_leaf)
+        leaves.append(np.stack([bi * s, bj * s, np.full_like(bi, s)], axis=1))
+    leaves = np.concatenate(leaves).astype(np.int64)
+    padded = np.pad(level, 1, constant_values=0)
+
+    def finer_across(i, j, s, side):
+        h = s // 2
+        cells = (padded[i + h: i + h + 2, j], padded[1 + i + s, j + h: j + h + 2],
+                 padded[i + h: i + h + 2, 1 + j + s], padded[i, j + h: j + h + 2])[side]
+        return s > 1 and cells.max() > level[i, j]
+
+    points: dict[tuple[int, int], int] = {}
+
+    def vid(p):
+        return points.setdefault(p, len(points))
+
+    faces, face_leaf = [], []
+    for li, (i, j, s) in enumerate(leaves):
+        h = s // 2
+        corners = ((i, j), (i + s, j), (i + s, j + s), (i, j + s))
+        mids = ((i + h, j), (i + s, j + h), (i + h, j + s), (i, j + h))
+        hanging = [finer_across(i, j, s, side) for side in range(4)]
+        if not any(hanging):
+            a, b, c, d = (vid(p) for p in corners)
+            tris = [(a, b, c), (a, c, d)] if ((i // s) + (j // s)) % 2 == 0 else [(a, b, d), (b, c, d)]
+        else:
+            ring = []
+            for corner, mid, hang in zip(corners, mids, hanging):
+                ring.append(vid(corner))
+                if hang:
+                    ring.append(vid(mid))
+            centre = vid((i + h, j + h))
+            tris = [(ring[k], ring[(k + 1) % len(ring)], centre) for k in range(len(ring))]
+        faces += tris
+        face_leaf += [li] * len(tris)
+    lattice = np.array(sorted(points, key=points.get), dtype=np.int64)
+    return R.QuadMesh(n, size, level, max_level, lattice, np.array(faces, np.int32), np.array(face_leaf), leaves)
+
+
+def test_triangulation_is_its_leaf_by_leaf_definition():
+    rng = np.random.default_rng(5)
+    cases = [np.full((8, 8), lv) for lv in (1, 2, 3)]
+    for _ in range(12):                       # balanced quadtrees from random refinement targets
+        cases.append(R.build_levels(rng.integers(1, 4, (16, 16)), 3))
+    fans = 0
+    for level in cases:
+        got, want = R.triangulate(level, 3, 0.5), _triangulate_leaf_by_leaf(level, 3, 0.5)
+        fans += int(np.bincount(want.face_leaf).max() > 2)       # leaves fanned around hanging midpoints
+        for name in ("lattice", "faces", "face_leaf", "leaves"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+        assert got.faces.dtype == np.int32 and got.lattice.shape[1] == 2
+    assert fans >= 10
