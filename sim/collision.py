@@ -358,9 +358,14 @@ def apply_changes(dt: float, relaxation: float, change: wp.array(dtype=wp.vec3),
 
 
 def unique_edges(faces: np.ndarray) -> np.ndarray:
-    """(E, 2) sorted vertex pairs of a triangle mesh's edges."""
+    """(E, 2) sorted vertex pairs of a triangle mesh's edges, in lexicographic order (the rows of
+    ``np.unique(pairs, axis=0)``, found through one integer key per pair, which sorts far faster)."""
     e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-    return np.unique(e, axis=0)
+    if len(e) == 0:
+        return e
+    n = int(e.max()) + 1
+    key = np.unique(e[:, 0].astype(np.int64) * n + e[:, 1])
+    return np.stack([key // n, key % n], axis=1).astype(e.dtype)
 
 
 class SelfCollision:

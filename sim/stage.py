@@ -43,6 +43,7 @@ from sim import classes
 from sim import remesh
 from sim.adaptive import cloth_mesh, simulate_adaptive
 from sim.clip import SimClip
+from sim.collision import unique_edges
 from sim.config import REMESHING, SimConfig
 from sim.intersections import count_intersections
 from sim.materials import load_material
@@ -83,12 +84,6 @@ class ClipResult:
     frames: list | None = None        # adaptive: (positions, faces, uv) per frame when ok
     cg: CGStats | None = None         # the solver's CG work on this cloth (meta "health")
     collision_dropped: int | None = None   # self-collision pairs dropped (beyond the slots), unresolved; None: off
-
-
-def _edges(mesh: ClothMesh) -> np.ndarray:
-    f = mesh.faces
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    return np.unique(e, axis=0)
 
 
 def health(x: np.ndarray, x_prev: np.ndarray, frame_dt: float, edges: np.ndarray, rest: np.ndarray) -> str | None:
@@ -164,7 +159,7 @@ def simulate_scenes(scenes: list[ClipScene], *, fps: float, frames: int, substep
     for mesh_id in meshes:
         members = np.array([c for c, s in enumerate(scenes) if id(s.spec.mesh) == mesh_id])
         m = scenes[members[0]].spec.mesh
-        e = _edges(m)
+        e = unique_edges(m.faces)
         groups.append((members, e, np.linalg.norm(m.uv[e[:, 1]] - m.uv[e[:, 0]], axis=1)))
     reasons: list[str | None] = [None] * len(scenes)
     prev = solver.positions()
@@ -201,7 +196,7 @@ def simulate_adaptive_scenes(scenes: list[ClipScene], base, *, fps: float, frame
     """``simulate_scenes`` with adaptive remeshing after every frame; same health check per frame. Its phases
     are not split: the stage times the whole batch (``phases`` is accepted for the common signature)."""
     def check(cloth, x, x_prev, frame_dt):
-        e = _edges(cloth_mesh(cloth.quad))
+        e = unique_edges(cloth.quad.faces)           # the mesh the solver ran this frame on
         return health(x, x_prev, frame_dt, e, np.linalg.norm(cloth.quad.uv[e[:, 1]] - cloth.quad.uv[e[:, 0]], axis=1))
 
     out = simulate_adaptive(scenes, base, fps=fps, frames=frames, substeps=substeps, settle_s=settle_s,

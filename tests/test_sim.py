@@ -155,8 +155,12 @@ def test_hinges_are_those_of_the_edge_by_edge_definition():
     meshes.append(faces[rng.permutation(len(faces))])                     # any face order
     meshes.append(np.concatenate([faces, faces[:3]]))                     # a directed edge held twice
     meshes.append(np.zeros((0, 3), np.int32))
+    from sim.collision import unique_edges
+
     for faces in meshes:
         np.testing.assert_array_equal(hinges_of(faces), _hinges_by_dict(faces))
+        pairs = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+        np.testing.assert_array_equal(unique_edges(faces), np.unique(pairs, axis=0))   # and the edges too
     # and the solver's rest area of each hinge: its two faces', found by their directed edges
     from sim.solver import _mesh_rest
 
@@ -438,7 +442,8 @@ def test_stiff_cloth_on_the_bending_arm_passes_the_health_check_at_default_subst
     8 substeps and 30 CG iterations: no clip fails the health check (so none would be retried), and the cloth
     stretches only a few percent, as a stiff fabric does. With the contact outside the implicit solve these
     clips wrapped edges 2.5-2.9x their rest length around the forearm."""
-    from sim.stage import _edges, build_scene, parse_setting, simulate_scenes
+    from sim.collision import unique_edges
+    from sim.stage import build_scene, parse_setting, simulate_scenes
 
     cfg = SimConfig(motions=("arm",), device="cpu")
     setting = parse_setting("arm-uniform1")
@@ -448,7 +453,7 @@ def test_stiff_cloth_on_the_bending_arm_passes_the_health_check_at_default_subst
     results = simulate_scenes(scenes, fps=cfg.fps, frames=cfg.frames, substeps=cfg.substeps, settle_s=cfg.settle_s,
                               cg_iterations=cfg.cg_iterations, device="cpu")
     assert [r.reason for r in results] == [None] * len(indices)
-    e = _edges(mesh)
+    e = unique_edges(mesh.faces)
     rest = np.linalg.norm(mesh.uv[e[:, 1]] - mesh.uv[e[:, 0]], axis=1)
     for r in results:
         stretch = np.linalg.norm(r.positions[:, e[:, 1]] - r.positions[:, e[:, 0]], axis=2) / rest
