@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
@@ -10,6 +11,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import clothgap.config as study_config  # noqa: E402
 from clothgap.settings import apply_overrides  # noqa: E402
+from sim.stage import build_scene, parse_setting, setting_simulator  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
 
@@ -24,3 +26,23 @@ def write_result(script: str, argv: list[str] | None, result: dict, out: Path) -
     command = f"python benchmarks/{script} " + " ".join(argv if argv is not None else sys.argv[1:])
     out.write_text(json.dumps({"command": command.strip(), **result}, indent=2) + "\n")
     print(f"wrote {out}")
+
+
+def paper_scenes(setting_name: str, indices) -> tuple:
+    """The ``paper`` preset's sim settings on the CPU, the setting's batch simulator (``simulate_scenes`` or its
+    adaptive form) and the (scene, labels) of each clip index."""
+    cfg = paper_sim_cpu()
+    setting = parse_setting(setting_name)
+    mesh, simulate = setting_simulator(cfg, setting)
+    return cfg, simulate, [build_scene(cfg, 0, i, setting, mesh) for i in indices]
+
+
+def arguments(doc: str, argv: list[str] | None, **counts: int) -> argparse.Namespace:
+    """The CG benchmarks' options: --setting, --frames, --out, and an integer option per ``counts`` entry."""
+    ap = argparse.ArgumentParser(description=doc.split("\n")[0])
+    ap.add_argument("--setting", default="wind-uniform1")
+    ap.add_argument("--frames", type=int, default=20)
+    for name, default in counts.items():
+        ap.add_argument(f"--{name}", type=int, default=default)
+    ap.add_argument("--out", type=Path)
+    return ap.parse_args(argv)

@@ -20,15 +20,14 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from sim.stage import simulate_scenes  # noqa: E402
-from common import RESULTS, write_result  # noqa: E402  (benchmarks/common.py)
-from sim_preconditioner import arguments, paper_scenes  # noqa: E402  (benchmarks/, on the path as the script's folder)
+from common import RESULTS, arguments, paper_scenes, write_result  # noqa: E402  (benchmarks/common.py)
 
 CLIPS = (42, 49, 61, 96)   # classes 42, 49 (stiff stretching), 7 (soft), 42 again (another sequence)
 
 
 def main(argv: list[str] | None = None) -> None:
     args = arguments(__doc__, argv, iterations=120)
-    cfg, built = paper_scenes(args.setting, CLIPS)
+    cfg, _, built = paper_scenes(args.setting, CLIPS)
     runs = {}
     for iterations in (cfg.cg_iterations, args.iterations):
         runs[iterations] = simulate_scenes([s for s, _ in built], fps=cfg.fps, frames=args.frames,

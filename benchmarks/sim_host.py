@@ -21,14 +21,12 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common import RESULTS, paper_sim_cpu, write_result  # noqa: E402  (benchmarks/common.py)
-from sim.stage import build_scene, parse_setting, setting_simulator  # noqa: E402
+from common import RESULTS, paper_scenes, paper_sim_cpu, write_result  # noqa: E402  (benchmarks/common.py)
 
 
-def profile_setting(cfg, name: str, clips: int, frames: int) -> dict:
-    setting = parse_setting(name)
-    mesh, simulate = setting_simulator(cfg, setting)
-    scenes = [build_scene(cfg, 0, 7 * i, setting, mesh)[0] for i in range(clips)]
+def profile_setting(name: str, clips: int, frames: int) -> dict:
+    cfg, simulate, built = paper_scenes(name, range(0, 7 * clips, 7))
+    scenes = [scene for scene, _ in built]
     profiler = cProfile.Profile()
     start = time.perf_counter()
     profiler.enable()
@@ -55,12 +53,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--frames", type=int, default=10)
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
-    cfg = paper_sim_cpu()
     rows = []
     for name in args.settings.split(","):
-        rows.append(profile_setting(cfg, name, args.clips, args.frames))
+        rows.append(profile_setting(name, args.clips, args.frames))
         print(json.dumps(rows[-1]), flush=True)
-    result = {"clips": args.clips, "frames": args.frames, "self_collision": cfg.self_collision, "rows": rows}
+    result = {"clips": args.clips, "frames": args.frames, "self_collision": paper_sim_cpu().self_collision,
+              "rows": rows}
     write_result("sim_host.py", argv, result, args.out or RESULTS / f"sim_host-cpu-n{args.clips}.json")
 
 if __name__ == "__main__":

@@ -10,7 +10,6 @@ and the positions' difference between the two at the end.
 
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import sys
@@ -22,9 +21,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common import RESULTS, paper_sim_cpu, write_result  # noqa: E402  (benchmarks/common.py)
+from common import RESULTS, arguments, paper_scenes, write_result  # noqa: E402  (benchmarks/common.py)
 from sim.solver import BatchSolver, SolverParams  # noqa: E402
-from sim.stage import build_scene, parse_setting, setting_simulator  # noqa: E402
 
 
 def measure(scenes, cfg, preconditioner: str, frames: int) -> tuple[dict, np.ndarray]:
@@ -50,28 +48,9 @@ def measure(scenes, cfg, preconditioner: str, frames: int) -> tuple[dict, np.nda
     return row, np.stack(solver.positions())
 
 
-def paper_scenes(setting_name: str, indices) -> tuple:
-    """The ``paper`` preset's sim settings on the CPU, and the (scene, labels) of each clip index of a setting."""
-    cfg = paper_sim_cpu()
-    setting = parse_setting(setting_name)
-    mesh, _ = setting_simulator(cfg, setting)
-    return cfg, [build_scene(cfg, 0, i, setting, mesh) for i in indices]
-
-
-def arguments(doc: str, argv: list[str] | None, **counts: int) -> argparse.Namespace:
-    """The CG benchmarks' options: --setting, --frames, --out, and an integer option per ``counts`` entry."""
-    ap = argparse.ArgumentParser(description=doc.split("\n")[0])
-    ap.add_argument("--setting", default="wind-uniform1")
-    ap.add_argument("--frames", type=int, default=20)
-    for name, default in counts.items():
-        ap.add_argument(f"--{name}", type=int, default=default)
-    ap.add_argument("--out", type=Path)
-    return ap.parse_args(argv)
-
-
 def main(argv: list[str] | None = None) -> None:
     args = arguments(__doc__, argv, clips=32)
-    cfg, built = paper_scenes(args.setting, range(0, 7 * args.clips, 7))
+    cfg, _, built = paper_scenes(args.setting, range(0, 7 * args.clips, 7))
     scenes = [scene for scene, _ in built]
     rows, positions = [], {}
     for name in ("jacobi", "block"):

@@ -280,10 +280,10 @@ class Run:
 
     def measured_sim_dir(self, setting: str) -> Path:
         """Measured-fabric clips of ``setting`` (``<fabric>-<n>/``), simulated with the fabrics' own tables."""
-        return self.root / "measured" / "sim" / setting
+        return self.measured_root / "sim" / setting
 
     def measured_render_dir(self, variant: str, setting: str) -> Path:
-        return self.root / "measured" / "render" / variant / setting
+        return self.measured_root / "render" / variant / setting
 
     @property
     def render_root(self) -> Path:

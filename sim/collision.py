@@ -357,17 +357,6 @@ def apply_changes(dt: float, relaxation: float, change: wp.array(dtype=wp.vec3),
 # ---------------------------------------------------------------- host side
 
 
-def unique_edges(faces: np.ndarray) -> np.ndarray:
-    """(E, 2) sorted vertex pairs of a triangle mesh's edges, in lexicographic order (the rows of
-    ``np.unique(pairs, axis=0)``, found through one integer key per pair, which sorts far faster)."""
-    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-    if len(e) == 0:
-        return e
-    n = int(e.max()) + 1
-    key = np.unique(e[:, 0].astype(np.int64) * n + e[:, 1])
-    return np.stack([key // n, key % n], axis=1).astype(e.dtype)
-
-
 class SelfCollision:
     """The self-collision of one ``BatchSolver``'s cloths: BVHs, pair slots and the launches of a step.
 

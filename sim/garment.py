@@ -39,7 +39,7 @@ import numpy as np
 import warp as wp
 
 from sim.materials import Material
-from sim.mesh import ClothMesh, hinges_of
+from sim.mesh import ClothMesh, edge_sides, hinges_of
 from sim.solver import BatchSolver, ClothSpec, SolverParams, _edge_directions
 
 MOTIONS = ("twirl", "walk")
@@ -230,17 +230,14 @@ class SkirtSolver:
         area = 0.5 * (d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
         if np.any(area <= 0):
             raise ValueError("skirt faces must be counter-clockwise in material space")
-        edge_uv: dict[tuple[int, int], np.ndarray] = {}
-        face_area: dict[tuple[int, int], float] = {}
-        for fi, f in enumerate(faces):
-            for e in range(3):
-                a, b = int(f[e]), int(f[(e + 1) % 3])
-                edge_uv[(a, b)] = uv[fi, (e + 1) % 3] - uv[fi, e]
-                face_area[(a, b)] = area[fi]
         h = g.mesh.hinges
-        e_uv = np.array([edge_uv[(int(a), int(b))] for a, b in h[:, :2]])
+        # each hinge's two faces; its edge's own (u, v) comes from the corners of the first (a seam's two sides
+        # have different material coordinates)
+        side_a, side_b = edge_sides(faces, h[:, 0], h[:, 1])
+        face_a, corner = side_a // 3, side_a % 3
+        e_uv = uv[face_a, (corner + 1) % 3] - uv[face_a, corner]
         hlen = np.linalg.norm(e_uv, axis=1)
-        harea = np.array([face_area[(int(a), int(b))] + face_area[(int(b), int(a))] for a, b in h[:, :2]])
+        harea = area[face_a] + area[side_b // 3]
         hdir = _edge_directions(e_uv)
         nc = len(materials)
         masses = []

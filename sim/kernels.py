@@ -372,9 +372,11 @@ def cg_update(mass: wp.array(dtype=float), free: wp.array(dtype=float), cloth: w
     alpha = rz[slot, c] / den
     dv[i] = dv[i] + alpha * p[i]
     ri = r[i] - alpha * free[i] * ap[i]
-    zi = wp.cw_mul(ri, dinv[i])
+    zi = wp.vec3(0.0)
     if use_block != 0:
         zi = pinv[i] * ri
+    else:
+        zi = wp.cw_mul(ri, dinv[i])
     r[i] = ri
     z[i] = zi
     wp.atomic_add(rz, slot + 1, c, wp.dot(ri, zi))

@@ -58,6 +58,24 @@ def directed_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return f.ravel(), f[:, [1, 2, 0]].ravel(), f[:, [2, 0, 1]].ravel()
 
 
+def unique_edges(faces: np.ndarray) -> np.ndarray:
+    """(E, 2) sorted vertex pairs of a triangle mesh's edges, in lexicographic order (the rows of
+    ``np.unique(pairs, axis=0)``, found through one integer key per pair, which sorts far faster)."""
+    f = np.asarray(faces)
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    if len(e) == 0:
+        return e
+    n = int(e.max()) + 1
+    key = np.unique(e[:, 0].astype(np.int64) * n + e[:, 1])
+    return np.stack([key // n, key % n], axis=1).astype(e.dtype)
+
+
+def edge_sides(faces: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``edge_rows`` of a -> b and of b -> a, with one sort: the two faces of each edge (a, b)."""
+    rows = edge_rows(faces, np.concatenate([a, b]), np.concatenate([b, a]))
+    return rows[:len(a)], rows[len(a):]
+
+
 def edge_rows(faces: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """For each vertex pair (a, b): the row (3 face + edge, as ``directed_edges``) of the directed edge a -> b,
     the last one if several faces hold it, -1 if none does."""
@@ -79,8 +97,7 @@ def hinges_of(faces: np.ndarray) -> np.ndarray:
     a, b, c = directed_edges(faces)
     if len(a) == 0:
         return np.zeros((0, 4), dtype=np.int32)
-    last = edge_rows(faces, a, b)
-    reverse = edge_rows(faces, b, a)
+    last, reverse = edge_sides(faces, a, b)
     # an edge's first appearance, as a dict keyed by (a, b) keeps it; the last face's corner, as it overwrites
     first = np.zeros(len(a), dtype=bool)
     first[np.unique(a * (int(a.max()) + 1) + b, return_index=True)[1]] = True

@@ -77,8 +77,8 @@ import numpy as np
 import warp as wp
 
 from sim import collision, kernels
-from sim.collision import SelfCollision, unique_edges
-from sim.mesh import edge_rows
+from sim.collision import SelfCollision
+from sim.mesh import edge_sides, unique_edges
 from sim.specs import ArmSpec, ClothSpec   # plain data, kept apart so that sim.motions needs no Warp
 
 
@@ -190,7 +190,7 @@ def _mesh_rest(c: int, mesh) -> dict[str, np.ndarray]:
     h = np.asarray(mesh.hinges).reshape(-1, 4)
     e_uv = uv[h[:, 1]] - uv[h[:, 0]]
     # the two faces of each hinge: those holding its edge in either direction
-    face_a, face_b = edge_rows(faces, h[:, 0], h[:, 1]) // 3, edge_rows(faces, h[:, 1], h[:, 0]) // 3
+    face_a, face_b = (rows // 3 for rows in edge_sides(faces, h[:, 0], h[:, 1]))
     return {"dm_inv": np.linalg.inv(dm), "area": area, "hinge_length": np.linalg.norm(e_uv, axis=1),
             "hinge_area": area[face_a] + area[face_b], "hinge_dir": _edge_directions(e_uv),
             "edges": unique_edges(faces)}

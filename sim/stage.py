@@ -43,11 +43,10 @@ from sim import classes
 from sim import remesh
 from sim.adaptive import cloth_mesh, simulate_adaptive
 from sim.clip import SimClip
-from sim.collision import unique_edges
 from sim.config import REMESHING, SimConfig
 from sim.intersections import count_intersections
 from sim.materials import load_material
-from sim.mesh import ClothMesh, square_cloth, vertices_per_side
+from sim.mesh import ClothMesh, square_cloth, unique_edges, vertices_per_side
 from sim.motions import MOTIONS, ClipScene, get_motion, view_box
 from sim.solver import BatchSolver, CGStats, SolverParams, load_kernels, resolve_device
 
@@ -152,37 +151,35 @@ def simulate_scenes(scenes: list[ClipScene], *, fps: float, frames: int, substep
     solver = settled_solver(scenes, fps=fps, substeps=substeps, settle_s=settle_s, cg_iterations=cg_iterations,
                             cg_tolerance=cg_tolerance, self_collision=self_collision,
                             collision_thickness=collision_thickness, device=device, phases=phases)
-    record_start = time.perf_counter()
-    # The stage simulates a batch on one mesh: check it in one vectorised pass (else cloth by cloth).
-    meshes = {id(s.spec.mesh) for s in scenes}
-    groups = []
-    for mesh_id in meshes:
-        members = np.array([c for c, s in enumerate(scenes) if id(s.spec.mesh) == mesh_id])
-        m = scenes[members[0]].spec.mesh
-        e = unique_edges(m.faces)
-        groups.append((members, e, np.linalg.norm(m.uv[e[:, 1]] - m.uv[e[:, 0]], axis=1)))
-    reasons: list[str | None] = [None] * len(scenes)
-    prev = solver.positions()
-    recorded = []
-    solver.step(substeps)
-    for t in range(frames):
-        cur = solver.positions()                 # waits for frame t
-        if t + 1 < frames:
-            solver.step(substeps)                # on a GPU frame t+1 runs while the host checks frame t
-        for members, e, rest in groups:
-            found = _batch_health(np.stack([cur[c] for c in members]), np.stack([prev[c] for c in members]),
-                                  1.0 / fps, e, rest)
-            for c, why in zip(members, found):
-                if why is not None and reasons[c] is None:
-                    reasons[c] = f"frame {t}: {why}"
-        recorded.append(cur)
-        prev = cur
-        if on_frame is not None:
-            on_frame()
-    cg = solver.cg_stats()
-    dropped = solver.collision_dropped() or [None] * len(scenes)
-    if phases is not None:
-        phases["record"] = phases.get("record", 0.0) + time.perf_counter() - record_start
+    with timed(phases, "record"):
+        # The stage simulates a batch on one mesh: check it in one vectorised pass (else cloth by cloth).
+        meshes = {id(s.spec.mesh) for s in scenes}
+        groups = []
+        for mesh_id in meshes:
+            members = np.array([c for c, s in enumerate(scenes) if id(s.spec.mesh) == mesh_id])
+            m = scenes[members[0]].spec.mesh
+            e = unique_edges(m.faces)
+            groups.append((members, e, np.linalg.norm(m.uv[e[:, 1]] - m.uv[e[:, 0]], axis=1)))
+        reasons: list[str | None] = [None] * len(scenes)
+        prev = solver.positions()
+        recorded = []
+        solver.step(substeps)
+        for t in range(frames):
+            cur = solver.positions()                 # waits for frame t
+            if t + 1 < frames:
+                solver.step(substeps)                # on a GPU frame t+1 runs while the host checks frame t
+            for members, e, rest in groups:
+                found = _batch_health(np.stack([cur[c] for c in members]), np.stack([prev[c] for c in members]),
+                                      1.0 / fps, e, rest)
+                for c, why in zip(members, found):
+                    if why is not None and reasons[c] is None:
+                        reasons[c] = f"frame {t}: {why}"
+            recorded.append(cur)
+            prev = cur
+            if on_frame is not None:
+                on_frame()
+        cg = solver.cg_stats()
+        dropped = solver.collision_dropped() or [None] * len(scenes)
     return [ClipResult(None if r else np.stack([f[c] for f in recorded]), r, cg=cg[c], collision_dropped=dropped[c])
             for c, r in enumerate(reasons)]
 

@@ -155,7 +155,7 @@ def test_hinges_are_those_of_the_edge_by_edge_definition():
     meshes.append(faces[rng.permutation(len(faces))])                     # any face order
     meshes.append(np.concatenate([faces, faces[:3]]))                     # a directed edge held twice
     meshes.append(np.zeros((0, 3), np.int32))
-    from sim.collision import unique_edges
+    from sim.mesh import unique_edges
 
     for faces in meshes:
         np.testing.assert_array_equal(hinges_of(faces), _hinges_by_dict(faces))
@@ -345,8 +345,12 @@ def test_a_batch_written_by_processes_is_the_batch_written_by_threads(tmp_path, 
     run_sim(threads, progress=False)
     monkeypatch.setattr(sim.stage, "PROCESS_WRITE_MIN_CLIPS", 1)     # what a GPU batch of thousands takes
     monkeypatch.setattr(sim.stage, "PROCESS_WRITE_MIN_CPUS", 1)
+    pools = []
+    real_pool = sim.stage.ProcessPoolExecutor
+    monkeypatch.setattr(sim.stage, "ProcessPoolExecutor", lambda *a, **k: pools.append(k) or real_pool(*a, **k))
     processes = tiny_sim_run(tmp_path / "processes")
     assert run_sim(processes, progress=False)["simulated"] == 2
+    assert len(pools) == 1 and pools[0]["mp_context"].get_start_method() == "spawn"   # the process path ran
     for cid in ("c00000", "c00001"):
         a, b = threads.sim_dir("wind-uniform1") / cid, processes.sim_dir("wind-uniform1") / cid
         assert is_done(b) and (a / "clip.npz").read_bytes() == (b / "clip.npz").read_bytes()
@@ -442,7 +446,7 @@ def test_stiff_cloth_on_the_bending_arm_passes_the_health_check_at_default_subst
     8 substeps and 30 CG iterations: no clip fails the health check (so none would be retried), and the cloth
     stretches only a few percent, as a stiff fabric does. With the contact outside the implicit solve these
     clips wrapped edges 2.5-2.9x their rest length around the forearm."""
-    from sim.collision import unique_edges
+    from sim.mesh import unique_edges
     from sim.stage import build_scene, parse_setting, simulate_scenes
 
     cfg = SimConfig(motions=("arm",), device="cpu")
