@@ -6,5 +6,8 @@ if ls .whl/*.whl >/dev/null 2>&1 && [ ! -d /tmp/site/av ]; then
 fi
 export PYTHONPATH=$PYTHONPATH:/tmp/site
 export OUT=${OUT:-/tmp/out}
+# NVLink multicast stays off on machines of several GPUs: a program that uses it can take the host's
+# shared GPUs out of service (the device tool's KINDS.md); child processes inherit these.
+export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1
 mkdir -p "$OUT"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader

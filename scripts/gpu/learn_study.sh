@@ -3,7 +3,8 @@
 # process so that a failure costs one row, stopping before the device's 10-minute limit.
 #   RECIPES="baseline best augment+best" MODELS=lrcn bash scripts/gpu/learn_study.sh
 #   RECIPES=auto MODELS="base1 base2 base3" ...   the recipe with the best lrcn validation accuracy so far
-#   PARALLEL=4 ...   four recipes at a time on the one GPU (windows/s then is not a solo figure)
+#   PARALLEL=4 ...   four recipes at a time (windows/s then is not a solo figure); on a machine of several
+#                    GPUs each recipe goes to the GPU running the fewest (CUDA_VISIBLE_DEVICES)
 #   MEASURED=1 ...   then the measured-fabric set (clothgap eval measured, held-out variant) on this call's
 #                    models of the first (or chosen) recipe, which become the run's train/ models
 # The data comes first: STAGES="sim render" SPP=16 RUN=/tmp/paper_study bash scripts/gpu/paper_study.sh
@@ -59,16 +60,29 @@ clip_lattices(run, setting, sorted(cache.clips), False)
 print(f"caches ready: {len(cache.clips)} clips")
 PY
   tag() { echo "recipe-$(echo "$1" | tr '=+/' '-_-')"; }     # a recipe's log and table name
-  running=0
+  read -ra gpus <<< "$(nvidia-smi --query-gpu=index --format=csv,noheader 2>/dev/null | tr '\n' ' ')"
+  [ ${#gpus[@]} -gt 0 ] || gpus=("${CUDA_VISIBLE_DEVICES:-0}")
+  declare -A gpu_of=()                                        # pid of a running recipe -> its GPU
+  least_busy_gpu() {
+    local best="${gpus[0]}" best_n=1000000 g n p
+    for g in "${gpus[@]}"; do
+      n=0; for p in "${!gpu_of[@]}"; do [ "${gpu_of[$p]}" = "$g" ] && n=$((n + 1)); done
+      [ $n -lt $best_n ] && { best=$g; best_n=$n; }
+    done
+    echo "$best"
+  }
+  forget_finished() { local p; for p in "${!gpu_of[@]}"; do kill -0 "$p" 2>/dev/null || unset "gpu_of[$p]"; done; }
   for r in $RECIPES; do
     left=$(( DEADLINE - ($(date +%s) - t0) ))
     [ $left -lt 30 ] && { echo "deadline: recipe $r and later not started"; break; }
-    echo "== $r ($MODELS), $left s left, in parallel"
+    gpu=$(least_busy_gpu)
+    echo "== $r ($MODELS), $left s left, in parallel on GPU $gpu"
     log="$RUN/eval/$(tag "$r").log"; mkdir -p "$RUN/eval"
-    ( timeout $(( left + 40 )) "${ABL[@]}" --recipe "$r" "${margs[@]}" --name "$(tag "$r")" \
+    ( export CUDA_VISIBLE_DEVICES=$gpu
+      timeout $(( left + 40 )) "${ABL[@]}" --recipe "$r" "${margs[@]}" --name "$(tag "$r")" \
         2>&1 | tr '\r' '\n' | grep -vE "it/s\]|s/it\]|clip/s\]" > "$log"; echo "== $r exit ${PIPESTATUS[0]}" >> "$log" ) &
-    running=$((running + 1))
-    if [ $running -ge "$PARALLEL" ]; then wait -n; running=$((running - 1)); fi
+    gpu_of[$!]=$gpu
+    if [ ${#gpu_of[@]} -ge "$PARALLEL" ]; then wait -n; forget_finished; fi
   done
   wait
   for r in $RECIPES; do tail -3 "$RUN/eval/$(tag "$r").log" 2>/dev/null; done
