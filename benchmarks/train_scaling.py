@@ -8,7 +8,7 @@ Each side is its own process tree: the baseline ``python`` on the first GPU, the
 group, as ``torchrun -m learn`` trains). The global batch is the recipe's ``batch_size`` on both sides
 (``batch_size / N`` per process), so both take the same optimiser steps on the same windows per epoch
 and the same final accuracy is expected; ``--per-process-batch`` keeps ``batch_size`` per process instead
-(N times the global batch, 1/N of the steps). Writes ``train_scaling-<N>gpu-<model>.json``: windows/s
+(N times the global batch, 1/N of the steps). Writes ``train_scaling-<N>gpu-<model>[-per-process-batch].json``: windows/s
 (epochs after the first), the seconds of the epochs and of the whole process (start-up, frames to the
 GPU), the time each side took to first reach the validation accuracy both reach, and test top-1 of each
 with its interval and their paired difference. A side whose model is finished (``DONE`` under --work)
@@ -224,7 +224,7 @@ def main(argv: list[str] | None = None) -> None:
         "test": {str(k): v for k, v in test_scores(run, args, folders).items()},
     }
     args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / f"train_scaling-{args.gpus}gpu-{args.model}.json"
+    path = args.out / f"train_scaling-{args.gpus}gpu-{args.model}{'-per-process-batch' if args.per_process_batch else ''}.json"
     path.write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(result["speedup"]), json.dumps(result["test"]), f"-> {path}")
 
