@@ -5,7 +5,8 @@
         benchmarks/results/learn_models-wind-uniform1-h100-bottleneck.json
 
 Each JSON is an `clothgap eval ablation` result (its ``recipes`` rows carry ``curves``); a panel's title
-is the JSON's file name. Rows are labelled recipe (and model where a JSON holds several models).
+is the JSON's file name. Rows are labelled recipe (and model where a JSON holds several models);
+``--recipe R`` (repeatable) keeps only those recipes' rows.
 """
 
 from __future__ import annotations
@@ -24,10 +25,11 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", type=Path, help="PNG to write")
     ap.add_argument("results", type=Path, nargs="+", help="result JSONs (clothgap eval ablation)")
+    ap.add_argument("--recipe", action="append", help="plot only this recipe's rows (repeatable; default all)")
     args = ap.parse_args(argv)
     fig, axes = plt.subplots(1, len(args.results), figsize=(6.5 * len(args.results), 4.5), squeeze=False)
     for ax, path in zip(axes[0], args.results):
-        rows = json.loads(path.read_text())["recipes"]
+        rows = [r for r in json.loads(path.read_text())["recipes"] if not args.recipe or r["recipe"] in args.recipe]
         several_models = len({r["model"] for r in rows}) > 1
         for i, row in enumerate(rows):
             curve = next(iter(row["curves"].values()))     # the first seed
