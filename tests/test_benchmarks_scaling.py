@@ -1,0 +1,63 @@
+"""The scale-out benchmarks on CPU at tiny size: what they compare, and that a side is not run twice."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from learn.synthetic import synthetic_run
+from tests.conftest import tiny_train_config
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _bench(script: str, *args: str, timeout: int = 240) -> subprocess.CompletedProcess:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *args], capture_output=True,
+                          text=True, timeout=timeout, env=env, cwd=ROOT)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-3000:]
+    return done
+
+
+@pytest.mark.slow
+def test_generation_scaling_sides_in_two_calls_and_sharded_simulations_are_byte_identical(tmp_path):
+    # one batch of 16 cloths in one process against two workers of 8: on the CPU the clips are the same bytes
+    common = ["--preset", "smoke", "--set", "sim.batch_size=16", "--set", "render.variants=paper",
+              "--gpus-per-worker", "0", "--workers", "2", "--work", str(tmp_path / "work"), "--out", str(tmp_path)]
+    first = _bench("generation_scaling.py", *common, "--side", "local")
+    assert "waiting for the other side" in first.stdout
+    assert (tmp_path / "work" / "local.json").is_file() and not list(tmp_path.glob("generation_scaling-*.json"))
+    _bench("generation_scaling.py", *common, "--side", "process")
+    result = json.loads((tmp_path / "generation_scaling-0gpu-smoke.json").read_text())
+    assert result["baseline"]["clips"] == result["candidate"]["clips"] == {"wind-uniform1": 16}
+    assert result["candidate"]["render"]["summary"]["executor"]["workers"] == 2
+    assert result["simulations_byte_identical"] == {"sampled": 16, "identical": 16}
+    assert set(result["speedup"]) == {"sim", "render", "total"}
+
+
+@pytest.mark.slow
+def test_train_scaling_keeps_the_global_batch_and_reuses_a_finished_side(tmp_path):
+    run = synthetic_run(tmp_path / "run", tiny_train_config(epochs=2, num_threads=1))
+    args = [str(run.root), "--setting", "wind-uniform1", "--variant", "paper", "--gpus", "2", "--device", "cpu",
+            "--out", str(tmp_path)]
+    _bench("train_scaling.py", *args)
+    result = json.loads((tmp_path / "train_scaling-2gpu-lrcn.json").read_text())
+    base, cand = result["baseline"], result["candidate"]
+    assert (base["world_size"], cand["world_size"]) == (1, 2)
+    assert cand["batch_per_process"] * 2 == base["batch_per_process"] == run.config.train.batch_size
+    assert len(base["curve"]) == len(cand["curve"]) == 2
+    assert base["process_seconds"] > 0 and cand["process_seconds"] > 0
+    # both reach the common validation accuracy: the lower of their best
+    assert result["common_val_acc"] == min(base["best_val_acc"], cand["best_val_acc"])
+    assert base["seconds_to_common_val_acc"] is not None and cand["seconds_to_common_val_acc"] is not None
+    assert result["test"]["1"]["test_windows"] == result["test"]["2"]["test_windows"] > 0
+    assert "difference" in result["test"]
+    # finished sides are read back, not trained again (their process time is then unknown)
+    _bench("train_scaling.py", *args)
+    again = json.loads((tmp_path / "train_scaling-2gpu-lrcn.json").read_text())
+    assert again["baseline"]["process_seconds"] is None and again["candidate"]["curve"] == cand["curve"]
