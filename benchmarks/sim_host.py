@@ -1,23 +1,30 @@
 """How much of a batch's simulation is the host's: Warp launches against everything else, per setting.
 
     python benchmarks/sim_host.py [--settings wind-uniform1,wind-adaptive] [--clips 16] [--frames 10]
+                                  [--host-workers 0,4]
 
 Simulates ``--clips`` ``paper``-preset clips (every 7th index) of each setting on the CPU under cProfile, as
 the stage's batch simulator does (adaptive settings remesh every cloth after every frame). Reports the
 seconds in Warp kernel launches (on a GPU these shrink) and on the host (these stay), the host's seconds
-per clip-frame, and the host functions that take the most. Writes
-benchmarks/results/sim_host-cpu-n<clips>.json with the command.
+per clip-frame, and the host functions that take the most. ``--host-workers`` then times each adaptive setting
+again without the profiler, remeshing in this process (0) and in pools of the given sizes
+(``sim.adaptive.simulate_adaptive``), checks that the clips are the same bytes, and gives the wall seconds and
+their ratio to 0. Writes benchmarks/results/sim_host-cpu-n<clips>.json with the command.
 """
 
 from __future__ import annotations
 
 import argparse
 import cProfile
+import hashlib
 import json
+import os
 import pstats
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -46,19 +53,58 @@ def profile_setting(name: str, clips: int, frames: int) -> dict:
             "top_project_functions_own_s": [{"function": f, "seconds": round(t, 2)} for t, f in own]}
 
 
+def clip_digest(results) -> str:
+    """One hash of every adaptive clip's frames (positions, faces, uv), outcome and CG statistics."""
+    h = hashlib.sha256()
+    for r in results:
+        h.update(repr((r.reason, r.cg, r.collision_dropped)).encode())
+        for frame in r.frames or []:
+            for a in frame:
+                h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()[:16]
+
+
+def time_host_workers(name: str, clips: int, frames: int, workers: list[int]) -> dict:
+    """Wall seconds of an adaptive batch remeshed by ``workers`` processes each (0: this process)."""
+    cfg, simulate, built = paper_scenes(name, range(0, 7 * clips, 7))
+    scenes = [scene for scene, _ in built]
+    out = {"setting": name, "runs": []}
+    for w in workers:
+        start = time.perf_counter()
+        results = simulate(scenes, fps=cfg.fps, frames=frames, substeps=cfg.substeps, settle_s=cfg.settle_s,
+                           cg_iterations=cfg.cg_iterations, cg_tolerance=cfg.cg_tolerance,
+                           self_collision=cfg.self_collision, collision_thickness=cfg.collision_thickness,
+                           device="cpu", host_workers=w)
+        out["runs"].append({"host_workers": w, "seconds": round(time.perf_counter() - start, 2),
+                            "clips_digest": clip_digest(results)})
+    base = out["runs"][0]
+    for run in out["runs"]:
+        run["speedup"] = round(base["seconds"] / run["seconds"], 2)
+        run["same_bytes_as_first"] = run["clips_digest"] == base["clips_digest"]
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--settings", default="wind-uniform1,wind-adaptive")
     ap.add_argument("--clips", type=int, default=16)
     ap.add_argument("--frames", type=int, default=10)
+    ap.add_argument("--host-workers", default="", help="comma-separated pool sizes to time adaptive settings with")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
     rows = []
     for name in args.settings.split(","):
         rows.append(profile_setting(name, args.clips, args.frames))
         print(json.dumps(rows[-1]), flush=True)
+    pools = []
+    if args.host_workers:
+        workers = [0] + [int(w) for w in args.host_workers.split(",") if int(w) != 0]
+        for name in args.settings.split(","):
+            if name.endswith("adaptive"):
+                pools.append(time_host_workers(name, args.clips, args.frames, workers))
+                print(json.dumps(pools[-1]), flush=True)
     result = {"clips": args.clips, "frames": args.frames, "self_collision": paper_sim_cpu().self_collision,
-              "rows": rows}
+              "cpus": os.cpu_count(), "rows": rows, **({"host_workers": pools} if pools else {})}
     write_result("sim_host.py", argv, result, args.out or RESULTS / f"sim_host-cpu-n{args.clips}.json")
 
 if __name__ == "__main__":

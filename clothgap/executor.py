@@ -45,6 +45,7 @@ from typing import Any
 
 # clothgap.config also registers the study config that a worker's Run.open reads (workers import this module).
 from clothgap.config import ConfigError, validate
+from clothgap.parallel import HOST_PROCESSES_ENV, share_of_host
 from clothgap.runs import Run
 
 EXECUTORS = ("local", "process", "ray")
@@ -245,9 +246,12 @@ def _describe(s: list[int]) -> str:
     return f"clips {s[0]}..{s[-1]}" if s else "no clips"
 
 
-def _pin_gpu(slots) -> None:
-    """Pool initializer: this worker takes one slot's GPUs before anything initialises CUDA."""
-    os.environ["CUDA_VISIBLE_DEVICES"] = slots.get()
+def _init_worker(slots, host_share: int) -> None:
+    """Pool initializer: this worker's share of the host's CPUs for its own pools, and (with GPU slots) one
+    slot's GPUs, taken before anything initialises CUDA."""
+    os.environ[HOST_PROCESSES_ENV] = str(host_share)
+    if slots is not None:
+        os.environ["CUDA_VISIBLE_DEVICES"] = slots.get()
 
 
 def _run_process_pool(fn, run_root, shards, options, label, slots) -> list[dict]:
@@ -261,12 +265,12 @@ def _run_process_pool(fn, run_root, shards, options, label, slots) -> list[dict]
     pending = list(range(len(shards)))
     with _progress(len(shards), options.progress, f"{label} (process x{workers})") as bar:
         for attempt in range(options.retries + 1):
-            init: dict[str, Any] = {}
+            queue = None
             if slots:
                 queue = ctx.Queue()
                 for s in slots:
                     queue.put(s)
-                init = {"initializer": _pin_gpu, "initargs": (queue,)}
+            init = {"initializer": _init_worker, "initargs": (queue, share_of_host(workers))}
             broken: list[int] = []
             with ProcessPoolExecutor(max_workers=min(workers, len(pending)), mp_context=ctx, **init) as pool:
                 futures = {pool.submit(fn, run_root, shards[i]): i for i in pending}

@@ -15,18 +15,22 @@ points pins the same lattice points.
 from __future__ import annotations
 
 import dataclasses
+import math
+import multiprocessing as mp
+from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
+from clothgap.parallel import host_processes
 from sim import remesh
-from sim.mesh import ClothMesh, hinges_of
 from sim.motions import ClipScene
 from sim.solver import BatchSolver, CGStats, ClothSpec, SolverParams
 
-
-def cloth_mesh(q: remesh.QuadMesh) -> ClothMesh:
-    """The solver's mesh of a quadtree mesh."""
-    return ClothMesh(q.uv.astype(np.float64), q.faces, hinges_of(q.faces))
+# A batch this large on a machine with this many cores remeshes its cloths in a process pool: a cloth's
+# remeshing, solver mesh and rest state are ~12 ms of numpy a frame (45 minutes a frame-serial paper-size
+# setting), and each cloth's step is a pure function of its mesh, positions and velocities.
+REMESH_POOL_MIN_CLOTHS = 64
+REMESH_POOL_MIN_CPUS = 4
 
 
 @dataclasses.dataclass
@@ -41,9 +45,18 @@ class AdaptiveResult:
 @dataclasses.dataclass
 class _Cloth:
     quad: remesh.QuadMesh
+    state: remesh.MeshState        # of ``quad``: the solver's mesh and rest state, the edges and their rest lengths
     spec: ClothSpec
     pin_edge: bool                 # pinned along the whole top edge
     pin_points: set[tuple[int, int]]
+
+    @property
+    def edges(self) -> np.ndarray:
+        return self.state.edges
+
+    @property
+    def edge_rest(self) -> np.ndarray:
+        return self.state.edge_rest
 
 
 def _pins(c: _Cloth) -> np.ndarray:
@@ -53,11 +66,11 @@ def _pins(c: _Cloth) -> np.ndarray:
     return np.array([k for k, p in enumerate(map(tuple, lat.tolist())) if p in c.pin_points], dtype=np.int64)
 
 
-def _start(scene: ClipScene, base: remesh.QuadMesh) -> _Cloth:
+def _start(scene: ClipScene, base: remesh.QuadMesh, state: remesh.MeshState) -> _Cloth:
     spec = scene.spec
     pinned = np.asarray(spec.pinned if spec.pinned is not None else [], dtype=np.int64)
     top = np.flatnonzero(base.lattice[:, 1] == base.n_fine)
-    return _Cloth(base, spec, pin_edge=len(pinned) > 0 and set(top.tolist()) <= set(pinned.tolist()),
+    return _Cloth(base, state, spec, pin_edge=len(pinned) > 0 and set(top.tolist()) <= set(pinned.tolist()),
                   pin_points={tuple(p) for p in base.lattice[pinned].tolist()})
 
 
@@ -69,25 +82,71 @@ def _solver(cloths: list[_Cloth], params: SolverParams, device: str, elapsed: fl
         if arm is not None:  # the solver's clock starts at zero with every rebuild
             arm = dataclasses.replace(arm, t0=arm.t0 - elapsed)
         specs.append(dataclasses.replace(c.spec, arm=arm, pinned=_pins(c)))
-    solver = BatchSolver(specs, params, device)
+    solver = BatchSolver(specs, params, device, mesh_rests=[c.state.rest for c in cloths])
     if winds is not None:
         solver.set_wind(winds)
     return solver
+
+
+class _Remesher:
+    """Every cloth's remeshing step of a frame: in this process, or in a spawned process pool (the parent
+    holds a CUDA context) when ``workers`` > 1. Results come back in the cloths' order."""
+
+    def __init__(self, workers: int):
+        self.workers = workers
+        self.pool = (ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
+                     if workers > 1 else None)
+
+    def __call__(self, cloths: list[int], quads: list, positions: list, velocities: list,
+                 refine_angle: float) -> list[remesh.Remeshed | None]:
+        if self.pool is None or len(cloths) < 2:
+            return [remesh.remesh_cloth(q, p, v, refine_angle, c)
+                    for c, q, p, v in zip(cloths, quads, positions, velocities)]
+        chunk = max(1, math.ceil(len(cloths) / (4 * self.workers)))
+        return list(self.pool.map(remesh.remesh_cloth, quads, positions, velocities,
+                                  [refine_angle] * len(cloths), cloths, chunksize=chunk))
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown()
+
+
+def remesh_workers(num_cloths: int) -> int:
+    """Host processes for a batch's remeshing: one per CPU of this process's share
+    (``clothgap.parallel.host_processes``) for a large batch on a machine of several, else 0."""
+    cpus = host_processes()
+    return cpus if num_cloths >= REMESH_POOL_MIN_CLOTHS and cpus >= REMESH_POOL_MIN_CPUS else 0
 
 
 def simulate_adaptive(scenes: list[ClipScene], base: remesh.QuadMesh, *, fps: float, frames: int,
                       substeps: int, settle_s: float, cg_iterations: int = 30,
                       cg_tolerance: float = SolverParams.cg_tolerance, self_collision: bool = False,
                       collision_thickness: float = SolverParams.collision_thickness, device: str = "cpu",
-                      refine_angle: float = 0.3, health=None, on_frame=None) -> list[AdaptiveResult]:
+                      refine_angle: float = 0.3, health=None, on_frame=None,
+                      host_workers: int | None = None) -> list[AdaptiveResult]:
     """Settle without wind on the base mesh, then record ``frames`` frames with the wind on,
-    remeshing every cloth after each frame. ``scenes`` must be built on ``cloth_mesh(base)``."""
+    remeshing every cloth after each frame. ``scenes`` must be built on ``remesh.cloth_mesh(base)``.
+    ``health(cloth, x, x_prev, frame_dt)`` may read ``cloth.edges`` and ``cloth.edge_rest`` (the mesh the
+    solver ran this frame on). ``host_workers``: processes that remesh the cloths (None: ``remesh_workers``;
+    0 or 1: this process); the clips are the same bytes either way."""
     dt = 1.0 / (fps * substeps)
     params = SolverParams(dt=dt, cg_iterations=cg_iterations, cg_tolerance=cg_tolerance,
                           self_collision=self_collision, collision_thickness=collision_thickness)
+    remesher = _Remesher(remesh_workers(len(scenes)) if host_workers is None else host_workers)
+    try:
+        return _simulate(scenes, base, params, fps, frames, substeps, settle_s, refine_angle, health, on_frame,
+                         remesher, device)
+    finally:
+        remesher.close()
+
+
+def _simulate(scenes, base, params, fps, frames, substeps, settle_s, refine_angle, health, on_frame, remesher,
+              device) -> list[AdaptiveResult]:
+    dt = params.dt
     cg = [CGStats() for _ in scenes]        # summed over the solvers a remeshing run rebuilds
     dropped = [0] * len(scenes)
-    cloths = [_start(s, base) for s in scenes]
+    base_state = remesh.mesh_state(base)
+    cloths = [_start(s, base, base_state) for s in scenes]
     winds = np.stack([s.wind for s in scenes])
     solver = _solver(cloths, params, device, 0.0, None)
     settle_steps = int(round(settle_s / dt))
@@ -101,23 +160,23 @@ def simulate_adaptive(scenes: list[ClipScene], base: remesh.QuadMesh, *, fps: fl
         solver.step(substeps)
         elapsed += substeps * dt
         pos, vel = solver.positions(), solver.velocities()
-        changed = False
         for c, cloth in enumerate(cloths):
             if reasons[c] is None and health is not None:
                 why = health(cloth, pos[c], prev[c], 1.0 / fps)
                 reasons[c] = None if why is None else f"frame {t}: {why}"
             recorded[c].append((pos[c], cloth.quad.faces, cloth.quad.uv))
-            if reasons[c] is None and t + 1 < frames:
-                quad, p, v = remesh.remesh(cloth.quad, pos[c].astype(np.float64), vel[c].astype(np.float64),
-                                           refine_angle)
-                if quad is not cloth.quad:
-                    cloth.quad = quad
-                    cloth.spec = dataclasses.replace(cloth.spec, mesh=cloth_mesh(quad), positions=p.astype(np.float32),
-                                                     velocities=v.astype(np.float32))
-                    pos[c] = p.astype(np.float32)
-                    changed = True
-                else:
-                    cloth.spec = dataclasses.replace(cloth.spec, positions=pos[c], velocities=vel[c])
+        alive = [c for c in range(len(cloths)) if reasons[c] is None] if t + 1 < frames else []
+        steps = dict(zip(alive, remesher(alive, [cloths[c].quad for c in alive], [pos[c] for c in alive],
+                                         [vel[c] for c in alive], refine_angle)))
+        changed = False
+        for c, cloth in enumerate(cloths):
+            new = steps.get(c)
+            if new is not None:
+                cloth.quad, cloth.state = new.quad, new.state
+                cloth.spec = dataclasses.replace(cloth.spec, mesh=new.state.mesh, positions=new.positions,
+                                                 velocities=new.velocities)
+                pos[c] = new.positions
+                changed = True
             else:
                 cloth.spec = dataclasses.replace(cloth.spec, positions=pos[c], velocities=vel[c])
         if changed and t + 1 < frames:
@@ -129,5 +188,5 @@ def simulate_adaptive(scenes: list[ClipScene], base: remesh.QuadMesh, *, fps: fl
             on_frame()
     cg = [a.merged(b) for a, b in zip(cg, solver.cg_stats())]
     dropped = [a + b for a, b in zip(dropped, solver.collision_dropped() or [0] * len(scenes))]
-    return [AdaptiveResult(None if r else rec, r, [len(f[0]) for f in rec], c, d if self_collision else None)
+    return [AdaptiveResult(None if r else rec, r, [len(f[0]) for f in rec], c, d if params.self_collision else None)
             for r, rec, c, d in zip(reasons, recorded, cg, dropped)]

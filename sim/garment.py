@@ -39,8 +39,8 @@ import numpy as np
 import warp as wp
 
 from sim.materials import Material
-from sim.mesh import ClothMesh, edge_sides, hinges_of
-from sim.solver import BatchSolver, ClothSpec, SolverParams, _edge_directions
+from sim.mesh import ClothMesh, edge_directions, edge_sides, hinges_of
+from sim.solver import BatchSolver, ClothSpec, SolverParams
 
 MOTIONS = ("twirl", "walk")
 
@@ -238,7 +238,7 @@ class SkirtSolver:
         e_uv = uv[face_a, (corner + 1) % 3] - uv[face_a, corner]
         hlen = np.linalg.norm(e_uv, axis=1)
         harea = area[face_a] + area[side_b // 3]
-        hdir = _edge_directions(e_uv)
+        hdir = edge_directions(e_uv)
         nc = len(materials)
         masses = []
         for mat in materials:

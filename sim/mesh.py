@@ -8,6 +8,7 @@ has (n - 1) * 2^(L - 1) + 1 vertices per side and keeps every coarser edge.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -103,6 +104,35 @@ def hinges_of(faces: np.ndarray) -> np.ndarray:
     first[np.unique(a * (int(a.max()) + 1) + b, return_index=True)[1]] = True
     keep = first & (a < b) & (reverse >= 0)
     return np.stack([a[keep], b[keep], c[last[keep]], c[reverse[keep]]], axis=1).astype(np.int32)
+
+
+def edge_directions(e_uv: np.ndarray) -> np.ndarray:
+    """Each edge's direction coordinate y in [0, 2] of the bending table (0, 45, 90 degrees) from its (du, dv)
+    row. The angle comes from libm's atan2, as ``math.atan2`` (NumPy's differs in the last bit)."""
+    angle = np.fromiter(map(math.atan2, e_uv[:, 1].tolist(), e_uv[:, 0].tolist()), dtype=np.float64,
+                        count=len(e_uv))
+    y = np.abs(angle) * 4.0 / math.pi
+    y = np.where(y > 4.0, 8.0 - y, y)
+    return np.where(y > 2.0, 4.0 - y, y)
+
+
+def mesh_rest(mesh: ClothMesh, c: int = 0) -> dict[str, np.ndarray]:
+    """The rest state every cloth on ``mesh`` shares (``c`` names the first in messages): faces' inverse rest
+    matrices and areas, hinges' rest length, the two faces' area and the edge's direction in (u, v)."""
+    uv, faces = mesh.uv, mesh.faces
+    d1 = uv[faces[:, 1]] - uv[faces[:, 0]]
+    d2 = uv[faces[:, 2]] - uv[faces[:, 0]]
+    dm = np.stack([np.stack([d1[:, 0], d2[:, 0]], 1), np.stack([d1[:, 1], d2[:, 1]], 1)], 1)  # (F,2,2)
+    area = 0.5 * (d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
+    if np.any(area <= 0):
+        raise ValueError(f"cloth {c}: faces must be counter-clockwise with positive area in (u, v)")
+    h = np.asarray(mesh.hinges).reshape(-1, 4)
+    e_uv = uv[h[:, 1]] - uv[h[:, 0]]
+    # the two faces of each hinge: those holding its edge in either direction
+    face_a, face_b = (rows // 3 for rows in edge_sides(faces, h[:, 0], h[:, 1]))
+    return {"dm_inv": np.linalg.inv(dm), "area": area, "hinge_length": np.linalg.norm(e_uv, axis=1),
+            "hinge_area": area[face_a] + area[face_b], "hinge_dir": edge_directions(e_uv),
+            "edges": unique_edges(faces)}
 
 
 def square_cloth(size_m: float, vertices_per_side: int, level: int = 1) -> ClothMesh:

@@ -27,6 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sim.mesh import ClothMesh, hinges_of, mesh_rest
+
 
 @dataclass
 class QuadMesh:
@@ -253,3 +255,52 @@ def remesh(mesh: QuadMesh, positions: np.ndarray, velocities: np.ndarray,
     new = triangulate(level, mesh.max_level, mesh.size)
     pos, vel = transfer(mesh, new, [positions, velocities])
     return new, pos, vel
+
+
+# ---------------------------------------------------------------- a cloth's step, as a host worker runs it
+
+def cloth_mesh(q: QuadMesh) -> ClothMesh:
+    """The solver's mesh of a quadtree mesh."""
+    return ClothMesh(q.uv.astype(np.float64), q.faces, hinges_of(q.faces))
+
+
+@dataclass
+class MeshState:
+    """What the solver and the health check need of a quadtree mesh, computed once per remesh: the solver's
+    mesh, its rest state (``sim.mesh.mesh_rest``; ``rest["edges"]`` are its edges) and the edges' rest lengths."""
+
+    mesh: ClothMesh
+    rest: dict[str, np.ndarray]
+    edge_rest: np.ndarray
+
+    @property
+    def edges(self) -> np.ndarray:
+        return self.rest["edges"]
+
+
+def mesh_state(q: QuadMesh, c: int = 0) -> MeshState:
+    mesh = cloth_mesh(q)
+    rest = mesh_rest(mesh, c)
+    e, uv = rest["edges"], q.uv
+    return MeshState(mesh, rest, np.linalg.norm(uv[e[:, 1]] - uv[e[:, 0]], axis=1))
+
+
+@dataclass
+class Remeshed:
+    """A cloth whose mesh changed: the new quadtree mesh, its ``MeshState``, and the positions and velocities
+    carried onto it (float32, as the solver takes them)."""
+
+    quad: QuadMesh
+    state: MeshState
+    positions: np.ndarray
+    velocities: np.ndarray
+
+
+def remesh_cloth(quad: QuadMesh, positions: np.ndarray, velocities: np.ndarray, refine_angle: float,
+                 c: int = 0) -> Remeshed | None:
+    """Cloth ``c``'s remeshing step from its float32 positions and velocities; None when its mesh stays.
+    A pure function of its arguments, so host workers can run it for many cloths at once."""
+    new, p, v = remesh(quad, positions.astype(np.float64), velocities.astype(np.float64), refine_angle)
+    if new is quad:
+        return None
+    return Remeshed(new, mesh_state(new, c), p.astype(np.float32), v.astype(np.float32))

@@ -78,7 +78,7 @@ import warp as wp
 
 from sim import collision, kernels
 from sim.collision import SelfCollision
-from sim.mesh import edge_sides, unique_edges
+from sim.mesh import mesh_rest
 from sim.specs import ArmSpec, ClothSpec   # plain data, kept apart so that sim.motions needs no Warp
 
 
@@ -167,38 +167,9 @@ def resolve_device(device: str) -> str:
     return device
 
 
-def _edge_directions(e_uv: np.ndarray) -> np.ndarray:
-    """Each edge's direction coordinate y in [0, 2] of the bending table (0, 45, 90 degrees) from its (du, dv)
-    row. The angle comes from libm's atan2, as ``math.atan2`` (NumPy's differs in the last bit)."""
-    angle = np.fromiter(map(math.atan2, e_uv[:, 1].tolist(), e_uv[:, 0].tolist()), dtype=np.float64,
-                        count=len(e_uv))
-    y = np.abs(angle) * 4.0 / math.pi
-    y = np.where(y > 4.0, 8.0 - y, y)
-    return np.where(y > 2.0, 4.0 - y, y)
-
-
-def _mesh_rest(c: int, mesh) -> dict[str, np.ndarray]:
-    """The rest state every cloth on ``mesh`` shares (``c`` names the first in messages): faces' inverse rest
-    matrices and areas, hinges' rest length, the two faces' area and the edge's direction in (u, v)."""
-    uv, faces = mesh.uv, mesh.faces
-    d1 = uv[faces[:, 1]] - uv[faces[:, 0]]
-    d2 = uv[faces[:, 2]] - uv[faces[:, 0]]
-    dm = np.stack([np.stack([d1[:, 0], d2[:, 0]], 1), np.stack([d1[:, 1], d2[:, 1]], 1)], 1)  # (F,2,2)
-    area = 0.5 * (d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
-    if np.any(area <= 0):
-        raise ValueError(f"cloth {c}: faces must be counter-clockwise with positive area in (u, v)")
-    h = np.asarray(mesh.hinges).reshape(-1, 4)
-    e_uv = uv[h[:, 1]] - uv[h[:, 0]]
-    # the two faces of each hinge: those holding its edge in either direction
-    face_a, face_b = (rows // 3 for rows in edge_sides(faces, h[:, 0], h[:, 1]))
-    return {"dm_inv": np.linalg.inv(dm), "area": area, "hinge_length": np.linalg.norm(e_uv, axis=1),
-            "hinge_area": area[face_a] + area[face_b], "hinge_dir": _edge_directions(e_uv),
-            "edges": unique_edges(faces)}
-
-
 def _rest_state(c: int, s: ClothSpec, off: int, shared: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Cloth ``c``'s host-side rest state (vertex ``off`` onward in the batch): positions, velocities,
-    lumped masses, free flags, and its mesh's ``shared`` rest state (``_mesh_rest``) offset into the batch."""
+    lumped masses, free flags, and its mesh's ``shared`` rest state (``sim.mesh.mesh_rest``) offset into the batch."""
     faces = s.mesh.faces
     nv = len(s.mesh.uv)
     if s.positions.shape != (nv, 3):
@@ -231,7 +202,10 @@ class BatchSolver:
     """Advances a batch of cloths together. ``step(n)`` runs n time steps; positions are read back
     per cloth with ``positions()``."""
 
-    def __init__(self, specs: list[ClothSpec], params: SolverParams = SolverParams(), device: str = "cpu"):
+    def __init__(self, specs: list[ClothSpec], params: SolverParams = SolverParams(), device: str = "cpu",
+                 mesh_rests: list[dict[str, np.ndarray]] | None = None):
+        """``mesh_rests`` (optional): each cloth's ``sim.mesh.mesh_rest`` of its mesh, computed elsewhere
+        (adaptive remeshing computes it in its host workers); by default computed here, once per mesh."""
         if not specs:
             raise ValueError("a batch needs at least one cloth")
         wp.init()
@@ -240,20 +214,24 @@ class BatchSolver:
         self.num_cloths = len(specs)
         vcount = [s.mesh.num_vertices for s in specs]
         self.vertex_offsets = np.concatenate([[0], np.cumsum(vcount)]).astype(np.int64)
-        self._build(specs)
+        self._build(specs, mesh_rests)
         self._graph = None
         self._steps = 0
         self._program = self._record_step()     # (before, [one list per CG iteration], after)
 
     # ---------------------------------------------------------------- set-up
-    def _build(self, specs: list[ClothSpec]) -> None:
+    def _build(self, specs: list[ClothSpec], mesh_rests: list[dict] | None) -> None:
         # What depends on the mesh alone is computed once per mesh: a batch of thousands of cloths shares one.
         by_mesh: dict[int, dict] = {}
         rest = []
         for c, s in enumerate(specs):
-            if id(s.mesh) not in by_mesh:
-                by_mesh[id(s.mesh)] = _mesh_rest(c, s.mesh)
-            rest.append(_rest_state(c, s, int(self.vertex_offsets[c]), by_mesh[id(s.mesh)]))
+            if mesh_rests is not None:
+                shared = mesh_rests[c]
+            else:
+                if id(s.mesh) not in by_mesh:
+                    by_mesh[id(s.mesh)] = mesh_rest(s.mesh, c)
+                shared = by_mesh[id(s.mesh)]
+            rest.append(_rest_state(c, s, int(self.vertex_offsets[c]), shared))
         self._upload_cloths(specs, rest)
         edges = [r["edges"] for r in rest]
         if self.has_arm:

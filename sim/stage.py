@@ -25,7 +25,6 @@ import contextlib
 import functools
 import math
 import multiprocessing as mp
-import os
 import shutil
 import time
 from collections.abc import Callable, Sequence
@@ -37,11 +36,12 @@ import numpy as np
 
 from clothgap import seeding
 from clothgap.errors import ConfigError
+from clothgap.parallel import host_processes
 from clothgap.runs import (Run, atomic_write_json, clip_id, fresh_dir, is_done, mark_done, select_clips,
                            storage_error)
 from sim import classes
 from sim import remesh
-from sim.adaptive import cloth_mesh, simulate_adaptive
+from sim.adaptive import simulate_adaptive
 from sim.clip import SimClip
 from sim.config import REMESHING, SimConfig
 from sim.intersections import count_intersections
@@ -189,16 +189,18 @@ def simulate_adaptive_scenes(scenes: list[ClipScene], base, *, fps: float, frame
                              cg_tolerance: float = SolverParams.cg_tolerance, self_collision: bool = False,
                              collision_thickness: float = SolverParams.collision_thickness, device: str = "cpu",
                              on_frame: Callable[[], None] | None = None,
-                             phases: dict[str, float] | None = None) -> list[ClipResult]:
+                             phases: dict[str, float] | None = None,
+                             host_workers: int | None = None) -> list[ClipResult]:
     """``simulate_scenes`` with adaptive remeshing after every frame; same health check per frame. Its phases
-    are not split: the stage times the whole batch (``phases`` is accepted for the common signature)."""
-    def check(cloth, x, x_prev, frame_dt):
-        e = unique_edges(cloth.quad.faces)           # the mesh the solver ran this frame on
-        return health(x, x_prev, frame_dt, e, np.linalg.norm(cloth.quad.uv[e[:, 1]] - cloth.quad.uv[e[:, 0]], axis=1))
+    are not split: the stage times the whole batch (``phases`` is accepted for the common signature).
+    ``host_workers``: processes that remesh (``sim.adaptive.simulate_adaptive``; None picks by batch size)."""
+    def check(cloth, x, x_prev, frame_dt):          # on the mesh the solver ran this frame on
+        return health(x, x_prev, frame_dt, cloth.edges, cloth.edge_rest)
 
     out = simulate_adaptive(scenes, base, fps=fps, frames=frames, substeps=substeps, settle_s=settle_s,
                             cg_iterations=cg_iterations, cg_tolerance=cg_tolerance, self_collision=self_collision,
-                            collision_thickness=collision_thickness, device=device, health=check, on_frame=on_frame)
+                            collision_thickness=collision_thickness, device=device, health=check, on_frame=on_frame,
+                            host_workers=host_workers)
     return [ClipResult(None, r.reason, r.frames, r.cg, r.collision_dropped) for r in out]
 
 
@@ -207,7 +209,7 @@ def setting_simulator(cfg: SimConfig, setting: Setting) -> tuple[ClothMesh, Call
     (``simulate_scenes``, or ``simulate_adaptive_scenes`` remeshing from the level-1 quadtree)."""
     if setting.remeshing == "adaptive":
         base = remesh.uniform(cfg.grid_vertices, cfg.cloth_size_m, 1)
-        return cloth_mesh(base), functools.partial(simulate_adaptive_scenes, base=base)
+        return remesh.cloth_mesh(base), functools.partial(simulate_adaptive_scenes, base=base)
     return square_cloth(cfg.cloth_size_m, cfg.grid_vertices, setting.level), simulate_scenes
 
 
@@ -393,9 +395,10 @@ def write_clips(folders: list[Path], metas: list[dict], results: list[ClipResult
                 processes: int | None = None) -> list[bool]:
     """``write_clip`` for every clip of a batch; returns each clip's outcome.
 
-    ``processes`` None picks: a spawned process pool (one process per CPU, chunks of clips) for a large
-    batch on a machine with several cores, else threads; 0 forces threads."""
-    cpus = os.cpu_count() or 1
+    ``processes`` None picks: a spawned process pool (one process per CPU of this process's share,
+    ``clothgap.parallel.host_processes``, chunks of clips) for a large batch on a machine with several
+    cores, else threads; 0 forces threads."""
+    cpus = host_processes()
     if processes is None:
         processes = cpus if len(folders) >= PROCESS_WRITE_MIN_CLIPS and cpus >= PROCESS_WRITE_MIN_CPUS else 0
     if processes <= 0 or len(folders) < 2:

@@ -296,3 +296,18 @@ def test_unknown_variant_is_a_config_error_before_any_shard(tmp_path):
     run = Run(run.root, replace(run.config, render=replace(run.config.render, variants=("paper", "nosuch"))))
     with pytest.raises(ConfigError, match="unknown render variant 'nosuch'"):
         run_stage(run, "render", ExecutorOptions("process", workers=2, progress=False))
+
+
+def test_process_workers_share_the_host_cpus_between_their_own_pools(monkeypatch):
+    from clothgap import parallel
+    from clothgap.executor import _init_worker
+
+    monkeypatch.delenv(parallel.HOST_PROCESSES_ENV, raising=False)
+    monkeypatch.setattr(parallel.os, "cpu_count", lambda: 32)
+    assert parallel.host_processes() == 32 and parallel.share_of_host(2) == 16 and parallel.share_of_host(64) == 1
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "")
+    _init_worker(None, parallel.share_of_host(2))          # what a worker of a pool of two runs first
+    assert parallel.host_processes() == 16
+    for bad in ("0", "-3", "many", ""):
+        monkeypatch.setenv(parallel.HOST_PROCESSES_ENV, bad)
+        assert parallel.host_processes() == 32

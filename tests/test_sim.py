@@ -145,7 +145,7 @@ def _hinges_by_dict(faces: np.ndarray) -> np.ndarray:
 
 def test_hinges_are_those_of_the_edge_by_edge_definition():
     from sim import remesh
-    from sim.adaptive import cloth_mesh
+    from sim.remesh import cloth_mesh
 
     rng = np.random.default_rng(4)
     meshes = [square_cloth(0.5, 16, level).faces for level in (1, 2, 3)]
@@ -162,10 +162,10 @@ def test_hinges_are_those_of_the_edge_by_edge_definition():
         pairs = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
         np.testing.assert_array_equal(unique_edges(faces), np.unique(pairs, axis=0))   # and the edges too
     # and the solver's rest area of each hinge: its two faces', found by their directed edges
-    from sim.solver import _mesh_rest
+    from sim.mesh import mesh_rest
 
     mesh = square_cloth(0.5, 6, 2)
-    rest = _mesh_rest(0, mesh)
+    rest = mesh_rest(mesh)
     face_area = {(int(f[e]), int(f[(e + 1) % 3])): rest["area"][i] for i, f in enumerate(mesh.faces) for e in range(3)}
     expected = [face_area[(int(a), int(b))] + face_area[(int(b), int(a))] for a, b in mesh.hinges[:, :2]]
     np.testing.assert_array_equal(rest["hinge_area"], expected)
@@ -547,3 +547,31 @@ def test_arm_nuisance_speed_centres_the_cloth_and_keeps_the_speed():
     for f, s in zip(full, speed):      # the same clip stream gives the same forearm speed under both
         assert s.motion_params["arm_speed_deg_s"] == f.motion_params["arm_speed_deg_s"]
     assert SimConfig(arm_nuisance="wobble").problems()
+
+
+def test_adaptive_remeshing_in_host_processes_gives_the_same_bytes():
+    import multiprocessing as mp
+
+    from sim.config import SimConfig
+    from sim.stage import build_scene, parse_setting, setting_simulator
+
+    cfg = SimConfig(grid_vertices=8, frames=4, self_collision=True)
+    setting = parse_setting("wind-adaptive")
+    mesh, simulate = setting_simulator(cfg, setting)
+    scenes = [build_scene(cfg, 0, i, setting, mesh)[0] for i in range(4)]
+    children: dict[int, list[int]] = {0: [], 2: []}
+
+    def run(workers: int):
+        return simulate(scenes, fps=cfg.fps, frames=cfg.frames, substeps=cfg.substeps, settle_s=cfg.settle_s,
+                        cg_iterations=cfg.cg_iterations, cg_tolerance=cfg.cg_tolerance,
+                        self_collision=cfg.self_collision, collision_thickness=cfg.collision_thickness, device="cpu",
+                        host_workers=workers, on_frame=lambda: children[workers].append(len(mp.active_children())))
+
+    here, pooled = run(0), run(2)
+    assert children[0] == [0] * cfg.frames and max(children[2]) == 2      # the pool did the remeshing
+    assert any(len({len(f[0]) for f in r.frames}) > 1 for r in here), "some cloth should change topology"
+    for a, b in zip(here, pooled):
+        assert a.reason is None and b.reason is None and (a.cg, a.collision_dropped) == (b.cg, b.collision_dropped)
+        for fa, fb in zip(a.frames, b.frames, strict=True):
+            for x, y in zip(fa, fb, strict=True):
+                np.testing.assert_array_equal(x, y)
