@@ -14,7 +14,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 STAGES = ("sim", "render", "learn", "eval")             # in order: each may import the ones before it
 GROUND = {"clothgap", "clothgap.errors", "clothgap.checks", "clothgap.seeding", "clothgap.files", "clothgap.settings",
-          "clothgap.runs"}
+          "clothgap.runs", "clothgap.parallel"}
 # The top floor: it alone knows every stage. ``<package>.__main__`` modules are entry points, top floor too.
 TOP = {"clothgap.config", "clothgap.api", "clothgap.cli", "clothgap.executor", "clothgap.__main__"}
 
