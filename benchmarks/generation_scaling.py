@@ -134,7 +134,7 @@ def main() -> None:
     total = {k: sum(r[s]["seconds"] for s in ("sim", "render")) for k, r in (("local", baseline),
                                                                                 ("process", candidate))}
     result = {
-        "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+        "command": " ".join(["python benchmarks/generation_scaling.py", *sys.argv[1:]]),
         "host": platform.node(), "gpus": gpus, "workers": len(slots), "gpus_per_worker": args.gpus_per_worker,
         "preset": args.preset, "overrides": args.overrides, "clips_per_setting": cfg.sim.num_clips(),
         "settings": cfg.sim.settings(), "variants": list(cfg.render.variants),
