@@ -489,13 +489,15 @@ class Study:
 
 def train_selected(run: Run, settings: Iterable[str] | None = None, variants: Iterable[str] | None = None,
                    models: Iterable[str] | None = None, seeds: Iterable[int] | None = None,
-                   progress: bool = True) -> list[Path]:
+                   progress: bool = True, parallel: int = 1) -> list[Path]:
     """Train the selected part of the run's grid (all of it when nothing is selected); finished folders are kept.
 
     Args:
         run: The run.
         settings, variants, models, seeds: Selections; each name must be one the run has.
         progress: Show progress bars.
+        parallel: Models trained at a time, each in its own process, spread over the visible GPUs
+            (``clothgap.executor.run_train_parallel``); 1 trains them one after another in this process.
 
     Returns:
         The finished train folders.
@@ -523,13 +525,20 @@ def train_selected(run: Run, settings: Iterable[str] | None = None, variants: It
     chosen = [(s, v) for s, v in pairs(cfg) if s in settings and v in variants]
     for s, v in chosen:
         run.require(run.render_dir(v, s), "render")
+    # A model that needs another (base2 freezes base1's CNN of the same setting, variant and seed) comes after it.
+    models = training_order(models)
+    grid = [(s, v, m, seed) for s, v in chosen for seed in seeds for m in models]
+    if parallel != 1:
+        from clothgap.executor import run_train_parallel
+
+        folders = run_train_parallel(run, grid, parallel, progress)
+        if not everything:
+            return folders
     if everything:
         from learn.stage import run_train
 
-        index = run_train(run, progress)                # also writes train/index.json
-        return [run.root / e["dir"] for e in index["entries"]]
+        index = run_train(run, progress)                # also writes train/index.json (after a parallel run:
+        return [run.root / e["dir"] for e in index["entries"]]   # every model is done, only the index is written)
     from learn.train import train_one
 
-    # A model that needs another (base2 freezes base1's CNN of the same setting, variant and seed) comes after it.
-    models = training_order(models)
-    return [train_one(run, s, v, m, seed, progress) for s, v in chosen for seed in seeds for m in models]
+    return [train_one(run, *entry, progress) for entry in grid]

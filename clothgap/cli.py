@@ -284,11 +284,16 @@ def render(run_dir, preset_name, out, overrides, config_file, list_variants, all
 @click.option("--variant", help="Train only on this render variant.")
 @click.option("--setting", help="Train only on this setting, e.g. wind-uniform1.")
 @click.option("--seed", "train_seed", type=int, help="Train only this seed.")
+@click.option("--parallel", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Models trained at a time, each in its own process, spread over the visible GPUs.")
 @click.option("--list-models", is_flag=True, help="List the registered models and exit.")
 def train(run_dir, preset_name, out, overrides, config_file, model_name, variant, setting, train_seed,
-          list_models) -> None:
+          parallel, list_models) -> None:
     """Train the models on the rendered clips (every setting x variant x model x seed
-    not done yet, or the one selected by --model/--variant/--setting/--seed)."""
+    not done yet, or the one selected by --model/--variant/--setting/--seed).
+
+    --parallel N trains N models at once (a model at the paper preset leaves most of an H100 idle, and
+    DDP does not speed one up: one model per process is what scales)."""
     if list_models:
         from learn.registry import describe_models
 
@@ -299,7 +304,8 @@ def train(run_dir, preset_name, out, overrides, config_file, model_name, variant
 
     t0 = time.perf_counter()
     done = train_selected(run, [setting] if setting else None, [variant] if variant else None,
-                          [model_name] if model_name else None, [train_seed] if train_seed is not None else None)
+                          [model_name] if model_name else None, [train_seed] if train_seed is not None else None,
+                          parallel=parallel)
     _echo_summary("train", {"trained": [str(p) for p in done]}, time.perf_counter() - t0)
 
 
@@ -486,11 +492,14 @@ def report(run_dir: Path) -> None:
 @_run_options
 @_executor_options
 @_allow_failures_option
-def pipeline(run_dir, preset_name, out, overrides, config_file, allow_failures, **execution) -> None:
+@click.option("--train-parallel", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Models trained at a time, each in its own process, spread over the visible GPUs.")
+def pipeline(run_dir, preset_name, out, overrides, config_file, allow_failures, train_parallel,
+             **execution) -> None:
     """Run sim, render, train, eval and report in turn (each skips what is done).
 
-    --executor/--workers/--address/--gpus-per-worker spread sim and render; training
-    spreads over GPUs with torchrun (`torchrun --nproc-per-node N -m learn RUN_DIR`)."""
+    --executor/--workers/--address/--gpus-per-worker spread sim and render; --train-parallel N
+    trains N models at once over the visible GPUs (one model over several GPUs: torchrun)."""
     opts = executor_options(**execution)
     run = resolve_run(run_dir, preset_name, out, overrides, config_file)
     click.echo(f"run folder: {run.root}  (config: {run.root / 'config.json'})")
@@ -508,9 +517,16 @@ def pipeline(run_dir, preset_name, out, overrides, config_file, allow_failures, 
 
     stage("sim", lambda r: run_stage(r, "sim", opts))
     stage("render", lambda r: run_stage(r, "render", opts))
-    from learn.stage import run_train
+    from learn.stage import run_train, training_grid
 
-    stage("train", run_train)
+    def train_models(r):
+        if train_parallel > 1:
+            from clothgap.executor import run_train_parallel
+
+            run_train_parallel(r, training_grid(r), train_parallel)
+        return run_train(r)             # writes the index (every model done after a parallel run)
+
+    stage("train", train_models)
     from eval.stage import run_eval
 
     stage("eval", run_eval)

@@ -45,7 +45,7 @@ from typing import Any
 
 # clothgap.config also registers the study config that a worker's Run.open reads (workers import this module).
 from clothgap.config import ConfigError, validate
-from clothgap.parallel import HOST_PROCESSES_ENV, share_of_host
+from clothgap.parallel import HOST_PROCESSES_ENV, host_processes, share_of_host
 from clothgap.runs import Run
 
 EXECUTORS = ("local", "process", "ray")
@@ -165,6 +165,60 @@ def run_stage(run: Run, stage: str, options: ExecutorOptions = ExecutorOptions()
                            **({"address": options.address} if options.address else {}),
                            **({"gpus_per_worker": options.gpus_per_worker} if options.gpus_per_worker else {})}
     return summary
+
+
+# ---------------------------------------------------------------- training several models at once
+
+def train_jobs(grid: Sequence[tuple[str, str, str, int]]) -> list[list[tuple[str, str, str, int]]]:
+    """The training grid cut into jobs that may run at once: a model and the model it needs (base1, then base2,
+    which freezes base1's CNN, of the same setting, variant and seed) form one job, in grid order; every other
+    entry is a job of its own."""
+    from learn.registry import get_model_entry
+
+    def root(model: str) -> str:
+        while get_model_entry(model).needs:
+            model = get_model_entry(model).needs
+        return model
+
+    jobs: dict[tuple, list] = {}
+    for setting, variant, model, seed in grid:
+        jobs.setdefault((setting, variant, seed, root(model)), []).append((setting, variant, model, seed))
+    return list(jobs.values())
+
+
+def train_shard(run_root: str, entries: list[tuple[str, str, str, int]]) -> dict:
+    """Train ``entries`` in turn (one job of ``train_jobs``); torch uses this worker's share of the CPUs."""
+    import torch
+
+    from learn.train import train_one
+
+    torch.set_num_threads(host_processes())
+    run = Run.open(run_root, check=False)
+    return {"trained": [str(train_one(run, *entry, progress=False)) for entry in entries]}
+
+
+def run_train_parallel(run: Run, grid: Sequence[tuple[str, str, str, int]], parallel: int,
+                       progress: bool = True) -> list[Path]:
+    """Train ``grid`` ``parallel`` models at a time, each in a spawned process; on CUDA the processes are spread
+    over the visible GPUs (CUDA_VISIBLE_DEVICES, round robin). A model of this size leaves most of an H100
+    idle and gains nothing from DDP (benchmarks/results/train_scaling-*), so a study's many models run side
+    by side instead. Finished models are skipped; a killed run resumes each model from its last epoch.
+    Returns the training folders in grid order."""
+    from learn.stage import prepare_shared_inputs
+    from learn.train import resolve_device, train_folder
+
+    if parallel < 1:
+        raise ConfigError(f"--parallel must be at least 1, got {parallel}")
+    grid = list(grid)
+    pending = [e for e in grid if not (train_folder(run, *e) / "DONE").is_file()]
+    if pending:
+        prepare_shared_inputs(run, pending, progress)
+        gpus = visible_gpus() if resolve_device(run.config.train.device).type == "cuda" else []
+        slots = [gpus[i % len(gpus)] for i in range(parallel)] if gpus else None
+        run_shards(train_shard, str(run.root.resolve()), train_jobs(pending),
+                   options=ExecutorOptions("process", workers=parallel, progress=progress), label="train",
+                   gpu_slots=slots)
+    return [train_folder(run, *e) for e in grid]
 
 
 def merge_summaries(stage: str, parts: list[dict]) -> dict:

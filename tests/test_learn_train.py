@@ -279,3 +279,25 @@ def test_keep_best_checkpoints_the_best_validation_epoch(tmp_path):
     assert all(torch.equal(kept[k], v) for k, v in state["best"]["model"].items())
     with pytest.raises(ConfigError, match="train.keep=best needs validation clips"):
         synthetic_run(tmp_path / "noval", tiny_train_config(keep="best", val_fraction=0.0))
+
+
+@pytest.mark.slow
+def test_parallel_training_trains_the_grid_side_by_side_as_one_process_does(tmp_path):
+    from clothgap.api import train_selected
+    from clothgap.executor import train_jobs
+
+    cfg = tiny_train_config(models=("lrcn", "base2", "base1"), epochs=2, num_threads=1)
+    grid = [("w", "p", "base1", 0), ("w", "p", "base2", 0), ("w", "p", "lrcn", 0), ("a", "p", "base1", 0)]
+    # base2 starts from base1's CNN: the two share a job; everything else runs on its own
+    assert train_jobs(grid) == [grid[:2], [grid[2]], [grid[3]]]
+    alone = synthetic_run(tmp_path / "alone", cfg)
+    side_by_side = synthetic_run(tmp_path / "side", cfg)
+    folders = train_selected(side_by_side, progress=False, parallel=2)
+    train_selected(alone, progress=False)
+    index = json.loads(side_by_side.train_index_path.read_text())
+    assert [(e["model"], e["done"]) for e in index["entries"]] == [("lrcn", True), ("base1", True), ("base2", True)]
+    assert [side_by_side.root / e["dir"] for e in index["entries"]] == folders
+    for entry in index["entries"]:      # the same weights' curves: a model's training does not depend on where it ran
+        a = pd.read_csv(alone.root / entry["dir"] / "metrics.csv")
+        b = pd.read_csv(side_by_side.root / entry["dir"] / "metrics.csv")
+        pd.testing.assert_frame_equal(a.drop(columns="seconds"), b.drop(columns="seconds"))

@@ -2,7 +2,9 @@
 # GPU: one setting of the paper's study at full size through the real CLI, stage by stage.
 #   STAGES="sim render" bash scripts/gpu/paper_study.sh     (then "train", then "eval report")
 #   SEQ=96 simulates 96 sequences per class instead of the preset's 48 (twice the render time: two calls).
-#   RENDER_ARGS="--executor process --workers 12 --gpus-per-worker 0.0833" overlaps the per-clip host work.
+#   RENDER_ARGS="--executor process --workers 12 --gpus-per-worker 0.0833" overlaps the per-clip host work;
+#   on a machine of two GPUs RENDER_ARGS="--executor process --gpus-per-worker 1" renders 1.8x faster.
+#   TRAIN_ARGS="--parallel 8" trains eight models at once over the machine's GPUs (the study's many models).
 #   The paper preset writes each clip's frames.npy alone; EXTRA='--set render.write_png=true' adds the PNGs
 #   (the cost every clip paid before). The render line's summary has frames and seconds: frames/s over the
 #   ceiling of scripts/gpu/render_bench.sh (RESOLUTIONS=112) on the same machine is the render's ratio.
@@ -19,7 +21,7 @@ SETS=(--set sim.motions=${MOTIONS:-wind} --set sim.remeshing=${REMESHING:-unifor
 for stage in $STAGES; do
   t0=$(date +%s.%N)
   if [ -f "$RUN/config.json" ]; then args=("$RUN"); else args=(--preset paper --out "$RUN" "${SETS[@]}"); fi
-  extra=(); [ "$stage" = render ] && extra=(${RENDER_ARGS:-})
+  extra=(); [ "$stage" = render ] && extra=(${RENDER_ARGS:-}); [ "$stage" = train ] && extra=(${TRAIN_ARGS:-})
   # GPU memory sampled while the stage runs (after it ends the process has freed it all): its peak.
   # (beside the run, which the first stage creates)
   nvidia-smi --query-gpu=memory.used --format=csv,noheader,nounits -lms 500 > "/tmp/gpu_memory_$stage.txt" 2>/dev/null &
