@@ -1,6 +1,7 @@
 """The study's cost in one script: each stage against its baseline, and how cost grows with the study's size.
 
-    python benchmarks/study.py --preset paper --sizes 4,16,48 --render-args "--executor process --workers 4 --gpus-per-worker 0.25"
+    python benchmarks/study.py --preset paper --sizes 4,16,48 --render-args "--executor process --workers 4 --gpus-per-worker 0.25" \
+        --train-args "--parallel 8"
     python benchmarks/study.py --preset smoke --sizes 4 --quick            # a CPU check of the script itself
 
 Two parts, in one run on one machine:
@@ -143,6 +144,8 @@ def scaling(args, work: Path) -> list[dict]:
                 cmd = [sys.executable, "-m", "clothgap", stage, str(run_dir)]
                 if stage == "render":
                     cmd += shlex.split(args.render_args)
+                if stage == "train":
+                    cmd += shlex.split(args.train_args)
             row["stages"][stage] = run_measured(cmd)
             print(f"size {size} {stage}: {row['stages'][stage]['seconds']} s "
                   f"(rc {row['stages'][stage]['rc']})", flush=True)
@@ -215,6 +218,7 @@ def main() -> None:
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
     ap.add_argument("--render-args", default="", help="executor options for `clothgap render`, e.g. "
                     "\"--executor process --workers 4 --gpus-per-worker 0.25\"")
+    ap.add_argument("--train-args", default="", help="options for `clothgap train`, e.g. \"--parallel 8\"")
     ap.add_argument("--device", default="auto", help="device of the stage benchmarks: cpu, cuda (auto: cuda if seen)")
     ap.add_argument("--skip-baselines", action="store_true")
     ap.add_argument("--quick", action="store_true", help="tiny baselines (a CPU check of the script)")
