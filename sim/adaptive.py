@@ -17,7 +17,9 @@ from __future__ import annotations
 import dataclasses
 import math
 import multiprocessing as mp
+import warnings
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 
@@ -103,12 +105,20 @@ class _Remesher:
             return [remesh.remesh_cloth(q, p, v, refine_angle, c)
                     for c, q, p, v in zip(cloths, quads, positions, velocities)]
         chunk = max(1, math.ceil(len(cloths) / (4 * self.workers)))
-        return list(self.pool.map(remesh.remesh_cloth, quads, positions, velocities,
-                                  [refine_angle] * len(cloths), cloths, chunksize=chunk))
+        try:
+            return list(self.pool.map(remesh.remesh_cloth, quads, positions, velocities,
+                                      [refine_angle] * len(cloths), cloths, chunksize=chunk))
+        except BrokenProcessPool:
+            # a worker died (killed, out of memory): the same steps in this process give the same bytes
+            warnings.warn("a remeshing worker died; remeshing the rest of this batch in this process",
+                          stacklevel=2)
+            self.close()
+            self.pool = None
+            return self(cloths, quads, positions, velocities, refine_angle)
 
     def close(self) -> None:
         if self.pool is not None:
-            self.pool.shutdown()
+            self.pool.shutdown(cancel_futures=True)
 
 
 def remesh_workers(num_cloths: int) -> int:

@@ -561,17 +561,26 @@ def test_adaptive_remeshing_in_host_processes_gives_the_same_bytes():
     scenes = [build_scene(cfg, 0, i, setting, mesh)[0] for i in range(4)]
     children: dict[int, list[int]] = {0: [], 2: []}
 
-    def run(workers: int):
+    def run(workers: int, kill_after: int | None = None):
+        def on_frame():
+            children[workers].append(len(mp.active_children()))
+            if kill_after is not None and len(children[workers]) == kill_after:
+                mp.active_children()[0].kill()          # a worker dies mid-run (killed, out of memory)
+
         return simulate(scenes, fps=cfg.fps, frames=cfg.frames, substeps=cfg.substeps, settle_s=cfg.settle_s,
                         cg_iterations=cfg.cg_iterations, cg_tolerance=cfg.cg_tolerance,
                         self_collision=cfg.self_collision, collision_thickness=cfg.collision_thickness, device="cpu",
-                        host_workers=workers, on_frame=lambda: children[workers].append(len(mp.active_children())))
+                        host_workers=workers, on_frame=on_frame)
 
     here, pooled = run(0), run(2)
     assert children[0] == [0] * cfg.frames and max(children[2]) == 2      # the pool did the remeshing
     assert any(len({len(f[0]) for f in r.frames}) > 1 for r in here), "some cloth should change topology"
-    for a, b in zip(here, pooled):
-        assert a.reason is None and b.reason is None and (a.cg, a.collision_dropped) == (b.cg, b.collision_dropped)
-        for fa, fb in zip(a.frames, b.frames, strict=True):
-            for x, y in zip(fa, fb, strict=True):
+    children[2] = []
+    with pytest.warns(UserWarning, match="remeshing worker died"):
+        rescued = run(2, kill_after=2)                   # the rest of the batch remeshes in this process
+    for a, b, c in zip(here, pooled, rescued):
+        assert a.reason is None and (a.cg, a.collision_dropped) == (b.cg, b.collision_dropped) == (c.cg, c.collision_dropped)
+        for fa, fb, fc in zip(a.frames, b.frames, c.frames, strict=True):
+            for x, y, z in zip(fa, fb, fc, strict=True):
                 np.testing.assert_array_equal(x, y)
+                np.testing.assert_array_equal(x, z)
