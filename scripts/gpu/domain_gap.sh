@@ -4,8 +4,8 @@
 # model tested on every variant (paired test clips), the measured fabrics. paper_study.sh runs the stages
 # (resumable, LIMIT seconds per stage, $OUT/paper_study.tgz); this only names the study's settings.
 #   STAGES="sim render" LIMIT=540 bash scripts/gpu/domain_gap.sh      then STAGES=render (resumes), then
-#   STAGES="train eval report" TRAIN_ARGS="--parallel 8" ...   (one lrcn per variant, eight at a time)
-# On a machine of two GPUs: RENDER_ARGS="--executor process --gpus-per-worker 1" (render 1.8x faster).
+#   STAGES="train eval report" ...   (one lrcn per variant, four at a time per GPU: paper_study.sh's TRAIN_ARGS)
+# On a machine of two GPUs paper_study.sh renders one worker per GPU (1.8x): N=24 renders 9 variants in ~9 min.
 # N sequences per class (default 12: 648 clips, 108 test sequences); VARIANTS comma-separated.
 # At N=12 a model trains on 10 sequences per class, where lrcn reads ~12 % of new simulations (docs/learning.md,
 # the data-size curve): enough to see large gaps only. N=48 reads ~38 % but renders ~4.4 min per variant on an H100.

@@ -3,8 +3,8 @@
 #   STAGES="sim render" bash scripts/gpu/paper_study.sh     (then "train", then "eval report")
 #   SEQ=96 simulates 96 sequences per class instead of the preset's 48 (twice the render time: two calls).
 #   RENDER_ARGS="--executor process --workers 12 --gpus-per-worker 0.0833" overlaps the per-clip host work;
-#   on a machine of two GPUs RENDER_ARGS="--executor process --gpus-per-worker 1" renders 1.8x faster.
-#   TRAIN_ARGS="--parallel 8" trains eight models at once over the machine's GPUs (the study's many models).
+#   on a machine of several GPUs the default is "--executor process --gpus-per-worker 1" (1.8x on two).
+#   TRAIN_ARGS (default "--parallel <4 x GPUs>") trains that many models at once over the machine's GPUs.
 #   The paper preset writes each clip's frames.npy alone; EXTRA='--set render.write_png=true' adds the PNGs
 #   (the cost every clip paid before). The render line's summary has frames and seconds: frames/s over the
 #   ceiling of scripts/gpu/render_bench.sh (RESOLUTIONS=112) on the same machine is the render's ratio.
@@ -18,6 +18,11 @@ STAGES=${STAGES:-"sim render train eval report"}
 SETS=(--set sim.motions=${MOTIONS:-wind} --set sim.remeshing=${REMESHING:-uniform1} --set sim.batch_size=2592
       --set render.resolution=${RES:-112} --set render.spp=${SPP:-8}
       ${SEQ:+--set sim.sequences_per_class=$SEQ} ${EXTRA:-})
+# Every GPU of the machine: render shards one worker per GPU (on one GPU the default path is faster),
+# training runs four models at a time per GPU (a model leaves most of an H100 idle). Set to override.
+ngpu=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true); [ "${ngpu:-0}" -ge 1 ] || ngpu=1
+[ "$ngpu" -ge 2 ] && RENDER_ARGS=${RENDER_ARGS-"--executor process --gpus-per-worker 1"}
+TRAIN_ARGS=${TRAIN_ARGS-"--parallel $((4 * ngpu))"}
 for stage in $STAGES; do
   t0=$(date +%s.%N)
   if [ -f "$RUN/config.json" ]; then args=("$RUN"); else args=(--preset paper --out "$RUN" "${SETS[@]}"); fi
