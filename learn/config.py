@@ -16,6 +16,7 @@ from learn.registry import MODEL_NAMES
 READOUTS = ("mean", "last")
 SCHEDULES = ("cosine", "step")
 KEEP = ("last", "best")                             # which epoch's weights become checkpoint.pt
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune-no-cudagraphs", "max-autotune")   # torch.compile's
 SPLIT_BY = ("sequence", "subsequence")              # learn.split: whole sequences, or the paper's leaky windows
 IMAGE_SIZES = range(32, 225, 16)                    # FrameCNN: a multiple of 16 from 32 to 224
 
@@ -51,6 +52,8 @@ class TrainConfig:
     pretrained: str = ""                    # local weights file for the CNN; never downloaded
     amp: bool = True                        # bf16 autocast (CUDA only; ignored on CPU)
     compile: bool = False                   # torch.compile the model (CUDA only; ignored on CPU)
+    compile_mode: str = "default"           # its mode: "reduce-overhead" replays CUDA graphs, which removes the
+                                            # per-step launch cost that bounds a small batch on a large GPU
     num_workers: int = 0                    # unused: batches are cut from frames held on the device
                                             # (learn.windows); kept so that older run folders load
     motion: bool = False                    # frame differences beside the frames (6 input channels)
@@ -110,6 +113,7 @@ class TrainConfig:
         out += checks.number("train.aux_geometry", self.aux_geometry, 0)
         out += checks.number("train.label_smoothing", self.label_smoothing, 0, 1, hi_open=True)
         out += checks.choice("train.keep", self.keep, KEEP)
+        out += checks.choice("train.compile_mode", self.compile_mode, COMPILE_MODES)
         out += checks.number("train.bottleneck_noise", self.bottleneck_noise, 0)
         if self.bottleneck_noise and not self.bottleneck:
             out.append("train.bottleneck_noise is set but train.bottleneck is off; set train.bottleneck=true")

@@ -451,7 +451,7 @@ def _forward_net(model: ClipClassifier, cfg: TrainConfig, device: torch.device) 
     if _world_size() > 1:
         net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if on_cuda else None)
     if cfg.compile and on_cuda:
-        net = torch.compile(net)
+        net = torch.compile(net, mode=None if cfg.compile_mode == "default" else cfg.compile_mode)
     return net
 
 
