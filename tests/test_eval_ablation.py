@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import json
 
+import pandas as pd
 import pytest
 from clothgap.config import ConfigError, StudyConfig
+from eval import predictions as preds
 from eval.ablation import recipe_config, run_ablation
 from learn.split import get_or_make_split, part_windows
 from learn.synthetic import synthetic_run
@@ -43,6 +45,13 @@ def test_ablation_scores_every_recipe_on_the_same_test_windows(tmp_path):
     assert second["changes"] == {"augment": True, "keep": "best", "seeds": [1]}
     assert first["seeds"] == [0] and second["seeds"] == [1]              # a recipe may train another seed
     assert 0 <= first["within1"] <= 1 and first["within1"] >= first["acc"]
+    # the video-level answer: one decision per test sequence from its windows' mean probabilities
+    frame = pd.read_csv(run.root / "ablation" / "baseline" / SETTING / VARIANT / "lrcn" / "s0" / "test_predictions.csv")
+    seq = preds.per_sequence(preds.load(run.root / "ablation" / "baseline" / SETTING / VARIANT / "lrcn" / "s0"
+                                        / "test_predictions.csv"))
+    assert len(frame) == first["rows"] and len(seq) == first["sequences"]
+    assert first["seq_acc"] == pytest.approx((seq["class_index"] == seq["pred"]).mean())
+    assert first["seq_acc_lo"] <= first["seq_acc"] <= first["seq_acc_hi"]
     assert len(second["curves"]["s1"]) == 2 and second["speed"][0]["train_windows"] > 0
     folder = run.root / "ablation" / "augment+best+seeds=1" / SETTING / VARIANT / "lrcn" / "s1"
     assert (folder / "DONE").is_file() and (folder / "test_predictions.csv").is_file()
@@ -50,7 +59,7 @@ def test_ablation_scores_every_recipe_on_the_same_test_windows(tmp_path):
     run_ablation(run, SETTING, VARIANT, ["baseline", "augment+best+seeds=1"], progress=False)   # all reused
     assert (folder / "DONE").stat().st_mtime_ns == stamp
     md = (run.eval_dir / f"ablation-{SETTING}-{VARIANT}.md").read_text()
-    assert "| augment+best+seeds=1 | lrcn |" in md
+    assert "| augment+best+seeds=1 | lrcn |" in md and "| per sequence % |" in md
 
 
 def test_ablation_cli_checks_recipes_and_pairs_first(tmp_path):
