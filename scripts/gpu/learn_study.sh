@@ -3,6 +3,8 @@
 # process so that a failure costs one row, stopping before the device's 10-minute limit.
 #   RECIPES="baseline best augment+best" MODELS=lrcn bash scripts/gpu/learn_study.sh
 #   RECIPES=auto MODELS="base1 base2 base3" ...   the recipe with the best lrcn validation accuracy so far
+#                    (of $RUN/eval/ablation-<setting>-<variant>.json, NAME's default; rows with seeds= or
+#                    train_fraction= are measurements, not candidates)
 #   PARALLEL=4 ...   four recipes at a time (windows/s then is not a solo figure); on a machine of several
 #                    GPUs each recipe goes to the GPU running the fewest (CUDA_VISIBLE_DEVICES)
 #   MEASURED=1 ...   then the measured-fabric set (clothgap eval measured, held-out variant) on this call's
@@ -32,9 +34,9 @@ PY
 if [ "$RECIPES" = auto ]; then
   RECIPES=$(python3 - "$RUN/eval/ablation-$SETTING-$VARIANT.json" <<'PY'
 import json, sys
-# measurements rather than recipes (another seed, less data, other epochs) are not candidates
+# measurements rather than recipes (another seed, less data) are not candidates; epochs are a lever
 rows = [r for r in json.load(open(sys.argv[1]))["recipes"] if r["model"] == "lrcn"
-        and not any(k in r["recipe"] for k in ("epochs=", "seeds=", "train_fraction="))]
+        and not any(k in r["recipe"] for k in ("seeds=", "train_fraction="))]
 def val(r):   # validation accuracy of the kept epoch: recipes are chosen on validation clips, never test
     kept = r["speed"][0]["kept_epoch"]
     return next(iter(r["curves"].values()))[kept]["val_acc"]
