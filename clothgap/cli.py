@@ -416,8 +416,10 @@ def eval_learnability(run_dir: Path, settings: tuple[str, ...], clip_len: int, s
 @click.option("--model", "models", multiple=True, metavar="NAME", help="Models to train (default: train.models).")
 @click.option("--seed", "seeds", multiple=True, type=int, help="Training seeds (default: train.seeds).")
 @click.option("--name", metavar="NAME", help="Write RUN_DIR/eval/NAME.{json,md} (default: ablation-<setting>-<variant>).")
+@click.option("--parallel", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Models trained at a time, each in its own process, spread over the visible GPUs.")
 def eval_ablation(run_dir: Path, recipes: tuple[str, ...], setting: str | None, variant: str | None,
-                  models: tuple[str, ...], seeds: tuple[int, ...], name: str | None) -> None:
+                  models: tuple[str, ...], seeds: tuple[int, ...], name: str | None, parallel: int) -> None:
     """Train several recipes on the same data and score them on the same test clips, with intervals and
     paired differences (trains into RUN_DIR/ablation/<recipe>/, writes RUN_DIR/eval/ablation-*.{json,md})."""
     run = Run.open(run_dir)
@@ -430,11 +432,17 @@ def eval_ablation(run_dir: Path, recipes: tuple[str, ...], setting: str | None, 
                           f"{', '.join(f'{s}/{v}' for s, v in known)}")
     from eval.ablation import recipe_config, run_ablation
 
-    for recipe in recipes:
-        recipe_config(run.config, recipe)   # every recipe is checked before any training
+    configs = {recipe: recipe_config(run.config, recipe) for recipe in recipes}   # all checked before training
     t0 = time.perf_counter()
     if name is not None and (not name or "/" in name):
         raise ConfigError(f"--name {name!r}: must be a plain file name")
+    if parallel > 1:
+        from clothgap.executor import run_train_parallel
+        from learn.registry import training_order
+
+        run_train_parallel(run, [(setting, variant, model, seed, recipe) for recipe, cfg in configs.items()
+                                 for seed in (seeds or cfg.seeds)
+                                 for model in training_order(models or run.config.train.models)], parallel)
     _echo_summary("eval ablation", run_ablation(run, setting, variant, list(recipes), list(models) or None,
                                                 list(seeds) or None, name=name), time.perf_counter() - t0)
 

@@ -169,10 +169,13 @@ def run_stage(run: Run, stage: str, options: ExecutorOptions = ExecutorOptions()
 
 # ---------------------------------------------------------------- training several models at once
 
-def train_jobs(grid: Sequence[tuple[str, str, str, int]]) -> list[list[tuple[str, str, str, int]]]:
+TrainEntry = tuple   # (setting, variant, model, seed), or with a fifth item: an eval.ablation recipe
+
+
+def train_jobs(grid: Sequence[TrainEntry]) -> list[list[TrainEntry]]:
     """The training grid cut into jobs that may run at once: a model and the model it needs (base1, then base2,
-    which freezes base1's CNN, of the same setting, variant and seed) form one job, in grid order; every other
-    entry is a job of its own."""
+    which freezes base1's CNN, of the same setting, variant, seed and recipe) form one job, in grid order;
+    every other entry is a job of its own."""
     from learn.registry import get_model_entry
 
     def root(model: str) -> str:
@@ -181,12 +184,28 @@ def train_jobs(grid: Sequence[tuple[str, str, str, int]]) -> list[list[tuple[str
         return model
 
     jobs: dict[tuple, list] = {}
-    for setting, variant, model, seed in grid:
-        jobs.setdefault((setting, variant, seed, root(model)), []).append((setting, variant, model, seed))
+    for entry in grid:
+        setting, variant, model, seed, *recipe = entry
+        jobs.setdefault((setting, variant, seed, root(model), *recipe), []).append(tuple(entry))
     return list(jobs.values())
 
 
-def train_shard(run_root: str, entries: list[tuple[str, str, str, int]]) -> dict:
+def _entry_config(run: Run, entry: TrainEntry):
+    """The train settings and train root of an entry: the run's, or its recipe's (``eval.ablation``)."""
+    if len(entry) < 5:
+        return run.config.train, None
+    from eval.ablation import recipe_config, recipe_root
+
+    return recipe_config(run.config, entry[4]), recipe_root(run, entry[4])
+
+
+def _entry_folder(run: Run, entry: TrainEntry) -> Path:
+    from learn.train import train_folder
+
+    return train_folder(run, *entry[:4], root=_entry_config(run, entry)[1])
+
+
+def train_shard(run_root: str, entries: list[TrainEntry]) -> dict:
     """Train ``entries`` in turn (one job of ``train_jobs``); torch uses this worker's share of the CPUs."""
     import torch
 
@@ -194,31 +213,37 @@ def train_shard(run_root: str, entries: list[tuple[str, str, str, int]]) -> dict
 
     torch.set_num_threads(host_processes())
     run = Run.open(run_root, check=False)
-    return {"trained": [str(train_one(run, *entry, progress=False)) for entry in entries]}
+    trained = []
+    for entry in entries:
+        config, root = _entry_config(run, entry)
+        trained.append(str(train_one(run, *entry[:4], progress=False, config=config, root=root)))
+    return {"trained": trained}
 
 
-def run_train_parallel(run: Run, grid: Sequence[tuple[str, str, str, int]], parallel: int,
-                       progress: bool = True) -> list[Path]:
+def run_train_parallel(run: Run, grid: Sequence[TrainEntry], parallel: int, progress: bool = True) -> list[Path]:
     """Train ``grid`` ``parallel`` models at a time, each in a spawned process; on CUDA the processes are spread
     over the visible GPUs (CUDA_VISIBLE_DEVICES, round robin). A model of this size leaves most of an H100
     idle and gains nothing from DDP (benchmarks/results/train_scaling-*), so a study's many models run side
-    by side instead. Finished models are skipped; a killed run resumes each model from its last epoch.
-    Returns the training folders in grid order."""
+    by side instead. An entry (setting, variant, model, seed) may carry a fifth item, an ``eval.ablation``
+    recipe, whose settings and folder it then trains with. Finished models are skipped; a killed run resumes
+    each model from its last epoch. Returns the training folders in grid order."""
     from learn.stage import prepare_shared_inputs
-    from learn.train import resolve_device, train_folder
+    from learn.train import resolve_device
 
     if parallel < 1:
         raise ConfigError(f"--parallel must be at least 1, got {parallel}")
-    grid = list(grid)
-    pending = [e for e in grid if not (train_folder(run, *e) / "DONE").is_file()]
+    grid = [tuple(e) for e in grid]
+    pending = [e for e in grid if not (_entry_folder(run, e) / "DONE").is_file()]
     if pending:
-        prepare_shared_inputs(run, pending, progress)
-        gpus = visible_gpus() if resolve_device(run.config.train.device).type == "cuda" else []
+        configs = [_entry_config(run, e)[0] for e in pending]
+        prepare_shared_inputs(run, [e[:4] for e in pending], progress, configs=configs)
+        devices = {resolve_device(c.device).type for c in configs}
+        gpus = visible_gpus() if "cuda" in devices else []
         slots = [gpus[i % len(gpus)] for i in range(parallel)] if gpus else None
         run_shards(train_shard, str(run.root.resolve()), train_jobs(pending),
                    options=ExecutorOptions("process", workers=parallel, progress=progress), label="train",
                    gpu_slots=slots)
-    return [train_folder(run, *e) for e in grid]
+    return [_entry_folder(run, e) for e in grid]
 
 
 def merge_summaries(stage: str, parts: list[dict]) -> dict:

@@ -24,20 +24,23 @@ def training_grid(run: Run) -> list[tuple[str, str, str, int]]:
     return registry_grid(run.config)
 
 
-def prepare_shared_inputs(run: Run, grid: list[tuple[str, str, str, int]], progress: bool = True) -> None:
+def prepare_shared_inputs(run: Run, grid: list[tuple[str, str, str, int]], progress: bool = True,
+                          configs: list | None = None) -> None:
     """What several trainings of ``grid`` read and the first would write: each setting's split, each
-    (variant, setting)'s frame cache and each setting's simulated lattices (when the recipe regresses them).
-    Built once here, so that trainings running at once only read them."""
+    (variant, setting)'s frame cache at each image size and each setting's simulated lattices (when a recipe
+    regresses them). ``configs``: each entry's train settings (default: the run's). Built once here, so
+    that trainings running at once only read them."""
     from learn.dataset import build_cache
     from learn.geometry import clip_lattices
     from learn.split import get_or_make_split
 
-    cfg = run.config.train
+    configs = configs or [run.config.train] * len(grid)
     for setting in dict.fromkeys(s for s, _, _, _ in grid):
         get_or_make_split(run, setting)
-    for setting, variant in dict.fromkeys((s, v) for s, v, _, _ in grid):
-        cache = build_cache(run, variant, setting, cfg.image_size, progress)
-        if cfg.geometry_weight > 0:
+    needs = dict.fromkeys((s, v, c.image_size, c.geometry_weight > 0) for (s, v, _, _), c in zip(grid, configs))
+    for setting, variant, size, lattices in needs:
+        cache = build_cache(run, variant, setting, size, progress)
+        if lattices:
             clip_lattices(run, setting, sorted(cache.clips), progress)
         del cache
 

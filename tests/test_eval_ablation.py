@@ -69,3 +69,22 @@ def test_ablation_cli_checks_recipes_and_pairs_first(tmp_path):
     assert not (run.root / "ablation").exists()
     result = clothgap("eval", "ablation", str(run.root), "--recipe", "baseline", "--setting", "arm-uniform1")
     assert_user_error(result, "not a pair this run renders")
+
+
+@pytest.mark.slow
+def test_ablation_trains_recipes_side_by_side_as_one_process_does(tmp_path):
+    cfg = tiny_train_config(epochs=2, dropout=0.5, num_threads=1)
+    alone, side = synthetic_run(tmp_path / "alone", cfg), synthetic_run(tmp_path / "side", cfg)
+    recipes = ("baseline", "best+lr=0.01", "augment+seeds=1")
+    args = [x for r in recipes for x in ("--recipe", r)]
+    for run, extra in ((alone, []), (side, ["--parallel", "3"])):
+        result = clothgap("eval", "ablation", str(run.root), *args, *extra)
+        assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-3000:]
+    a = json.loads((alone.eval_dir / f"ablation-{SETTING}-{VARIANT}.json").read_text())["recipes"]
+    b = json.loads((side.eval_dir / f"ablation-{SETTING}-{VARIANT}.json").read_text())["recipes"]
+    assert [r["recipe"] for r in b] == list(recipes) and [r["seeds"] for r in b] == [[0], [0], [1]]
+    for x, y in zip(a, b):      # each recipe's own settings and folder, whichever process trained it
+        assert x["acc"] == y["acc"] and x["seq_acc"] == y["seq_acc"]
+        for s in x["curves"]:
+            assert [{k: v for k, v in e.items() if k != "seconds"} for e in x["curves"][s]] == \
+                   [{k: v for k, v in e.items() if k != "seconds"} for e in y["curves"][s]]
