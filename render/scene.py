@@ -37,6 +37,7 @@ noise, scalar_rgb); callers then take the host path.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
@@ -89,6 +90,14 @@ def frame_camera(lo: np.ndarray, hi: np.ndarray, fov_deg: float = FOV_DEG, margi
     radius = float(np.linalg.norm(extent) / 2)
     return Framing(target=center, origin=center + distance * direction, distance=float(distance),
                    radius=max(radius, 1e-3), fov_deg=fov_deg, floor_z=float(lo[2]))
+
+
+def zoomed(framing: Framing, zoom: float) -> Framing:
+    """``framing`` with its field of view narrowed by ``zoom`` (the camera, lights and room stay put)."""
+    if zoom == 1.0:
+        return framing
+    half = np.radians(framing.fov_deg) / 2
+    return dataclasses.replace(framing, fov_deg=float(np.degrees(2 * np.arctan(np.tan(half) / zoom))))
 
 
 # ---------------------------------------------------------------- pooled scenes
@@ -202,8 +211,8 @@ class ClipRenderer:
         # (synthetic clips, garments, runs simulated before view_box existed).
         box = clip.meta.get("view_box")
         # The view box already holds every pose with room to spare, so it is framed without a margin.
-        self.framing = (frame_camera(*(np.asarray(b, np.float64) for b in box), margin=1.0) if box
-                        else frame_camera(*clip.bounds()))
+        self.framing = zoomed(frame_camera(*(np.asarray(b, np.float64) for b in box), margin=1.0) if box
+                              else frame_camera(*clip.bounds()), variant.zoom)
         self.lights, lighting_info = emitters(self.mi, variant, self.framing, stream("lighting"))
         self.room = room_shapes(self.mi, variant, self.framing, stream("room"))
         self.camera = draw_camera(variant, stream("camera"))

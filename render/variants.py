@@ -81,6 +81,9 @@ class RenderVariant:
     motion_blur_subframes: int = 1          # >1: average this many renders across the frame interval
     video_crf: int = 0                      # >0: encode and decode each clip with H.264 at this CRF (PyAV)
     max_depth: int = 4                      # path length (light bounces + 1)
+    zoom: float = 1.0                       # the camera's field of view narrowed by this factor from where it
+                                            # stands (>1: the cloth fills more of the frame; the lights and room
+                                            # stay where they were; a cloth that moves far may leave the frame)
 
     def __post_init__(self) -> None:
         for key, allowed in CHOICES.items():
@@ -94,6 +97,8 @@ class RenderVariant:
             raise VariantError(f"variant {self.name!r}: background='folder' needs background_dir")
         if self.bsdf == "measured" and not self.measured_file:
             raise VariantError(f"variant {self.name!r}: bsdf='measured' needs measured_file (an RGL .bsdf file)")
+        if not self.zoom > 0:
+            raise VariantError(f"variant {self.name!r}: zoom must be positive, got {self.zoom}")
         if self.motion_blur_subframes < 1 or self.max_depth < 1 or self.video_crf < 0:
             raise VariantError(f"variant {self.name!r}: motion_blur_subframes and max_depth must be >= 1, "
                                "video_crf >= 0")

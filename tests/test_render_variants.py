@@ -70,3 +70,20 @@ def test_every_registered_variant_renders(name):
         assert frame.ldr.shape == (16, 16, 3) and frame.ldr.dtype == np.uint8
         assert frame.hdr[..., 3].max() > 0.5, "the cloth must be in view"
     assert renderer.rebuilds + renderer.retargets == 1, "a fixed-topology clip sets up its scene once"
+
+
+def test_zoom_narrows_the_view_and_the_cloth_fills_more_of_the_frame():
+    clip = waving_sheet(frames=1, n=8)
+
+    def coverage(variant):
+        renderer = ClipRenderer(clip, variant, resolution=32, spp=2, run_seed=0, clip_index=1, backend="scalar_rgb")
+        return renderer, float((renderer.render_frame(0).hdr[..., 3] > 0.5).mean())
+
+    paper, near = get_variant("paper"), get_variant("close")
+    assert near.changes_from(paper) == {"zoom": 1.3}
+    (wide, wide_cover), (close, close_cover) = coverage(paper), coverage(near)
+    np.testing.assert_array_equal(close.framing.origin, wide.framing.origin)     # the camera stays where it was
+    assert np.tan(np.radians(wide.framing.fov_deg) / 2) == pytest.approx(1.3 * np.tan(np.radians(close.framing.fov_deg) / 2))
+    assert close_cover > 1.4 * wide_cover       # 1.3 x 1.3 = 1.69 times the pixels where the cloth stays in view
+    with pytest.raises(VariantError, match="zoom must be positive"):
+        type(paper)(name="bad", zoom=0.0)
