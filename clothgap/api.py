@@ -489,7 +489,7 @@ class Study:
 
 def train_selected(run: Run, settings: Iterable[str] | None = None, variants: Iterable[str] | None = None,
                    models: Iterable[str] | None = None, seeds: Iterable[int] | None = None,
-                   progress: bool = True, parallel: int = 1) -> list[Path]:
+                   progress: bool = True, parallel: int = 1, options=None) -> list[Path]:
     """Train the selected part of the run's grid (all of it when nothing is selected); finished folders are kept.
 
     Args:
@@ -498,6 +498,8 @@ def train_selected(run: Run, settings: Iterable[str] | None = None, variants: It
         progress: Show progress bars.
         parallel: Models trained at a time, each in its own process, spread over the visible GPUs
             (``clothgap.executor.run_train_parallel``); 1 trains them one after another in this process.
+        options: A ``clothgap.executor.ExecutorOptions`` to train through instead (a process pool with GPU
+            slots, or Ray tasks).
 
     Returns:
         The finished train folders.
@@ -528,10 +530,10 @@ def train_selected(run: Run, settings: Iterable[str] | None = None, variants: It
     # A model that needs another (base2 freezes base1's CNN of the same setting, variant and seed) comes after it.
     models = training_order(models)
     grid = [(s, v, m, seed) for s, v in chosen for seed in seeds for m in models]
-    if parallel != 1:
+    if parallel != 1 or options is not None:
         from clothgap.executor import run_train_parallel
 
-        folders = run_train_parallel(run, grid, parallel, progress)
+        folders = run_train_parallel(run, grid, parallel, progress, options)
         if not everything:
             return folders
     if everything:

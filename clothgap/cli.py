@@ -61,7 +61,7 @@ def _run_options(fn):
 
 
 def _executor_options(fn):
-    """Where sim/render work runs: --executor, --workers, --address, --gpus-per-worker, --shard-size."""
+    """Where sim/render/train work runs: --executor, --workers, --address, --gpus-per-worker, --shard-size."""
     fn = click.option("--shard-size", type=click.IntRange(min=1), metavar="N",
                       help="Clip indices per shard (default: an even split over the workers).")(fn)
     fn = click.option("--gpus-per-worker", type=click.FloatRange(min=0), default=0.0, metavar="G",
@@ -75,8 +75,9 @@ def _executor_options(fn):
                            "ray: most shards in flight, default the cluster's CPUs or GPUs).")(fn)
     fn = click.option("--executor", type=click.Choice(["local", "process", "ray"]), default="local",
                       show_default=True,
-                      help="Run generation in this process, a local process pool, or on a Ray cluster "
-                           "(clips are sharded by clip index; finished clips are skipped on a re-run).")(fn)
+                      help="Run the work in this process, a local process pool, or on a Ray cluster "
+                           "(sim and render shard by clip index, train by model; finished work is "
+                           "skipped on a re-run).")(fn)
     return fn
 
 
@@ -287,13 +288,16 @@ def render(run_dir, preset_name, out, overrides, config_file, list_variants, all
 @click.option("--parallel", type=click.IntRange(min=1), default=1, show_default=True,
               help="Models trained at a time, each in its own process, spread over the visible GPUs.")
 @click.option("--list-models", is_flag=True, help="List the registered models and exit.")
+@_executor_options
 def train(run_dir, preset_name, out, overrides, config_file, model_name, variant, setting, train_seed,
-          parallel, list_models) -> None:
+          parallel, list_models, **execution) -> None:
     """Train the models on the rendered clips (every setting x variant x model x seed
     not done yet, or the one selected by --model/--variant/--setting/--seed).
 
     --parallel N trains N models at once (a model at the paper preset leaves most of an H100 idle, and
-    DDP does not speed one up: one model per process is what scales)."""
+    DDP does not speed one up: one model per process is what scales). --executor process
+    --gpus-per-worker G pins one worker per G GPUs; --executor ray runs one task per model on a
+    Ray cluster (--address, --gpus-per-worker = each task's GPUs, --workers = tasks in flight)."""
     if list_models:
         from learn.registry import describe_models
 
@@ -303,9 +307,12 @@ def train(run_dir, preset_name, out, overrides, config_file, model_name, variant
     from clothgap.api import train_selected
 
     t0 = time.perf_counter()
+    chosen = (execution["executor"] != "local" or execution["workers"] or execution["gpus_per_worker"]
+              or execution["shard_size"])
+    opts = executor_options(**execution) if chosen else None
     done = train_selected(run, [setting] if setting else None, [variant] if variant else None,
                           [model_name] if model_name else None, [train_seed] if train_seed is not None else None,
-                          parallel=parallel)
+                          parallel=parallel, options=opts)
     _echo_summary("train", {"trained": [str(p) for p in done]}, time.perf_counter() - t0)
 
 

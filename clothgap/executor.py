@@ -33,6 +33,7 @@ share, at the same path.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import os
 import socket
@@ -220,29 +221,41 @@ def train_shard(run_root: str, entries: list[TrainEntry]) -> dict:
     return {"trained": trained}
 
 
-def run_train_parallel(run: Run, grid: Sequence[TrainEntry], parallel: int, progress: bool = True) -> list[Path]:
-    """Train ``grid`` ``parallel`` models at a time, each in a spawned process; on CUDA the processes are spread
-    over the visible GPUs (CUDA_VISIBLE_DEVICES, round robin). A model of this size leaves most of an H100
+def run_train_parallel(run: Run, grid: Sequence[TrainEntry], parallel: int = 1, progress: bool = True,
+                       options: ExecutorOptions | None = None) -> list[Path]:
+    """Train ``grid`` several models at a time. By default ``parallel`` spawned processes, spread over the
+    visible GPUs on CUDA (CUDA_VISIBLE_DEVICES, round robin): a model of this size leaves most of an H100
     idle and gains nothing from DDP (benchmarks/results/train_scaling-*), so a study's many models run side
-    by side instead. An entry (setting, variant, model, seed) may carry a fifth item, an ``eval.ablation``
-    recipe, whose settings and folder it then trains with. Finished models are skipped; a killed run resumes
-    each model from its last epoch. Returns the training folders in grid order."""
+    by side instead. ``options`` runs the jobs through another executor instead: ``process`` with
+    ``gpus_per_worker`` (one worker per GPU slot, as generation does), or ``ray`` (a task per job, each with
+    ``gpus_per_worker`` GPUs, ``workers`` in flight; the run folder on storage every node shares).
+    An entry (setting, variant, model, seed) may carry a fifth item, an ``eval.ablation`` recipe, whose
+    settings and folder it then trains with. Finished models are skipped; a killed run resumes each model
+    from its last epoch. Returns the training folders in grid order."""
     from learn.stage import prepare_shared_inputs
     from learn.train import resolve_device
 
     if parallel < 1:
         raise ConfigError(f"--parallel must be at least 1, got {parallel}")
+    if options is not None and options.shard_size is not None:
+        raise ConfigError("--shard-size cuts sim and render into clip shards; training runs one job per model")
     grid = [tuple(e) for e in grid]
     pending = [e for e in grid if not (_entry_folder(run, e) / "DONE").is_file()]
     if pending:
         configs = [_entry_config(run, e)[0] for e in pending]
         prepare_shared_inputs(run, [e[:4] for e in pending], progress, configs=configs)
-        devices = {resolve_device(c.device).type for c in configs}
-        gpus = visible_gpus() if "cuda" in devices else []
-        slots = [gpus[i % len(gpus)] for i in range(parallel)] if gpus else None
-        run_shards(train_shard, str(run.root.resolve()), train_jobs(pending),
-                   options=ExecutorOptions("process", workers=parallel, progress=progress), label="train",
-                   gpu_slots=slots)
+        slots = None
+        if options is None or (options.executor == "process" and not options.gpus_per_worker):
+            workers = (options.workers if options is not None and options.workers else None) or parallel
+            devices = {resolve_device(c.device).type for c in configs}
+            gpus = visible_gpus() if "cuda" in devices else []
+            slots = [gpus[i % len(gpus)] for i in range(workers)] if gpus else None
+            options = ExecutorOptions("process", workers=workers, progress=progress)
+        elif options.executor == "process":
+            slots = gpu_slots(visible_gpus(), options.gpus_per_worker, options.workers)
+        options = dataclasses.replace(options, progress=progress)
+        run_shards(train_shard, str(run.root.resolve()), train_jobs(pending), options=options.validate(),
+                   label="train", gpu_slots=slots)
     return [_entry_folder(run, e) for e in grid]
 
 
@@ -321,7 +334,9 @@ def _progress(total: int, enabled: bool, desc: str):
     return tqdm(total=total, disable=not enabled, desc=desc, unit="shard")
 
 
-def _describe(s: list[int]) -> str:
+def _describe(s: list) -> str:
+    if s and isinstance(s[0], tuple):       # a training job: its models
+        return "models " + ", ".join("/".join(map(str, entry)) for entry in s)
     return f"clips {s[0]}..{s[-1]}" if s else "no clips"
 
 

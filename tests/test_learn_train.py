@@ -301,3 +301,22 @@ def test_parallel_training_trains_the_grid_side_by_side_as_one_process_does(tmp_
         a = pd.read_csv(alone.root / entry["dir"] / "metrics.csv")
         b = pd.read_csv(side_by_side.root / entry["dir"] / "metrics.csv")
         pd.testing.assert_frame_equal(a.drop(columns="seconds"), b.drop(columns="seconds"))
+
+
+@pytest.mark.slow
+def test_training_on_ray_gives_the_models_one_process_gives(tmp_path):
+    pytest.importorskip("ray")
+    from clothgap.api import train_selected
+    from clothgap.executor import ExecutorOptions
+
+    cfg = tiny_train_config(models=("lrcn", "base2", "base1"), epochs=2, num_threads=1)
+    alone, on_ray = synthetic_run(tmp_path / "alone", cfg), synthetic_run(tmp_path / "ray", cfg)
+    train_selected(alone, progress=False)
+    # a fresh local instance with two CPUs: base1 and base2 in one task, lrcn in another
+    folders = train_selected(on_ray, progress=False, options=ExecutorOptions("ray", workers=2))
+    assert all(is_done(f) for f in folders) and len(folders) == 3
+    for folder in folders:
+        a = pd.read_csv(alone.root / folder.relative_to(on_ray.root) / "metrics.csv")
+        pd.testing.assert_frame_equal(a.drop(columns="seconds"), pd.read_csv(folder / "metrics.csv").drop(columns="seconds"))
+    with pytest.raises(ConfigError, match="--shard-size"):
+        train_selected(on_ray, progress=False, options=ExecutorOptions("ray", workers=2, shard_size=4))
