@@ -26,6 +26,7 @@ import numpy as np
 from clothgap.parallel import host_processes
 from sim import remesh
 from sim.motions import ClipScene
+from sim.phases import timed
 from sim.solver import BatchSolver, CGStats, ClothSpec, SolverParams
 
 # A batch this large on a machine with this many cores remeshes its cloths in a process pool: a cloth's
@@ -133,51 +134,58 @@ def simulate_adaptive(scenes: list[ClipScene], base: remesh.QuadMesh, *, fps: fl
                       cg_tolerance: float = SolverParams.cg_tolerance, self_collision: bool = False,
                       collision_thickness: float = SolverParams.collision_thickness, device: str = "cpu",
                       refine_angle: float = 0.3, health=None, on_frame=None,
-                      host_workers: int | None = None) -> list[AdaptiveResult]:
+                      host_workers: int | None = None, phases: dict[str, float] | None = None) -> list[AdaptiveResult]:
     """Settle without wind on the base mesh, then record ``frames`` frames with the wind on,
     remeshing every cloth after each frame. ``scenes`` must be built on ``remesh.cloth_mesh(base)``.
     ``health(cloth, x, x_prev, frame_dt)`` may read ``cloth.edges`` and ``cloth.edge_rest`` (the mesh the
     solver ran this frame on). ``host_workers``: processes that remesh the cloths (None: ``remesh_workers``;
-    0 or 1: this process); the clips are the same bytes either way."""
+    0 or 1: this process); the clips are the same bytes either way. ``phases`` (optional) gets the seconds
+    of building the first solver and settling (``settle``), the recorded frames' steps and read-backs
+    (``steps``), the health checks (``health``), remeshing (``remesh``, the pool's wall time) and the
+    solvers rebuilt after it (``rebuild``)."""
     dt = 1.0 / (fps * substeps)
     params = SolverParams(dt=dt, cg_iterations=cg_iterations, cg_tolerance=cg_tolerance,
                           self_collision=self_collision, collision_thickness=collision_thickness)
     remesher = _Remesher(remesh_workers(len(scenes)) if host_workers is None else host_workers)
     try:
         return _simulate(scenes, base, params, fps, frames, substeps, settle_s, refine_angle, health, on_frame,
-                         remesher, device)
+                         remesher, device, phases)
     finally:
         remesher.close()
 
 
 def _simulate(scenes, base, params, fps, frames, substeps, settle_s, refine_angle, health, on_frame, remesher,
-              device) -> list[AdaptiveResult]:
+              device, phases) -> list[AdaptiveResult]:
     dt = params.dt
     cg = [CGStats() for _ in scenes]        # summed over the solvers a remeshing run rebuilds
     dropped = [0] * len(scenes)
-    base_state = remesh.mesh_state(base)
-    cloths = [_start(s, base, base_state) for s in scenes]
-    winds = np.stack([s.wind for s in scenes])
-    solver = _solver(cloths, params, device, 0.0, None)
-    settle_steps = int(round(settle_s / dt))
-    solver.step(settle_steps)
-    elapsed = settle_steps * dt
-    solver.set_wind(winds)
+    with timed(phases, "settle"):
+        base_state = remesh.mesh_state(base)
+        cloths = [_start(s, base, base_state) for s in scenes]
+        winds = np.stack([s.wind for s in scenes])
+        solver = _solver(cloths, params, device, 0.0, None)
+        settle_steps = int(round(settle_s / dt))
+        solver.step(settle_steps)
+        elapsed = settle_steps * dt
+        solver.set_wind(winds)
+        prev = solver.positions()
     reasons: list[str | None] = [None] * len(scenes)
     recorded: list[list] = [[] for _ in scenes]
-    prev = solver.positions()
     for t in range(frames):
-        solver.step(substeps)
-        elapsed += substeps * dt
-        pos, vel = solver.positions(), solver.velocities()
-        for c, cloth in enumerate(cloths):
-            if reasons[c] is None and health is not None:
-                why = health(cloth, pos[c], prev[c], 1.0 / fps)
-                reasons[c] = None if why is None else f"frame {t}: {why}"
-            recorded[c].append((pos[c], cloth.quad.faces, cloth.quad.uv))
+        with timed(phases, "steps"):
+            solver.step(substeps)
+            elapsed += substeps * dt
+            pos, vel = solver.positions(), solver.velocities()
+        with timed(phases, "health"):
+            for c, cloth in enumerate(cloths):
+                if reasons[c] is None and health is not None:
+                    why = health(cloth, pos[c], prev[c], 1.0 / fps)
+                    reasons[c] = None if why is None else f"frame {t}: {why}"
+                recorded[c].append((pos[c], cloth.quad.faces, cloth.quad.uv))
         alive = [c for c in range(len(cloths)) if reasons[c] is None] if t + 1 < frames else []
-        steps = dict(zip(alive, remesher(alive, [cloths[c].quad for c in alive], [pos[c] for c in alive],
-                                         [vel[c] for c in alive], refine_angle)))
+        with timed(phases, "remesh"):
+            steps = dict(zip(alive, remesher(alive, [cloths[c].quad for c in alive], [pos[c] for c in alive],
+                                             [vel[c] for c in alive], refine_angle)))
         changed = False
         for c, cloth in enumerate(cloths):
             new = steps.get(c)
@@ -190,9 +198,10 @@ def _simulate(scenes, base, params, fps, frames, substeps, settle_s, refine_angl
             else:
                 cloth.spec = dataclasses.replace(cloth.spec, positions=pos[c], velocities=vel[c])
         if changed and t + 1 < frames:
-            cg = [a.merged(b) for a, b in zip(cg, solver.cg_stats())]
-            dropped = [a + b for a, b in zip(dropped, solver.collision_dropped() or [0] * len(scenes))]
-            solver = _solver(cloths, params, device, elapsed, winds)
+            with timed(phases, "rebuild"):
+                cg = [a.merged(b) for a, b in zip(cg, solver.cg_stats())]
+                dropped = [a + b for a, b in zip(dropped, solver.collision_dropped() or [0] * len(scenes))]
+                solver = _solver(cloths, params, device, elapsed, winds)
         prev = pos
         if on_frame is not None:
             on_frame()

@@ -21,7 +21,6 @@ is retried once with twice the substeps; if it fails again its folder gets a
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import math
 import multiprocessing as mp
@@ -48,6 +47,7 @@ from sim.intersections import count_intersections
 from sim.materials import load_material
 from sim.mesh import ClothMesh, square_cloth, unique_edges, vertices_per_side
 from sim.motions import MOTIONS, ClipScene, get_motion, view_box
+from sim.phases import timed
 from sim.solver import BatchSolver, CGStats, SolverParams, load_kernels, resolve_device
 
 # Health check of every recorded frame: beyond these a cloth has exploded.
@@ -108,17 +108,6 @@ def _batch_health(cur: np.ndarray, prev: np.ndarray, frame_dt: float, edges: np.
     for c in np.flatnonzero(~finite | (speed > MAX_SPEED_MPS) | (stretch > MAX_EDGE_STRETCH)):
         out[c] = health(cur[c], prev[c], frame_dt, edges, rest)
     return out
-
-
-@contextlib.contextmanager
-def timed(phases: dict[str, float] | None, name: str):
-    """Adds the block's wall time to ``phases[name]`` (seconds), when ``phases`` is a dict."""
-    start = time.perf_counter()
-    try:
-        yield
-    finally:
-        if phases is not None:
-            phases[name] = phases.get(name, 0.0) + time.perf_counter() - start
 
 
 def settled_solver(scenes: list[ClipScene], *, fps: float, substeps: int, settle_s: float, cg_iterations: int,
@@ -191,16 +180,16 @@ def simulate_adaptive_scenes(scenes: list[ClipScene], base, *, fps: float, frame
                              on_frame: Callable[[], None] | None = None,
                              phases: dict[str, float] | None = None,
                              host_workers: int | None = None) -> list[ClipResult]:
-    """``simulate_scenes`` with adaptive remeshing after every frame; same health check per frame. Its phases
-    are not split: the stage times the whole batch (``phases`` is accepted for the common signature).
-    ``host_workers``: processes that remesh (``sim.adaptive.simulate_adaptive``; None picks by batch size)."""
+    """``simulate_scenes`` with adaptive remeshing after every frame; same health check per frame. ``phases``
+    (optional) gets the seconds of ``sim.adaptive.simulate_adaptive``'s phases (settle, steps, health, remesh,
+    rebuild). ``host_workers``: processes that remesh (None picks by batch size)."""
     def check(cloth, x, x_prev, frame_dt):          # on the mesh the solver ran this frame on
         return health(x, x_prev, frame_dt, cloth.edges, cloth.edge_rest)
 
     out = simulate_adaptive(scenes, base, fps=fps, frames=frames, substeps=substeps, settle_s=settle_s,
                             cg_iterations=cg_iterations, cg_tolerance=cg_tolerance, self_collision=self_collision,
                             collision_thickness=collision_thickness, device=device, health=check, on_frame=on_frame,
-                            host_workers=host_workers)
+                            host_workers=host_workers, phases=phases)
     return [ClipResult(None, r.reason, r.frames, r.cg, r.collision_dropped) for r in out]
 
 

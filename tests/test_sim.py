@@ -498,6 +498,10 @@ def test_adaptive_setting_changes_topology_and_is_reproducible(tmp_path):
     for run in runs:
         summary = run_sim(run, progress=False)
         assert summary["simulated"] == 4 and summary["failed"] == 0
+        # where an adaptive batch's time goes: inside the stage's "simulate", the solver and the host's parts
+        assert {"settle", "steps", "health", "remesh", "rebuild"} <= set(summary["phases_s"])
+        inner = sum(summary["phases_s"][k] for k in ("settle", "steps", "health", "remesh", "rebuild"))
+        assert inner <= summary["phases_s"]["simulate"] + 0.05
     for setting in ("wind-adaptive", "arm-adaptive"):
         clips = [SimClip.load(run.sim_dir(setting) / "c00000") for run in runs]
         clip = clips[0]

@@ -1,0 +1,17 @@
+"""Where a batch's simulation time goes: named phases whose wall seconds add up (the stage's ``phases_s``)."""
+
+from __future__ import annotations
+
+import contextlib
+import time
+
+
+@contextlib.contextmanager
+def timed(phases: dict[str, float] | None, name: str):
+    """Adds the block's wall time to ``phases[name]`` (seconds), when ``phases`` is a dict."""
+    start = time.perf_counter()
+    try:
+        yield
+    finally:
+        if phases is not None:
+            phases[name] = phases.get(name, 0.0) + time.perf_counter() - start
