@@ -319,9 +319,9 @@ class Study:
 
     def train(self, *, settings: Iterable[str] | None = None, variants: Iterable[str] | None = None,
               models: Iterable[str] | None = None, seeds: Iterable[int] | None = None,
-              progress: bool = True) -> list[Path]:
+              progress: bool = True, parallel: int = 1, executor: Any = None) -> list[Path]:
         """Train every (setting, variant, model, seed) of the run's grid not done yet, or the part selected
-        (``clothgap train RUN [--setting S --variant V --model M --seed N]``).
+        (``clothgap train RUN [--setting S --variant V --model M --seed N] [--parallel N]``).
 
         Args:
             settings: Only these simulated settings (default: all of the run's).
@@ -329,6 +329,8 @@ class Study:
             models: Only these models (default: ``train.models``).
             seeds: Only these seeds (default: ``train.seeds``).
             progress: Show progress bars.
+            parallel: Models trained at a time, each in its own process, over the visible GPUs.
+            executor: A ``clothgap.executor.ExecutorOptions`` to train through instead (GPU slots, Ray tasks).
 
         Returns:
             The finished train folders, one per (setting, variant, model, seed).
@@ -336,7 +338,8 @@ class Study:
         Raises:
             ConfigError: a name the run does not have, or a variant not rendered yet.
         """
-        return train_selected(self.run, settings, variants, models, seeds, progress)
+        return train_selected(self.run, settings, variants, models, seeds, progress, parallel=parallel,
+                              options=executor)
 
     def evaluate(self, *, progress: bool = True, allow_failures: bool = False) -> dict:
         """Test every finished model on every rendered variant and write the tables (``clothgap eval RUN``).
@@ -374,12 +377,13 @@ class Study:
         return write_report(run)
 
     def run_all(self, executor: Any = None, *, report: bool = True, progress: bool = True,
-                allow_failures: bool = False) -> dict[str, Any]:
+                allow_failures: bool = False, train_parallel: int = 1) -> dict[str, Any]:
         """Simulate, render, train and evaluate in turn, then write the report (``clothgap pipeline RUN``);
         each stage skips what is done.
 
         Args:
             executor: A ``clothgap.executor.ExecutorOptions`` for simulation and rendering; None: this process.
+            train_parallel: Models trained at a time (``--train-parallel``).
             report: Write ``report/report.html`` at the end.
             progress: Show progress bars.
             allow_failures: Go on past failed clips (they are listed in the summaries).
@@ -393,7 +397,7 @@ class Study:
         out: dict[str, Any] = {
             "sim": self.simulate(executor, progress=progress, allow_failures=allow_failures),
             "render": self.render(executor, progress=progress, allow_failures=allow_failures),
-            "train": [str(p) for p in self.train(progress=progress)],
+            "train": [str(p) for p in self.train(progress=progress, parallel=train_parallel)],
             "eval": self.evaluate(progress=progress, allow_failures=allow_failures)}
         if report:
             out["report"] = str(self.report())

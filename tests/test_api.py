@@ -182,3 +182,16 @@ def test_api_names_what_is_missing(tmp_path):
         study.render()
     with pytest.raises(ConfigError, match="does not exist"):
         api.open(tmp_path / "elsewhere")
+
+
+@pytest.mark.slow
+def test_added_variants_train_side_by_side(paper_run, tmp_path):
+    study = api.open(copy_of(paper_run, tmp_path)).add_variants("grid", "color")
+    study.render(progress=False)
+    before = {p: p.stat().st_mtime_ns for p in study.root.glob("train/*/paper/*/s*/DONE")}
+    folders = study.train(progress=False, parallel=2)
+    assert {f.parts[-2] for f in folders} == {"lrcn"} and {f.parts[-3] for f in folders} == {"paper", "grid", "color"}
+    assert all((f / "DONE").is_file() for f in folders)
+    assert {p: p.stat().st_mtime_ns for p in before} == before          # the finished paper model was kept
+    index = json.loads((study.root / "train" / "index.json").read_text())
+    assert all(e["done"] for e in index["entries"]) and len(index["entries"]) == 3
