@@ -28,6 +28,15 @@ def write_result(script: str, argv: list[str] | None, result: dict, out: Path) -
     print(f"wrote {out}")
 
 
+def simulate_options(cfg, frames: int, device: str = "cpu", **changes) -> dict:
+    """The keyword arguments of a batch simulator (``sim.stage.simulate_scenes`` or its adaptive form) for sim
+    settings ``cfg``, ``frames`` frames on ``device``; ``changes`` replace any of them."""
+    return {"fps": cfg.fps, "frames": frames, "substeps": cfg.substeps, "settle_s": cfg.settle_s,
+            "cg_iterations": cfg.cg_iterations, "cg_tolerance": cfg.cg_tolerance,
+            "self_collision": cfg.self_collision, "collision_thickness": cfg.collision_thickness,
+            "device": device, **changes}
+
+
 def paper_scenes(setting_name: str, indices) -> tuple:
     """The ``paper`` preset's sim settings on the CPU, the setting's batch simulator (``simulate_scenes`` or its
     adaptive form) and the (scene, labels) of each clip index."""

@@ -20,7 +20,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from sim.stage import simulate_scenes  # noqa: E402
-from common import RESULTS, arguments, paper_scenes, write_result  # noqa: E402  (benchmarks/common.py)
+from common import RESULTS, arguments, paper_scenes, simulate_options, write_result  # noqa: E402  (benchmarks/common.py)
 
 CLIPS = (42, 49, 61, 96)   # classes 42, 49 (stiff stretching), 7 (soft), 42 again (another sequence)
 
@@ -30,10 +30,8 @@ def main(argv: list[str] | None = None) -> None:
     cfg, _, built = paper_scenes(args.setting, CLIPS)
     runs = {}
     for iterations in (cfg.cg_iterations, args.iterations):
-        runs[iterations] = simulate_scenes([s for s, _ in built], fps=cfg.fps, frames=args.frames,
-                                           substeps=cfg.substeps, settle_s=cfg.settle_s, cg_iterations=iterations,
-                                           cg_tolerance=cfg.cg_tolerance, self_collision=cfg.self_collision,
-                                           collision_thickness=cfg.collision_thickness, device="cpu")
+        runs[iterations] = simulate_scenes([s for s, _ in built],
+                                           **simulate_options(cfg, args.frames, cg_iterations=iterations))
     rows = []
     for k, (index, (_, labels)) in enumerate(zip(CLIPS, built)):
         capped, full = runs[cfg.cg_iterations][k], runs[args.iterations][k]

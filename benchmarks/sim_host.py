@@ -28,7 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common import RESULTS, paper_scenes, paper_sim_cpu, write_result  # noqa: E402  (benchmarks/common.py)
+from common import RESULTS, paper_scenes, paper_sim_cpu, simulate_options, write_result  # noqa: E402  (benchmarks/common.py)
 
 
 def profile_setting(name: str, clips: int, frames: int) -> dict:
@@ -37,9 +37,7 @@ def profile_setting(name: str, clips: int, frames: int) -> dict:
     profiler = cProfile.Profile()
     start = time.perf_counter()
     profiler.enable()
-    results = simulate(scenes, fps=cfg.fps, frames=frames, substeps=cfg.substeps, settle_s=cfg.settle_s,
-                       cg_iterations=cfg.cg_iterations, cg_tolerance=cfg.cg_tolerance,
-                       self_collision=cfg.self_collision, collision_thickness=cfg.collision_thickness, device="cpu")
+    results = simulate(scenes, **simulate_options(cfg, frames))
     profiler.disable()
     total = time.perf_counter() - start
     stats = pstats.Stats(profiler).stats
@@ -71,10 +69,7 @@ def time_host_workers(name: str, clips: int, frames: int, workers: list[int]) ->
     out = {"setting": name, "runs": []}
     for w in workers:
         start = time.perf_counter()
-        results = simulate(scenes, fps=cfg.fps, frames=frames, substeps=cfg.substeps, settle_s=cfg.settle_s,
-                           cg_iterations=cfg.cg_iterations, cg_tolerance=cfg.cg_tolerance,
-                           self_collision=cfg.self_collision, collision_thickness=cfg.collision_thickness,
-                           device="cpu", host_workers=w)
+        results = simulate(scenes, **simulate_options(cfg, frames, host_workers=w))
         out["runs"].append({"host_workers": w, "seconds": round(time.perf_counter() - start, 2),
                             "clips_digest": clip_digest(results)})
     base = out["runs"][0]

@@ -21,7 +21,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import RESULTS, paper_scenes, paper_sim_cpu, write_result  # noqa: E402
+from common import RESULTS, paper_scenes, paper_sim_cpu, simulate_options, write_result  # noqa: E402
 
 
 def positions(results) -> list[np.ndarray | None]:
@@ -64,9 +64,7 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     cfg, simulate, built = paper_scenes(args.setting, range(args.clips))
     scenes = [scene for scene, _ in built]
-    opts = dict(fps=cfg.fps, frames=args.frames, substeps=cfg.substeps, settle_s=cfg.settle_s,
-                cg_iterations=cfg.cg_iterations, cg_tolerance=cfg.cg_tolerance, self_collision=cfg.self_collision,
-                collision_thickness=cfg.collision_thickness, device=args.device)
+    opts = simulate_options(cfg, args.frames, args.device)
     first = positions(simulate(scenes, **opts))
     again = positions(simulate(scenes, **opts))
     half = len(scenes) // 2

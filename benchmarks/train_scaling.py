@@ -128,16 +128,16 @@ def run_side(args, world: int, argv: list[str]) -> float | None:
 
 
 def side_report(folder: Path, wall: float | None) -> dict:
+    from eval.ablation import training_speed
+
     curves = pd.read_csv(folder / "metrics.csv")
     config = json.loads((folder / "config.json").read_text())
-    windows = config["train_subsequences"]
-    steady = curves["seconds"].iloc[1:] if len(curves) > 1 else curves["seconds"]
+    speed = training_speed(folder)      # windows/s over the epochs after the first, kept epoch, ...
     return {"folder": str(folder), "world_size": config["world_size"], "batch_per_process": config["train"]["batch_size"],
-            "process_seconds": wall, "epoch_seconds": round(float(curves["seconds"].sum()), 2),
-            "first_epoch_seconds": round(float(curves["seconds"].iloc[0]), 2),
-            "windows_per_s": round(windows / float(steady.mean()), 1), "train_windows": windows,
-            "best_val_acc": round(float(curves["val_acc"].max()), 4),
-            "kept_epoch": json.loads((folder / "DONE").read_text()).get("kept_epoch"),
+            "process_seconds": wall, "epoch_seconds": speed["train_seconds"],
+            "first_epoch_seconds": speed["first_epoch_seconds"], "windows_per_s": speed["windows_per_s"],
+            "train_windows": speed["train_windows"], "best_val_acc": round(float(curves["val_acc"].max()), 4),
+            "kept_epoch": speed["kept_epoch"],
             "curve": curves[["epoch", "seconds", "val_acc", "train_acc"]].round(4).to_dict(orient="records")}
 
 

@@ -531,20 +531,28 @@ def train_selected(run: Run, settings: Iterable[str] | None = None, variants: It
     chosen = [(s, v) for s, v in pairs(cfg) if s in settings and v in variants]
     for s, v in chosen:
         run.require(run.render_dir(v, s), "render")
+    if everything:
+        index = train_all(run, progress=progress, parallel=parallel, options=options)
+        return [run.root / e["dir"] for e in index["entries"]]
     # A model that needs another (base2 freezes base1's CNN of the same setting, variant and seed) comes after it.
-    models = training_order(models)
-    grid = [(s, v, m, seed) for s, v in chosen for seed in seeds for m in models]
+    grid = [(s, v, m, seed) for s, v in chosen for seed in seeds for m in training_order(models)]
     if parallel != 1 or options is not None:
         from clothgap.executor import run_train_parallel
 
-        folders = run_train_parallel(run, grid, parallel, progress, options)
-        if not everything:
-            return folders
-    if everything:
-        from learn.stage import run_train
-
-        index = run_train(run, progress)                # also writes train/index.json (after a parallel run:
-        return [run.root / e["dir"] for e in index["entries"]]   # every model is done, only the index is written)
+        return run_train_parallel(run, grid, parallel, progress, options)
     from learn.train import train_one
 
     return [train_one(run, *entry, progress) for entry in grid]
+
+
+def train_all(run: Run, *, progress: bool = True, parallel: int = 1, options=None) -> dict:
+    """Train the run's whole grid (``clothgap train RUN``, the pipeline's train stage), one model after another
+    or, with ``parallel`` / ``options``, side by side (``clothgap.executor.run_train_parallel``); returns
+    ``train/index.json`` as written."""
+    from learn.stage import run_train, training_grid
+
+    if parallel != 1 or options is not None:
+        from clothgap.executor import run_train_parallel
+
+        run_train_parallel(run, training_grid(run), parallel, progress, options)
+    return run_train(run, progress)         # after a parallel run every model is done: only the index is written

@@ -439,17 +439,17 @@ def eval_ablation(run_dir: Path, recipes: tuple[str, ...], setting: str | None, 
                           f"{', '.join(f'{s}/{v}' for s, v in known)}")
     from eval.ablation import recipe_config, run_ablation
 
-    configs = {recipe: recipe_config(run.config, recipe) for recipe in recipes}   # all checked before training
+    for recipe in recipes:
+        recipe_config(run.config, recipe)   # every recipe is checked before any training
     t0 = time.perf_counter()
     if name is not None and (not name or "/" in name):
         raise ConfigError(f"--name {name!r}: must be a plain file name")
     if parallel > 1:
         from clothgap.executor import run_train_parallel
-        from learn.registry import training_order
+        from eval.ablation import ablation_grid
 
-        run_train_parallel(run, [(setting, variant, model, seed, recipe) for recipe, cfg in configs.items()
-                                 for seed in (seeds or cfg.seeds)
-                                 for model in training_order(models or run.config.train.models)], parallel)
+        run_train_parallel(run, ablation_grid(run, setting, variant, list(recipes), list(models) or None,
+                                              list(seeds) or None), parallel)
     _echo_summary("eval ablation", run_ablation(run, setting, variant, list(recipes), list(models) or None,
                                                 list(seeds) or None, name=name), time.perf_counter() - t0)
 
@@ -532,16 +532,9 @@ def pipeline(run_dir, preset_name, out, overrides, config_file, allow_failures, 
 
     stage("sim", lambda r: run_stage(r, "sim", opts))
     stage("render", lambda r: run_stage(r, "render", opts))
-    from learn.stage import run_train, training_grid
+    from clothgap.api import train_all
 
-    def train_models(r):
-        if train_parallel > 1:
-            from clothgap.executor import run_train_parallel
-
-            run_train_parallel(r, training_grid(r), train_parallel)
-        return run_train(r)             # writes the index (every model done after a parallel run)
-
-    stage("train", train_models)
+    stage("train", lambda r: train_all(r, parallel=train_parallel))
     from eval.stage import run_eval
 
     stage("eval", run_eval)

@@ -200,10 +200,8 @@ def _entry_config(run: Run, entry: TrainEntry):
     return recipe_config(run.config, entry[4]), recipe_root(run, entry[4])
 
 
-def _entry_folder(run: Run, entry: TrainEntry) -> Path:
-    from learn.train import train_folder
-
-    return train_folder(run, *entry[:4], root=_entry_config(run, entry)[1])
+def describe_models(job: list[TrainEntry]) -> str:
+    return "models " + ", ".join("/".join(map(str, entry)) for entry in job)
 
 
 def train_shard(run_root: str, entries: list[TrainEntry]) -> dict:
@@ -233,30 +231,32 @@ def run_train_parallel(run: Run, grid: Sequence[TrainEntry], parallel: int = 1, 
     settings and folder it then trains with. Finished models are skipped; a killed run resumes each model
     from its last epoch. Returns the training folders in grid order."""
     from learn.stage import prepare_shared_inputs
-    from learn.train import resolve_device
+    from learn.train import resolve_device, train_folder
 
     if parallel < 1:
         raise ConfigError(f"--parallel must be at least 1, got {parallel}")
     if options is not None and options.shard_size is not None:
         raise ConfigError("--shard-size cuts sim and render into clip shards; training runs one job per model")
     grid = [tuple(e) for e in grid]
-    pending = [e for e in grid if not (_entry_folder(run, e) / "DONE").is_file()]
+    settings = {e: _entry_config(run, e) for e in grid}                 # (train settings, train root)
+    folders = [train_folder(run, *e[:4], root=settings[e][1]) for e in grid]
+    pending = [e for e, folder in zip(grid, folders) if not (folder / "DONE").is_file()]
     if pending:
-        configs = [_entry_config(run, e)[0] for e in pending]
+        configs = [settings[e][0] for e in pending]
         prepare_shared_inputs(run, [e[:4] for e in pending], progress, configs=configs)
         slots = None
         if options is None or (options.executor == "process" and not options.gpus_per_worker):
-            workers = (options.workers if options is not None and options.workers else None) or parallel
+            workers = (options and options.workers) or parallel
             devices = {resolve_device(c.device).type for c in configs}
             gpus = visible_gpus() if "cuda" in devices else []
             slots = [gpus[i % len(gpus)] for i in range(workers)] if gpus else None
-            options = ExecutorOptions("process", workers=workers, progress=progress)
+            options = ExecutorOptions("process", workers=workers)
         elif options.executor == "process":
             slots = gpu_slots(visible_gpus(), options.gpus_per_worker, options.workers)
-        options = dataclasses.replace(options, progress=progress)
-        run_shards(train_shard, str(run.root.resolve()), train_jobs(pending), options=options.validate(),
-                   label="train", gpu_slots=slots)
-    return [_entry_folder(run, e) for e in grid]
+        run_shards(train_shard, str(run.root.resolve()), train_jobs(pending),
+                   options=dataclasses.replace(options, progress=progress), label="train", gpu_slots=slots,
+                   describe=describe_models)
+    return folders
 
 
 def merge_summaries(stage: str, parts: list[dict]) -> dict:
@@ -309,10 +309,15 @@ def gpu_slots(gpus: Sequence[str], gpus_per_worker: float, workers: int | None =
 
 # ---------------------------------------------------------------- running shards
 
+def describe_clips(shard: list[int]) -> str:
+    return f"clips {shard[0]}..{shard[-1]}" if shard else "no clips"
+
+
 def run_shards(fn: ShardFn, run_root: str, shards: list[list[int]], *,
                options: ExecutorOptions = ExecutorOptions(), label: str = "shards",
-               gpu_slots: list[str] | None = None) -> list[dict]:
-    """Run ``fn(run_root, shard)`` for every shard; returns the shards' summaries in shard order."""
+               gpu_slots: list[str] | None = None, describe: Callable[[list], str] = describe_clips) -> list[dict]:
+    """Run ``fn(run_root, shard)`` for every shard; returns the shards' summaries in shard order.
+    ``describe`` names a shard in errors (a shard of clip indices by default)."""
     options = options.validate()
     if not shards:
         return []
@@ -324,20 +329,14 @@ def run_shards(fn: ShardFn, run_root: str, shards: list[list[int]], *,
                 bar.update()
             return results
     if options.executor == "process":
-        return _run_process_pool(fn, run_root, shards, options, label, gpu_slots)
-    return _run_ray(fn, run_root, shards, options, label)
+        return _run_process_pool(fn, run_root, shards, options, label, gpu_slots, describe)
+    return _run_ray(fn, run_root, shards, options, label, describe)
 
 
 def _progress(total: int, enabled: bool, desc: str):
     from tqdm import tqdm
 
     return tqdm(total=total, disable=not enabled, desc=desc, unit="shard")
-
-
-def _describe(s: list) -> str:
-    if s and isinstance(s[0], tuple):       # a training job: its models
-        return "models " + ", ".join("/".join(map(str, entry)) for entry in s)
-    return f"clips {s[0]}..{s[-1]}" if s else "no clips"
 
 
 def _init_worker(slots, host_share: int) -> None:
@@ -348,7 +347,7 @@ def _init_worker(slots, host_share: int) -> None:
         os.environ["CUDA_VISIBLE_DEVICES"] = slots.get()
 
 
-def _run_process_pool(fn, run_root, shards, options, label, slots) -> list[dict]:
+def _run_process_pool(fn, run_root, shards, options, label, slots, describe) -> list[dict]:
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor, as_completed
     from concurrent.futures.process import BrokenProcessPool
@@ -377,7 +376,7 @@ def _run_process_pool(fn, run_root, shards, options, label, slots) -> list[dict]
                         continue
                     except Exception as e:
                         pool.shutdown(wait=True, cancel_futures=True)     # shards not started are dropped
-                        raise ShardError(f"{label} shard {i} ({_describe(shards[i])}) failed: "
+                        raise ShardError(f"{label} shard {i} ({describe(shards[i])}) failed: "
                                          f"{type(e).__name__}: {e}; finished clips are kept") from e
                     bar.update()
             if not broken:
@@ -386,7 +385,7 @@ def _run_process_pool(fn, run_root, shards, options, label, slots) -> list[dict]
             if attempt < options.retries:
                 bar.write(f"{label}: a worker died; running {len(pending)} unfinished shard(s) again")
     raise ShardError(f"{label}: a worker died {options.retries + 1} times running "
-                     f"{', '.join(_describe(shards[i]) for i in pending)}; finished clips are kept, "
+                     f"{', '.join(describe(shards[i]) for i in pending)}; finished clips are kept, "
                      "re-run the same command to redo the rest")
 
 
@@ -463,7 +462,7 @@ def ray_parallelism(ray, options: ExecutorOptions) -> int:
     return max(1, int(res.get("CPU", 1)))
 
 
-def _run_ray(fn, run_root, shards, options, label) -> list[dict]:
+def _run_ray(fn, run_root, shards, options, label, describe) -> list[dict]:
     with ray_session(options) as ray:
         from ray.exceptions import RayTaskError
 
@@ -487,9 +486,9 @@ def _run_ray(fn, run_root, shards, options, label) -> list[dict]:
                 except RayTaskError as e:
                     cause = getattr(e, "cause", None)
                     why = f"{type(cause).__name__}: {cause}" if cause is not None else str(e)
-                    raise ShardError(f"{label} shard {i} ({_describe(shards[i])}) failed on Ray: {why}") from e
+                    raise ShardError(f"{label} shard {i} ({describe(shards[i])}) failed on Ray: {why}") from e
                 except Exception as e:      # WorkerCrashedError, NodeDiedError, ... after the retries
-                    raise ShardError(f"{label} shard {i} ({_describe(shards[i])}) could not finish on Ray: "
+                    raise ShardError(f"{label} shard {i} ({describe(shards[i])}) could not finish on Ray: "
                                      f"{type(e).__name__}: {e}; finished clips are kept, re-run the same "
                                      "command to redo the rest") from e
                 bar.update()

@@ -6,7 +6,10 @@ A process executor runs several stage workers on one host; each gets an equal sh
 
 from __future__ import annotations
 
+import math
+import multiprocessing as mp
 import os
+from concurrent.futures import ProcessPoolExecutor
 
 HOST_PROCESSES_ENV = "CLOTHGAP_HOST_PROCESSES"
 
@@ -23,3 +26,20 @@ def host_processes() -> int:
 def share_of_host(workers: int) -> int:
     """The CPUs each of ``workers`` processes on this host gets (at least one)."""
     return max(1, host_processes() // max(1, workers))
+
+
+def pool_size(items: int, min_items: int, min_cpus: int) -> int:
+    """Processes for a pool over ``items``: this process's share of the CPUs when there are at least
+    ``min_items`` items and the share has at least ``min_cpus`` CPUs, else 0 (the work stays in this process)."""
+    cpus = host_processes()
+    return cpus if items >= min_items and cpus >= min_cpus else 0
+
+
+def spawn_pool(processes: int) -> ProcessPoolExecutor:
+    """A pool of spawned processes: not forked, since the parent may hold a CUDA context."""
+    return ProcessPoolExecutor(max_workers=processes, mp_context=mp.get_context("spawn"))
+
+
+def chunk_size(items: int, processes: int) -> int:
+    """Items per task of ``pool.map``: about four tasks a process, so that a slow chunk does not hold the rest."""
+    return max(1, math.ceil(items / (4 * max(1, processes))))

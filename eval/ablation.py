@@ -68,12 +68,28 @@ def recipe_root(run: Run, recipe: str) -> Path:
     return run.ablation_dir(recipe)
 
 
+def _recipe_seeds(cfg: TrainConfig, seeds: list[int] | None) -> list[int]:
+    """The seeds a recipe trains: those asked for, else the recipe's own ``train.seeds``."""
+    return list(seeds) if seeds is not None else list(cfg.seeds)
+
+
+def ablation_grid(run: Run, setting: str, variant: str, recipes: list[str], models: list[str] | None = None,
+                  seeds: list[int] | None = None) -> list[tuple[str, str, str, int, str]]:
+    """The (setting, variant, model, seed, recipe) trainings ``run_ablation`` needs, each model after the one it
+    starts from: what ``clothgap.executor.run_train_parallel`` trains side by side before the scoring."""
+    from learn.registry import training_order
+
+    ordered = training_order(models or run.config.train.models)
+    return [(setting, variant, model, seed, recipe) for recipe in recipes
+            for seed in _recipe_seeds(recipe_config(run.config, recipe), seeds) for model in ordered]
+
+
 def _curves(folder: Path) -> list[dict]:
     path = folder / "metrics.csv"
     return json.loads(pd.read_csv(path).to_json(orient="records")) if path.is_file() else []
 
 
-def _speed(folder: Path) -> dict:
+def training_speed(folder: Path) -> dict:
     """Training seconds and windows/s (epochs after the first, which includes compilation)."""
     curves = _curves(folder)
     config = json.loads((folder / "config.json").read_text())
@@ -114,14 +130,14 @@ def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], model
     out_dir = run.eval_dir
     for recipe in recipes:
         cfg = configs[recipe]
-        recipe_seeds = list(seeds) if seeds is not None else list(cfg.seeds)
+        recipe_seeds = _recipe_seeds(cfg, seeds)
         for model in models:
             frame, folders = _train_and_predict(run, setting, variant, recipe, cfg, model, recipe_seeds, test,
                                                 caches, progress)
             row = {"recipe": recipe, "model": model, "seeds": recipe_seeds,
                    "changes": {k: v for k, v in dataclasses.asdict(cfg).items() if getattr(base, k) != v},
                    **_scores(run, frame, model, reference, len(rows))}
-            row["speed"] = [_speed(f) for f in folders]
+            row["speed"] = [training_speed(f) for f in folders]
             row["curves"] = {f"s{s}": _curves(f) for s, f in zip(recipe_seeds, folders)}
             rows.append(row)
     scored = max((r["sequences"] for r in rows), default=0)
@@ -177,9 +193,7 @@ def _scores(run: Run, frame: pd.DataFrame, model: str, reference: dict, row_inde
         reference[model] = (correct, groups)
     # the video-level answer (`eval real`, `clone`): one decision per (seed, sequence) from its windows' mean
     # probabilities (drawn after the scores above, whose intervals stay what they were)
-    seq = pd.concat([preds.per_sequence(f) for _, f in frame.groupby("seed")], ignore_index=True)
-    scores.update(metrics.bootstrap_mean((seq["class_index"] == seq["pred"]).to_numpy(float), seq["clip_id"].to_numpy(),
-                                         rng=rng, **bootstrap).as_dict("seq_acc"))
+    scores.update(metrics.bootstrap_mean(*preds.sequence_correct(frame), rng=rng, **bootstrap).as_dict("seq_acc"))
     return scores
 
 

@@ -66,3 +66,10 @@ def per_sequence(frame: pd.DataFrame) -> pd.DataFrame:
         "pred": mean_probs.to_numpy().argmax(axis=1),
     })
     return pd.concat([out, mean_probs.reset_index(drop=True)], axis=1)
+
+
+def sequence_correct(frame: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """Whether each (seed, clip)'s video-level decision (``per_sequence``) is right, and the clip ids to
+    resample them by: the per-sequence accuracy of a frame of one or several seeds' predictions."""
+    seq = pd.concat([per_sequence(f) for _, f in frame.groupby("seed")], ignore_index=True)
+    return (seq["class_index"] == seq["pred"]).to_numpy(float), seq["clip_id"].to_numpy()

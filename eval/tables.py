@@ -59,10 +59,8 @@ def score_cell(cell: Cell, *, resamples: int, confidence: float, rng: np.random.
     out = metrics.summarize(frame["class_index"].to_numpy(), frame["pred"].to_numpy(), probs, groups,
                             resamples=resamples, confidence=confidence, rng=rng)
     # One decision per (seed, clip): mean probabilities over that clip's sub-sequences.
-    seq = pd.concat([preds.per_sequence(f) for _, f in frame.groupby("seed")], ignore_index=True)
-    seq_correct = (seq["class_index"] == seq["pred"]).to_numpy(float)
-    out.update(metrics.bootstrap_mean(seq_correct, seq["clip_id"].to_numpy(), resamples=resamples,
-                                      confidence=confidence, rng=rng).as_dict("seq_acc"))
+    out.update(metrics.bootstrap_mean(*preds.sequence_correct(frame), resamples=resamples, confidence=confidence,
+                                      rng=rng).as_dict("seq_acc"))
     return out
 
 

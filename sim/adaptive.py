@@ -15,15 +15,12 @@ points pins the same lattice points.
 from __future__ import annotations
 
 import dataclasses
-import math
-import multiprocessing as mp
 import warnings
-from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 
-from clothgap.parallel import host_processes
+from clothgap.parallel import chunk_size, pool_size, spawn_pool
 from sim import remesh
 from sim.motions import ClipScene
 from sim.phases import timed
@@ -52,14 +49,6 @@ class _Cloth:
     spec: ClothSpec
     pin_edge: bool                 # pinned along the whole top edge
     pin_points: set[tuple[int, int]]
-
-    @property
-    def edges(self) -> np.ndarray:
-        return self.state.edges
-
-    @property
-    def edge_rest(self) -> np.ndarray:
-        return self.state.edge_rest
 
 
 def _pins(c: _Cloth) -> np.ndarray:
@@ -97,18 +86,17 @@ class _Remesher:
 
     def __init__(self, workers: int):
         self.workers = workers
-        self.pool = (ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
-                     if workers > 1 else None)
+        self.pool = spawn_pool(workers) if workers > 1 else None
 
     def __call__(self, cloths: list[int], quads: list, positions: list, velocities: list,
                  refine_angle: float) -> list[remesh.Remeshed | None]:
         if self.pool is None or len(cloths) < 2:
             return [remesh.remesh_cloth(q, p, v, refine_angle, c)
                     for c, q, p, v in zip(cloths, quads, positions, velocities)]
-        chunk = max(1, math.ceil(len(cloths) / (4 * self.workers)))
         try:
             return list(self.pool.map(remesh.remesh_cloth, quads, positions, velocities,
-                                      [refine_angle] * len(cloths), cloths, chunksize=chunk))
+                                      [refine_angle] * len(cloths), cloths,
+                                      chunksize=chunk_size(len(cloths), self.workers)))
         except BrokenProcessPool:
             # a worker died (killed, out of memory): the same steps in this process give the same bytes
             warnings.warn("a remeshing worker died; remeshing the rest of this batch in this process",
@@ -122,11 +110,6 @@ class _Remesher:
             self.pool.shutdown(cancel_futures=True)
 
 
-def remesh_workers(num_cloths: int) -> int:
-    """Host processes for a batch's remeshing: one per CPU of this process's share
-    (``clothgap.parallel.host_processes``) for a large batch on a machine of several, else 0."""
-    cpus = host_processes()
-    return cpus if num_cloths >= REMESH_POOL_MIN_CLOTHS and cpus >= REMESH_POOL_MIN_CPUS else 0
 
 
 def simulate_adaptive(scenes: list[ClipScene], base: remesh.QuadMesh, *, fps: float, frames: int,
@@ -137,16 +120,17 @@ def simulate_adaptive(scenes: list[ClipScene], base: remesh.QuadMesh, *, fps: fl
                       host_workers: int | None = None, phases: dict[str, float] | None = None) -> list[AdaptiveResult]:
     """Settle without wind on the base mesh, then record ``frames`` frames with the wind on,
     remeshing every cloth after each frame. ``scenes`` must be built on ``remesh.cloth_mesh(base)``.
-    ``health(cloth, x, x_prev, frame_dt)`` may read ``cloth.edges`` and ``cloth.edge_rest`` (the mesh the
-    solver ran this frame on). ``host_workers``: processes that remesh the cloths (None: ``remesh_workers``;
-    0 or 1: this process); the clips are the same bytes either way. ``phases`` (optional) gets the seconds
+    ``health(cloth, x, x_prev, frame_dt)`` may read ``cloth.state`` (the mesh the solver ran this frame
+    on). ``host_workers``: processes that remesh the cloths (None: one per CPU for a large batch; 0 or 1:
+    this process); the clips are the same bytes either way. ``phases`` (optional) gets the seconds
     of building the first solver and settling (``settle``), the recorded frames' steps and read-backs
     (``steps``), the health checks (``health``), remeshing (``remesh``, the pool's wall time) and the
     solvers rebuilt after it (``rebuild``)."""
     dt = 1.0 / (fps * substeps)
     params = SolverParams(dt=dt, cg_iterations=cg_iterations, cg_tolerance=cg_tolerance,
                           self_collision=self_collision, collision_thickness=collision_thickness)
-    remesher = _Remesher(remesh_workers(len(scenes)) if host_workers is None else host_workers)
+    remesher = _Remesher(pool_size(len(scenes), REMESH_POOL_MIN_CLOTHS, REMESH_POOL_MIN_CPUS)
+                         if host_workers is None else host_workers)
     try:
         return _simulate(scenes, base, params, fps, frames, substeps, settle_s, refine_angle, health, on_frame,
                          remesher, device, phases)
@@ -197,7 +181,7 @@ def _simulate(scenes, base, params, fps, frames, substeps, settle_s, refine_angl
                 changed = True
             else:
                 cloth.spec = dataclasses.replace(cloth.spec, positions=pos[c], velocities=vel[c])
-        if changed and t + 1 < frames:
+        if changed:                         # (never after the last frame: nothing is remeshed then)
             with timed(phases, "rebuild"):
                 cg = [a.merged(b) for a, b in zip(cg, solver.cg_stats())]
                 dropped = [a + b for a, b in zip(dropped, solver.collision_dropped() or [0] * len(scenes))]

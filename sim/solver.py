@@ -225,12 +225,9 @@ class BatchSolver:
         by_mesh: dict[int, dict] = {}
         rest = []
         for c, s in enumerate(specs):
-            if mesh_rests is not None:
-                shared = mesh_rests[c]
-            else:
-                if id(s.mesh) not in by_mesh:
-                    by_mesh[id(s.mesh)] = mesh_rest(s.mesh, c)
-                shared = by_mesh[id(s.mesh)]
+            if mesh_rests is None and id(s.mesh) not in by_mesh:
+                by_mesh[id(s.mesh)] = mesh_rest(s.mesh, c)
+            shared = mesh_rests[c] if mesh_rests is not None else by_mesh[id(s.mesh)]
             rest.append(_rest_state(c, s, int(self.vertex_offsets[c]), shared))
         self._upload_cloths(specs, rest)
         edges = [r["edges"] for r in rest]

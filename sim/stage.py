@@ -22,12 +22,10 @@ is retried once with twice the substeps; if it fails again its folder gets a
 from __future__ import annotations
 
 import functools
-import math
-import multiprocessing as mp
 import shutil
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,7 +33,7 @@ import numpy as np
 
 from clothgap import seeding
 from clothgap.errors import ConfigError
-from clothgap.parallel import host_processes
+from clothgap.parallel import chunk_size, host_processes, pool_size, spawn_pool
 from clothgap.runs import (Run, atomic_write_json, clip_id, fresh_dir, is_done, mark_done, select_clips,
                            storage_error)
 from sim import classes
@@ -184,7 +182,7 @@ def simulate_adaptive_scenes(scenes: list[ClipScene], base, *, fps: float, frame
     (optional) gets the seconds of ``sim.adaptive.simulate_adaptive``'s phases (settle, steps, health, remesh,
     rebuild). ``host_workers``: processes that remesh (None picks by batch size)."""
     def check(cloth, x, x_prev, frame_dt):          # on the mesh the solver ran this frame on
-        return health(x, x_prev, frame_dt, cloth.edges, cloth.edge_rest)
+        return health(x, x_prev, frame_dt, cloth.state.edges, cloth.state.edge_rest)
 
     out = simulate_adaptive(scenes, base, fps=fps, frames=frames, substeps=substeps, settle_s=settle_s,
                             cg_iterations=cg_iterations, cg_tolerance=cg_tolerance, self_collision=self_collision,
@@ -387,16 +385,15 @@ def write_clips(folders: list[Path], metas: list[dict], results: list[ClipResult
     ``processes`` None picks: a spawned process pool (one process per CPU of this process's share,
     ``clothgap.parallel.host_processes``, chunks of clips) for a large batch on a machine with several
     cores, else threads; 0 forces threads."""
-    cpus = host_processes()
     if processes is None:
-        processes = cpus if len(folders) >= PROCESS_WRITE_MIN_CLIPS and cpus >= PROCESS_WRITE_MIN_CPUS else 0
+        processes = pool_size(len(folders), PROCESS_WRITE_MIN_CLIPS, PROCESS_WRITE_MIN_CPUS)
     if processes <= 0 or len(folders) < 2:
-        with ThreadPoolExecutor(max_workers=min(32, cpus, max(len(folders), 1))) as pool:
+        with ThreadPoolExecutor(max_workers=min(32, host_processes(), max(len(folders), 1))) as pool:
             return list(pool.map(write_clip, folders, metas, results, [mesh] * len(folders)))
-    # Spawned, not forked: the parent holds a CUDA context. Results travel as arrays (~0.1 MB a clip).
-    with ProcessPoolExecutor(max_workers=min(processes, len(folders)), mp_context=mp.get_context("spawn")) as pool:
-        chunk = max(1, math.ceil(len(folders) / (4 * processes)))
-        return list(pool.map(write_clip, folders, metas, results, [mesh] * len(folders), chunksize=chunk))
+    # Results travel as arrays (~0.1 MB a clip).
+    with spawn_pool(min(processes, len(folders))) as pool:
+        return list(pool.map(write_clip, folders, metas, results, [mesh] * len(folders),
+                             chunksize=chunk_size(len(folders), processes)))
 
 
 def write_clip(folder: Path, meta: dict, result: ClipResult, mesh: ClothMesh) -> bool:

@@ -338,6 +338,7 @@ def test_batched_equals_one_at_a_time():
 # ---------------------------------------------------------------- stage
 
 def test_a_batch_written_by_processes_is_the_batch_written_by_threads(tmp_path, monkeypatch):
+    import clothgap.parallel
     import sim.stage
     from sim.stage import run_sim
 
@@ -346,8 +347,8 @@ def test_a_batch_written_by_processes_is_the_batch_written_by_threads(tmp_path, 
     monkeypatch.setattr(sim.stage, "PROCESS_WRITE_MIN_CLIPS", 1)     # what a GPU batch of thousands takes
     monkeypatch.setattr(sim.stage, "PROCESS_WRITE_MIN_CPUS", 1)
     pools = []
-    real_pool = sim.stage.ProcessPoolExecutor
-    monkeypatch.setattr(sim.stage, "ProcessPoolExecutor", lambda *a, **k: pools.append(k) or real_pool(*a, **k))
+    real_pool = clothgap.parallel.ProcessPoolExecutor          # what sim.stage's spawned pool is made of
+    monkeypatch.setattr(clothgap.parallel, "ProcessPoolExecutor", lambda *a, **k: pools.append(k) or real_pool(*a, **k))
     processes = tiny_sim_run(tmp_path / "processes")
     assert run_sim(processes, progress=False)["simulated"] == 2
     assert len(pools) == 1 and pools[0]["mp_context"].get_start_method() == "spawn"   # the process path ran
