@@ -1,0 +1,57 @@
+#!/usr/bin/env bash
+# GPU: the "more simulations" lever at full size, one command per call until it is done.
+#   SEQ=96 RUN=/tmp/seq96 bash scripts/gpu/more_data.sh     (call it again after a cut-off: it goes on)
+# 1. wind-uniform1 at the paper preset with SEQ sequences per class (sim + render, scripts/gpu/paper_study.sh);
+# 2. one training pool over the machine's GPUs (scripts/gpu/learn_grid.py): the Table 3 row (lrcn, base1,
+#    base2, base3 on `best`, the preset's recipe) beside lrcn levers on the same clips, among them
+#    train_fraction=0.5 (the old 35 training sequences a class, on this data's test clips: the data-size
+#    lever alone);
+# 3. the measured-fabric set on the row's models (clothgap eval measured, held-out variant).
+# Stops in time for the device's 10-minute limit (BUDGET seconds in all); every step resumes.
+set -uo pipefail
+source scripts/gpu/env.sh
+export RUN=${RUN:-/tmp/seq96}; SEQ=${SEQ:-96}; SETTING=${SETTING:-wind-uniform1}; BUDGET=${BUDGET:-560}
+LEVERS=${LEVERS:-"best+train_fraction=0.5 best+clip_len=20 best+clip_len=20+weight_decay=0.05"}
+TAG=${TAG:-seq$SEQ}
+t0=$(date +%s); left() { echo $(( BUDGET - ($(date +%s) - t0) )); }
+log=$OUT/more_data.log
+ngpu=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true); [ "${ngpu:-0}" -ge 1 ] || ngpu=1
+
+# 1. data (quick when finished: every clip's DONE is checked and skipped)
+if [ ! -f "$RUN/.data-done" ]; then
+  for stage in sim render; do
+    # render only simulations that are all finished (the split is made from them)
+    [ $stage = render ] && ! tail -1 "$RUN/gpu_timings.jsonl" 2>/dev/null | grep -q '"stage": "sim", "rc": 0' && break
+    [ "$(left)" -gt 90 ] && LIMIT=$(( $(left) - 30 )) SEQ=$SEQ STAGES=$stage SPP=16 bash scripts/gpu/paper_study.sh 2>&1 \
+      | tee -a "$log"
+  done
+  tail -2 "$RUN/gpu_timings.jsonl" | grep -q '"stage": "render", "rc": 0' && touch "$RUN/.data-done"
+  cp "$RUN/gpu_timings.jsonl" "$OUT/gpu_timings-$TAG.jsonl" 2>/dev/null
+fi
+[ -f "$RUN/.data-done" ] || { echo "data not finished: call again" | tee -a "$log"; exit 0; }
+
+# 2. the training pool, then the tables of whatever has finished
+jobs=(--job "best:lrcn,base1,base2,base3")
+for r in $LEVERS; do jobs+=(--job "$r:lrcn"); done
+lever_list=$(echo "best $LEVERS" | tr ' ' ',')
+[ "$(left)" -gt 60 ] && python3 scripts/gpu/learn_grid.py "$RUN" --setting "$SETTING" \
+    --parallel "${PARALLEL:-$((3 * ngpu))}" --deadline $(( $(left) - 45 )) "${jobs[@]}" \
+    --table "models-$SETTING-$TAG=best:lrcn,base1,base2,base3" --table "levers-$SETTING-$TAG=$lever_list:lrcn" \
+    2>&1 | tr '\r' '\n' | grep -vE "it/s\]|s/it\]|clip/s\]|shard/s\]" | tee -a "$log"
+
+# 3. the measured fabrics on the row's models, once they are all finished
+if [ -f "$RUN/eval/models-$SETTING-$TAG.json" ] && [ ! -f "$RUN/eval/measured.json" ] && [ "$(left)" -gt 90 ]; then
+  mkdir -p "$RUN/train/$SETTING/paper"
+  for m in lrcn base1 base2 base3; do
+    rm -rf "$RUN/train/$SETTING/paper/$m"; cp -r "$RUN/ablation/best/$SETTING/paper/$m" "$RUN/train/$SETTING/paper/$m"
+  done
+  timeout -k 10 $(( $(left) - 15 )) python3 -m clothgap eval measured "$RUN" --sequences 4 2>&1 | tr '\r' '\n' \
+    | grep -vE "it/s\]|s/it\]|clip/s\]" | tail -3 | tee -a "$log"
+  cp "$RUN/eval/measured.md" "$OUT/measured-$SETTING-$TAG.md" 2>/dev/null
+  cp "$RUN/eval/measured.json" "$OUT/measured-$SETTING-$TAG.json" 2>/dev/null
+  head -30 "$RUN/eval/measured.md" 2>/dev/null
+fi
+# the curves and speed of every model trained so far (finished or not), for a call that ends early
+( cd "$RUN" && tar czf "$OUT/models-$TAG.tgz" $(ls -d ablation/*/*/*/*/s*/metrics.csv ablation/*/*/*/*/s*/config.json \
+    ablation/*/*/*/*/s*/DONE 2>/dev/null) config.json gpu_timings.jsonl 2>/dev/null )
+echo "call done in $(( $(date +%s) - t0 )) s"
