@@ -1,18 +1,21 @@
 #!/usr/bin/env bash
-# GPU: the "more simulations" lever at full size, one command per call until it is done.
-#   SEQ=96 RUN=/tmp/seq96 bash scripts/gpu/more_data.sh     (call it again after a cut-off: it goes on)
-# 1. wind-uniform1 at the paper preset with SEQ sequences per class (sim + render, scripts/gpu/paper_study.sh);
+# GPU: one setting at full size, data to Table 3 row, one command per call until it is done.
+#   RUN=/tmp/wind bash scripts/gpu/more_data.sh                 (call it again after a cut-off: it goes on)
+#   MOTIONS=arm RUN=/tmp/arm bash scripts/gpu/more_data.sh      arm-uniform1
+#   SEQ=144 ... sequences per class (default: the preset's 96); LEVERS="..." the lrcn recipes beside `best`
+# 1. the setting at the paper preset (sim + render, scripts/gpu/paper_study.sh);
 # 2. one training pool over the machine's GPUs (scripts/gpu/learn_grid.py): the Table 3 row (lrcn, base1,
-#    base2, base3 on `best`, the preset's recipe) beside lrcn levers on the same clips, among them
-#    train_fraction=0.5 (the old 35 training sequences a class, on this data's test clips: the data-size
-#    lever alone);
+#    base2, base3 on `best`, the preset's recipe) beside lrcn levers on the same clips, e.g.
+#    best+train_fraction=0.5 (half the training sequences a class on this data's test clips: the data-size
+#    lever alone) or best+seeds=1 (how much a rerun moves);
 # 3. the measured-fabric set on the row's models (clothgap eval measured, held-out variant).
 # Stops in time for the device's 10-minute limit (BUDGET seconds in all); every step resumes.
 set -uo pipefail
 source scripts/gpu/env.sh
-export RUN=${RUN:-/tmp/seq96}; SEQ=${SEQ:-96}; SETTING=${SETTING:-wind-uniform1}; BUDGET=${BUDGET:-560}
-LEVERS=${LEVERS:-"best+train_fraction=0.5 best+clip_len=20 best+clip_len=20+weight_decay=0.05"}
-TAG=${TAG:-seq$SEQ}
+export RUN=${RUN:-/tmp/wind} MOTIONS=${MOTIONS:-wind}; SEQ=${SEQ:-}; BUDGET=${BUDGET:-560}
+SETTING=${SETTING:-$MOTIONS-uniform1}
+LEVERS=${LEVERS-"best+seeds=1"}
+TAG=${TAG:-seq${SEQ:-96}}
 t0=$(date +%s); left() { echo $(( BUDGET - ($(date +%s) - t0) )); }
 log=$OUT/more_data.log
 ngpu=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true); [ "${ngpu:-0}" -ge 1 ] || ngpu=1
@@ -33,7 +36,7 @@ fi
 # 2. the training pool, then the tables of whatever has finished
 jobs=(--job "best:lrcn,base1,base2,base3")
 for r in $LEVERS; do jobs+=(--job "$r:lrcn"); done
-lever_list=$(echo "best $LEVERS" | tr ' ' ',')
+lever_list=$(echo best $LEVERS | tr ' ' ',')
 [ "$(left)" -gt 60 ] && python3 scripts/gpu/learn_grid.py "$RUN" --setting "$SETTING" \
     --parallel "${PARALLEL:-$((3 * ngpu))}" --deadline $(( $(left) - 45 )) "${jobs[@]}" \
     --table "models-$SETTING-$TAG=best:lrcn,base1,base2,base3" --table "levers-$SETTING-$TAG=$lever_list:lrcn" \
