@@ -185,6 +185,7 @@ def _simulate(scenes, base, params, fps, frames, substeps, settle_s, refine_angl
             with timed(phases, "rebuild"):
                 cg = [a.merged(b) for a, b in zip(cg, solver.cg_stats())]
                 dropped = [a + b for a, b in zip(dropped, solver.collision_dropped() or [0] * len(scenes))]
+                solver = None               # freed before the next one allocates: one solver's memory at a time
                 solver = _solver(cloths, params, device, elapsed, winds)
         prev = pos
         if on_frame is not None:

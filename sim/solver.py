@@ -442,7 +442,11 @@ class BatchSolver:
         if self.has_arm:
             launch(kernels.contact_release, nv, [self.contact_n, self.contact_rn, self.released, self.contact_jn])
         if self.collision is not None:
-            cmds.append(lambda: wp.copy(self.x_start, self.x))
+            # closes over the arrays, not ``self``: a recorded step that refers to its solver makes a reference
+            # cycle, and a replaced solver (adaptive remeshing rebuilds one a frame) would keep its device memory
+            # until Python's cyclic collector came round, ~20 solvers' worth at once
+            x_start, x = self.x_start, self.x
+            cmds.append(lambda: wp.copy(x_start, x))
         launch(kernels.integrate, nv, [self.dv, self.free, dt, self.x, self.v])
         if self.collision is not None:
             self.collision.record(launch, cmds, dt)

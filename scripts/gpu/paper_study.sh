@@ -15,7 +15,8 @@ set -uo pipefail
 source scripts/gpu/env.sh
 RUN=${RUN:-/tmp/paper_study}
 STAGES=${STAGES:-"sim render train eval report"}
-# One batch a uniform setting; adaptive cloths held 27 GB of GPU memory per 432 (docs/simulation.md), so 864.
+# One batch a uniform setting; adaptive cloths held 27 GB of GPU memory per 432 (a leak, fixed since but not
+# re-measured on a GPU: docs/simulation.md), so 864 a batch until it is.
 [ "${REMESHING:-uniform1}" = adaptive ] && BATCH=${BATCH:-864}
 SETS=(--set sim.motions=${MOTIONS:-wind} --set sim.remeshing=${REMESHING:-uniform1} --set sim.batch_size=${BATCH:-2592}
       --set render.resolution=${RES:-112} --set render.spp=${SPP:-8}
