@@ -28,7 +28,7 @@ def scores(path: Path) -> list[tuple]:
 
 
 def test_a_grid_cut_at_its_deadline_resumes_to_the_tables_of_one_call(tmp_path):
-    cfg = tiny_train_config(epochs=3, num_threads=1)
+    cfg = tiny_train_config(epochs=2, num_threads=1)
     whole, cut = synthetic_run(tmp_path / "whole", cfg), synthetic_run(tmp_path / "cut", cfg)
 
     r = learn_grid(whole, tmp_path / "out-whole", deadline=600)
