@@ -8,8 +8,9 @@ the stage's batch simulator does (adaptive settings remesh every cloth after eve
 seconds in Warp kernel launches (on a GPU these shrink) and on the host (these stay), the host's seconds
 per clip-frame, and the host functions that take the most. ``--host-workers`` then times each adaptive setting
 again without the profiler, remeshing in this process (0) and in pools of the given sizes
-(``sim.adaptive.simulate_adaptive``), checks that the clips are the same bytes, and gives the wall seconds and
-their ratio to 0. Writes benchmarks/results/sim_host-cpu-n<clips>.json with the command.
+(``sim.adaptive.simulate_adaptive``), checks that the clips are the same bytes, and gives the wall seconds, their
+ratio to 0 and the seconds of each phase (settle, steps, health, remesh, rebuild). Writes
+benchmarks/results/sim_host-cpu-n<clips>.json with the command.
 """
 
 from __future__ import annotations
@@ -68,9 +69,11 @@ def time_host_workers(name: str, clips: int, frames: int, workers: list[int]) ->
     scenes = [scene for scene, _ in built]
     out = {"setting": name, "runs": []}
     for w in workers:
+        phases: dict[str, float] = {}
         start = time.perf_counter()
-        results = simulate(scenes, **simulate_options(cfg, frames, host_workers=w))
+        results = simulate(scenes, **simulate_options(cfg, frames, host_workers=w, phases=phases))
         out["runs"].append({"host_workers": w, "seconds": round(time.perf_counter() - start, 2),
+                            "phases_s": {k: round(v, 2) for k, v in phases.items()},
                             "clips_digest": clip_digest(results)})
     base = out["runs"][0]
     for run in out["runs"]:

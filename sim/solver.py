@@ -167,29 +167,69 @@ def resolve_device(device: str) -> str:
     return device
 
 
-def _rest_state(c: int, s: ClothSpec, off: int, shared: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Cloth ``c``'s host-side rest state (vertex ``off`` onward in the batch): positions, velocities,
-    lumped masses, free flags, and its mesh's ``shared`` rest state (``sim.mesh.mesh_rest``) offset into the batch."""
-    faces = s.mesh.faces
-    nv = len(s.mesh.uv)
-    if s.positions.shape != (nv, 3):
-        raise ValueError(f"cloth {c}: positions must be ({nv}, 3), got {s.positions.shape}")
-    if s.stretching.shape != (6, 4) or s.bending.shape != (3, 5):
-        raise ValueError(f"cloth {c}: stretching must be 6x4 and bending 3x5")
-    if not s.density > 0:
-        raise ValueError(f"cloth {c}: density must be positive, got {s.density}")
-    mass = np.zeros(nv)
-    np.add.at(mass, faces.ravel(), np.repeat(shared["area"] * s.density / 3.0, 3))
-    free = np.ones(nv)
-    if s.pinned is not None:
-        free[np.asarray(s.pinned, dtype=np.int64)] = 0.0
-    h = s.mesh.hinges
-    return {"x": s.positions, "v": np.zeros((nv, 3)) if s.velocities is None else s.velocities,
-            "mass": mass, "free": free, "vertex_cloth": np.full(nv, c),
-            "tri": faces + off, "dm_inv": shared["dm_inv"], "area": shared["area"],
-            "face_cloth": np.full(len(faces), c), "hinge": h + off, "hinge_length": shared["hinge_length"],
-            "hinge_area": shared["hinge_area"], "hinge_dir": shared["hinge_dir"], "hinge_cloth": np.full(len(h), c),
-            "edges": shared["edges"] + off}
+def _batch_rest(specs: list[ClothSpec], offsets: np.ndarray,
+                shared: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """The batch's host-side rest state, cloths concatenated (cloth c from vertex ``offsets[c]`` on), in the
+    dtypes the solver uploads (float32, int32): positions, velocities, free flags, each vertex's, face's, hinge's
+    and edge's cloth, each cloth's mesh rest state ``shared[c]`` (``sim.mesh.mesh_rest``) with its vertex
+    indices offset into the batch, and the lumped masses in float64 (self-collision inverts them).
+
+    Built with one concatenation per array, straight into its dtype: cloth-by-cloth assembly (``np.add.at`` of
+    each cloth's masses above all, then concatenating and converting) was most of the host time of an adaptive
+    rebuild, ~1 ms a cloth every frame. A vertex's mass is still its faces' area * density / 3 added in face
+    order, and every value is converted once as before, so the solver gets the same bytes."""
+    for c, s in enumerate(specs):
+        nv = len(s.mesh.uv)
+        if s.positions.shape != (nv, 3):
+            raise ValueError(f"cloth {c}: positions must be ({nv}, 3), got {s.positions.shape}")
+        if s.stretching.shape != (6, 4) or s.bending.shape != (3, 5):
+            raise ValueError(f"cloth {c}: stretching must be 6x4 and bending 3x5")
+        if not s.density > 0:
+            raise ValueError(f"cloth {c}: density must be positive, got {s.density}")
+    f32, i32 = np.float32, np.int32
+    nv = int(offsets[-1])
+    start = offsets[:-1].astype(i32)
+    cloth = np.arange(len(specs), dtype=i32)
+    per_vertex = np.diff(offsets)
+    per_face = np.array([len(s.mesh.faces) for s in specs])
+    per_hinge = np.array([len(s.mesh.hinges) for s in specs])
+    per_edge = np.array([len(r["edges"]) for r in shared])
+
+    def cat(arrays, dtype):
+        return np.concatenate(arrays, dtype=dtype, casting="same_kind")
+
+    def indices(arrays, count, width):      # the cloths' vertex indices, offset into the batch
+        out = cat([np.reshape(a, (-1, width)) for a in arrays], i32)
+        out += np.repeat(start, count)[:, None]
+        return out
+
+    tri = indices([s.mesh.faces for s in specs], per_face, 3)
+    area = np.concatenate([r["area"] for r in shared])
+    weight = area * np.repeat(np.array([s.density for s in specs], dtype=np.float64), per_face)
+    weight /= 3.0
+    # bincount adds each vertex's weights in input order, as np.add.at does: the same float64 sums
+    mass = np.bincount(tri.ravel(), weights=np.repeat(weight, 3), minlength=nv)
+    free = np.ones(nv, dtype=f32)
+    pinned = []
+    for c, s in enumerate(specs):
+        if s.pinned is not None and len(s.pinned):
+            p = np.asarray(s.pinned, dtype=np.int64)
+            if p.min() < 0 or p.max() >= per_vertex[c]:
+                raise ValueError(f"cloth {c}: pinned vertices must be in [0, {per_vertex[c]})")
+            pinned.append(p + offsets[c])
+    if pinned:
+        free[np.concatenate(pinned)] = 0.0
+    return {"x": cat([s.positions for s in specs], f32),
+            "v": cat([np.zeros((n, 3), f32) if s.velocities is None else s.velocities
+                      for n, s in zip(per_vertex, specs)], f32),
+            "mass": mass, "free": free, "vertex_cloth": np.repeat(cloth, per_vertex),
+            "tri": tri, "dm_inv": cat([r["dm_inv"] for r in shared], f32), "area": area.astype(f32),
+            "face_cloth": np.repeat(cloth, per_face),
+            "hinge": indices([s.mesh.hinges for s in specs], per_hinge, 4),
+            "hinge_length": cat([r["hinge_length"] for r in shared], f32),
+            "hinge_area": cat([r["hinge_area"] for r in shared], f32),
+            "hinge_dir": cat([r["hinge_dir"] for r in shared], f32), "hinge_cloth": np.repeat(cloth, per_hinge),
+            "edges": indices([r["edges"] for r in shared], per_edge, 2), "edge_cloth": np.repeat(cloth, per_edge)}
 
 
 def _launch_name(cmd) -> str:
@@ -223,66 +263,62 @@ class BatchSolver:
     def _build(self, specs: list[ClothSpec], mesh_rests: list[dict] | None) -> None:
         # What depends on the mesh alone is computed once per mesh: a batch of thousands of cloths shares one.
         by_mesh: dict[int, dict] = {}
-        rest = []
+        shared = []
         for c, s in enumerate(specs):
             if mesh_rests is None and id(s.mesh) not in by_mesh:
                 by_mesh[id(s.mesh)] = mesh_rest(s.mesh, c)
-            shared = mesh_rests[c] if mesh_rests is not None else by_mesh[id(s.mesh)]
-            rest.append(_rest_state(c, s, int(self.vertex_offsets[c]), shared))
+            shared.append(mesh_rests[c] if mesh_rests is not None else by_mesh[id(s.mesh)])
+        rest = _batch_rest(specs, self.vertex_offsets, shared)
         self._upload_cloths(specs, rest)
-        edges = [r["edges"] for r in rest]
         if self.has_arm:
-            self._allocate_contact(edges)
+            self._allocate_contact(rest["edges"])
         self._allocate_step()
         self.collision = None
         if self.params.self_collision:
             self.x_start = wp.zeros_like(self.x)
             self.collision = SelfCollision(
-                x0=self.x_start, x=self.x, v=self.v, mass=np.concatenate([r["mass"] for r in rest]),
-                free=np.concatenate([r["free"] for r in rest]), vertex_cloth=self.vertex_cloth, tri=self.tri,
-                face_cloth=self.face_cloth, edges=np.concatenate(edges),
-                edge_cloth=np.concatenate([np.full(len(e), c) for c, e in enumerate(edges)]),
+                x0=self.x_start, x=self.x, v=self.v, mass=rest["mass"], free=rest["free"],
+                vertex_cloth=self.vertex_cloth, tri=self.tri, face_cloth=self.face_cloth, edges=rest["edges"],
+                edge_cloth=rest["edge_cloth"],
                 num_cloths=self.num_cloths, thickness=self.params.collision_thickness,
                 friction=self.params.self_friction, passes=self.params.collision_passes,
                 slots=self.params.collision_slots, device=self.device)
 
-    def _upload_cloths(self, specs: list[ClothSpec], rest: list[dict]) -> None:
-        """Every cloth's rest state, materials, loads and arm as device arrays, cloths concatenated."""
+    def _upload_cloths(self, specs: list[ClothSpec], rest: dict[str, np.ndarray]) -> None:
+        """Every cloth's rest state (``_batch_rest``), materials, loads and arm as device arrays."""
         dev = self.device
         f32 = np.float32
 
         def arr(a, dtype):
             return wp.array(np.asarray(a), dtype=dtype, device=dev)
 
-        def cat(key):
-            return np.concatenate([r[key] for r in rest])
-
-        self.x = arr(cat("x").astype(f32), wp.vec3)
-        self.v = arr(cat("v").astype(f32), wp.vec3)
-        self.mass = arr(cat("mass").astype(f32), float)
-        self.free = arr(cat("free").astype(f32), float)
-        self.vertex_cloth = arr(cat("vertex_cloth").astype(np.int32), int)
-        self.tri = arr(cat("tri").astype(np.int32), int)
-        self.dm_inv = arr(cat("dm_inv").astype(f32), wp.mat22)
-        self.area = arr(cat("area").astype(f32), float)
-        self.face_cloth = arr(cat("face_cloth").astype(np.int32), int)
-        self.hinge = arr(cat("hinge").astype(np.int32).reshape(-1, 4), int)
-        self.hinge_length = arr(cat("hinge_length").astype(f32), float)
-        self.hinge_area = arr(cat("hinge_area").astype(f32), float)
-        self.hinge_dir = arr(cat("hinge_dir").astype(f32), float)
-        self.hinge_cloth = arr(cat("hinge_cloth").astype(np.int32), int)
+        self.x = arr(rest["x"], wp.vec3)
+        self.v = arr(rest["v"], wp.vec3)
+        self.mass = arr(rest["mass"].astype(f32), float)
+        self.free = arr(rest["free"], float)
+        self.vertex_cloth = arr(rest["vertex_cloth"], int)
+        self.tri = arr(rest["tri"], int)
+        self.dm_inv = arr(rest["dm_inv"], wp.mat22)
+        self.area = arr(rest["area"], float)
+        self.face_cloth = arr(rest["face_cloth"], int)
+        self.hinge = arr(rest["hinge"], int)
+        self.hinge_length = arr(rest["hinge_length"], float)
+        self.hinge_area = arr(rest["hinge_area"], float)
+        self.hinge_dir = arr(rest["hinge_dir"], float)
+        self.hinge_cloth = arr(rest["hinge_cloth"], int)
         self.stretch = arr(np.stack([np.asarray(s.stretching).ravel() for s in specs]).astype(f32), float)
         self.bend = arr(np.stack([np.asarray(s.bending).ravel() for s in specs]).astype(f32), float)
         self.wind = arr(np.array([s.wind for s in specs], dtype=f32).reshape(-1, 3), wp.vec3)
         self.has_arm = any(s.arm is not None for s in specs)
-        self.arms = wp.array([self._arm_struct(s.arm) for s in specs], dtype=kernels.Arm, device=dev)
+        self.arms = wp.array(self._arm_table([s.arm for s in specs]), dtype=kernels.Arm, device=dev)
         self.clock = wp.zeros(1, dtype=float, device=dev)
         self.faces_per_cloth = [len(s.mesh.faces) for s in specs]
 
-    def _allocate_contact(self, edges: list[np.ndarray]) -> None:
-        """The arm contact's per-vertex state, and the unique edges for edge-capsule contact."""
+    def _allocate_contact(self, edges: np.ndarray) -> None:
+        """The arm contact's per-vertex state, and the unique edges ((E, 2) int32, batch indices) for edge-capsule
+        contact."""
         dev, nv = self.device, self.x.shape[0]
-        self.edge = wp.array(np.concatenate(edges).astype(np.int32).reshape(-1, 2), dtype=int, device=dev)
+        self.edge = wp.array(edges, dtype=int, device=dev)
         self.contact_dx = wp.zeros(nv, dtype=wp.vec3, device=dev)
         self.contact_dv = wp.zeros(nv, dtype=wp.vec3, device=dev)
         self.contact_count = wp.zeros(nv, dtype=float, device=dev)
@@ -330,17 +366,17 @@ class BatchSolver:
         self.cg_residual_max = wp.zeros(nc, dtype=float, device=dev)
 
     @staticmethod
-    def _arm_struct(arm: ArmSpec | None) -> kernels.Arm:
-        a = kernels.Arm()
-        a.active = 0
-        if arm is not None:
-            axis = np.asarray(arm.axis, dtype=np.float64)
-            a.active = 1
-            a.shoulder, a.elbow, a.forearm = wp.vec3(*arm.shoulder), wp.vec3(*arm.elbow), wp.vec3(*arm.forearm)
-            a.axis = wp.vec3(*(axis / np.linalg.norm(axis)))
-            a.radius, a.omega = float(arm.radius), float(arm.omega)
-            a.max_angle, a.t0 = float(arm.max_angle), float(arm.t0)
-        return a
+    def _arm_table(arms: list[ArmSpec | None]) -> np.ndarray:
+        """The cloths' ``kernels.Arm`` structs as one NumPy structured array, a row per cloth (all zero, inactive,
+        for a cloth without an arm). Rows rather than Warp struct instances: setting a struct's fields one by one
+        costs ~25 us a cloth, and every adaptive rebuild builds them all again (the arm's clock restarts)."""
+        table = np.zeros(len(arms), dtype=kernels.Arm.numpy_dtype())
+        for c, arm in enumerate(arms):
+            if arm is not None:
+                axis = np.asarray(arm.axis, dtype=np.float64)
+                table[c] = (1, arm.shoulder, arm.elbow, arm.forearm, axis / np.linalg.norm(axis), arm.radius,
+                            arm.omega, arm.max_angle, arm.t0)
+        return table
 
     def _launcher(self, cmds: list):
         """``launch(kernel, dim, inputs)``: records a launch on the solver's device into ``cmds`` (none when

@@ -335,6 +335,85 @@ def test_batched_equals_one_at_a_time():
         np.testing.assert_allclose(a, b, atol=1e-5)
 
 
+def _rest_cloth_by_cloth(specs: list[ClothSpec], shared: list[dict]) -> dict[str, np.ndarray]:
+    """The batch's rest state by its definition: each cloth's own arrays (masses by ``np.add.at`` over its faces,
+    indices shifted by its first vertex), concatenated, then converted to what the solver uploads."""
+    rows, off = [], 0
+    for c, (s, r) in enumerate(zip(specs, shared)):
+        nv = len(s.mesh.uv)
+        mass = np.zeros(nv)
+        np.add.at(mass, s.mesh.faces.ravel(), np.repeat(r["area"] * s.density / 3.0, 3))
+        free = np.ones(nv)
+        if s.pinned is not None:
+            free[np.asarray(s.pinned, dtype=np.int64)] = 0.0
+        rows.append({"x": s.positions, "v": np.zeros((nv, 3)) if s.velocities is None else s.velocities,
+                     "mass": mass, "free": free, "vertex_cloth": np.full(nv, c), "tri": s.mesh.faces + off,
+                     "dm_inv": r["dm_inv"], "area": r["area"], "face_cloth": np.full(len(s.mesh.faces), c),
+                     "hinge": s.mesh.hinges + off, "hinge_length": r["hinge_length"], "hinge_area": r["hinge_area"],
+                     "hinge_dir": r["hinge_dir"], "hinge_cloth": np.full(len(s.mesh.hinges), c),
+                     "edges": r["edges"] + off, "edge_cloth": np.full(len(r["edges"]), c)})
+        off += nv
+    out = {k: np.concatenate([r[k] for r in rows]) for k in rows[0]}
+    return {k: a if k == "mass" else a.astype(np.float32 if a.dtype.kind == "f" else np.int32) for k, a in out.items()}
+
+
+def test_batch_rest_is_its_cloth_by_cloth_definition():
+    """The solver's rest state, assembled for the whole batch at once (an adaptive rebuild's host work), is
+    byte for byte the cloth-by-cloth one: masses summed in the same order, indices offset, values converted once."""
+    from sim import remesh
+    from sim.mesh import mesh_rest
+    from sim.solver import _batch_rest
+
+    quad = remesh.uniform(9, 0.4, 1)
+    folded = np.c_[quad.uv[:, 0], 0.04 * np.exp(-((quad.uv[:, 0] - 0.15) / 0.02) ** 2), quad.uv[:, 1]]
+    refined, pos, _ = remesh.remesh(quad, folded.astype(np.float64), np.zeros((quad.num_vertices, 3)))
+    assert refined.num_vertices > quad.num_vertices
+    rng = np.random.default_rng(3)
+    adaptive = remesh.cloth_mesh(refined)
+    specs = [_hanging(),                                                       # float64 positions, top pinned
+             replace(_hanging(n=6, level=2, p=3.0),
+                     velocities=rng.normal(size=(vertices_per_side(6, 2) ** 2, 3)).astype(np.float32)),
+             ClothSpec(adaptive, pos.astype(np.float32), BASIS.stretching, BASIS.bending, 0.31, pinned=None),
+             ClothSpec(adaptive, pos, BASIS.stretching, BASIS.bending, 0.17, pinned=[0, 3])]
+    shared = [mesh_rest(s.mesh) for s in specs]
+    offsets = np.concatenate([[0], np.cumsum([s.mesh.num_vertices for s in specs])])
+    got, want = _batch_rest(specs, offsets, shared), _rest_cloth_by_cloth(specs, shared)
+    assert got.keys() == want.keys()
+    for key in want:
+        assert got[key].dtype == want[key].dtype, key
+        np.testing.assert_array_equal(got[key], want[key].reshape(got[key].shape), err_msg=key)
+    solver = BatchSolver(specs)                                                # and that is what it uploads
+    np.testing.assert_array_equal(solver.mass.numpy(), want["mass"].astype(np.float32))
+    np.testing.assert_array_equal(solver.hinge.numpy(), want["hinge"])
+    with pytest.raises(ValueError, match="cloth 1: pinned vertices must be in"):
+        _batch_rest([specs[0], replace(specs[0], pinned=[81])], np.array([0, 81, 162]), shared[:1] * 2)
+
+
+def test_arm_table_is_the_arm_structs_field_by_field():
+    """The cloths' arms, written as rows of the struct's NumPy dtype, are the bytes of ``kernels.Arm`` structs
+    set field by field (an inactive all-zero one for a cloth without an arm)."""
+    from sim.specs import ArmSpec
+
+    def struct(arm):
+        a = kernels.Arm()
+        a.active = 0
+        if arm is not None:
+            axis = np.asarray(arm.axis, dtype=np.float64)
+            a.active = 1
+            a.shoulder, a.elbow, a.forearm = wp.vec3(*arm.shoulder), wp.vec3(*arm.elbow), wp.vec3(*arm.forearm)
+            a.axis = wp.vec3(*(axis / np.linalg.norm(axis)))
+            a.radius, a.omega = float(arm.radius), float(arm.omega)
+            a.max_angle, a.t0 = float(arm.max_angle), float(arm.t0)
+        return a
+
+    arm = ArmSpec(shoulder=(-0.3, 0.01, 0.7), elbow=(0.0, 0.0, 0.7), forearm=(0.27, 0.0, 0.0), axis=(0.1, 0.3, 1.0),
+                  radius=0.045, omega=1.3, max_angle=2.1, t0=0.4)
+    arms = [None, arm, replace(arm, t0=-1.0 / 3.0, axis=(0.0, 0.0, 2.0)), None]
+    table = wp.array(BatchSolver._arm_table(arms), dtype=kernels.Arm, device="cpu")
+    fields = wp.array([struct(a) for a in arms], dtype=kernels.Arm, device="cpu")
+    assert table.numpy().tobytes() == fields.numpy().tobytes()
+
+
 # ---------------------------------------------------------------- stage
 
 def test_a_batch_written_by_processes_is_the_batch_written_by_threads(tmp_path, monkeypatch):

@@ -125,6 +125,34 @@ def test_a_full_vertex_keeps_its_closest_pairs(corner_drops):
             assert np.array_equal(np.sort(few_key[q, :few_n[q]]), want)
 
 
+def test_pair_slots_are_read_only_where_the_step_wrote_them(corner_drops):
+    """The pair slots start uninitialised (``wp.empty``: a rebuild does not zero ~0.6 KB per vertex and edge):
+    every step reads only the slots it has filled, so slots holding garbage before each step change nothing."""
+    import dataclasses
+
+    import warp as wp
+
+    frames, _ = corner_drops[True]
+    spec = dataclasses.replace(_corner_drop(), positions=frames[9], velocities=(frames[9] - frames[8]) / 0.1)
+    runs = []
+    for poison in (False, True):
+        solver = BatchSolver([spec], SolverParams(self_collision=True, collision_slots=4), "cpu")
+        c = solver.collision
+        for _ in range(10):
+            if poison:
+                for a in (c.pt_pair, c.ee_pair):
+                    a.fill_(7)                                  # a real face or edge, not the one found
+                for a in (c.pt_weight, c.pt_normal, c.ee_weight, c.ee_normal):
+                    a.fill_(wp.vec3(float("nan")))
+                for a in (c.pt_gap, c.pt_key, c.ee_gap, c.ee_key):
+                    a.fill_(float("nan"))
+            solver.step(1)
+        runs.append((solver.positions()[0], solver.velocities()[0], solver.collision_dropped()))
+        assert c.pt_count.numpy().max() == 4 and solver.collision_dropped()[0] > 0   # full slots, too
+    assert runs[0][0].tobytes() == runs[1][0].tobytes() and runs[0][1].tobytes() == runs[1][1].tobytes()
+    assert runs[0][2] == runs[1][2]
+
+
 def test_self_collision_is_deterministic_and_batched_equals_alone():
     """Two runs give the same bytes; two cloths overlapping in space in one batch do not collide with each
     other: each moves exactly as it does alone."""

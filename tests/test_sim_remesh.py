@@ -139,3 +139,34 @@ def test_triangulation_is_its_leaf_by_leaf_definition():
             np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
         assert got.faces.dtype == np.int32 and got.lattice.shape[1] == 2
     assert fans >= 10
+
+
+def test_pinned_lattice_points_are_found_on_every_later_mesh():
+    """An adaptive cloth pinned at points (not its whole top edge) pins, on each remeshed mesh, exactly the
+    vertices at those lattice points (``sim.adaptive._pins`` matches them as integer keys); one pinned along its
+    top edge pins every top-edge vertex the remesher makes."""
+    from sim.adaptive import _pins, _start
+    from sim.materials import load_material
+    from sim.motions import ClipScene
+    from sim.solver import ClothSpec
+
+    m = load_material("camel-ponte-roma")
+    base = R.uniform(16, 0.5, 1)
+    refined, _, _ = R.remesh(base, _folded(base, at=0.1), np.zeros((base.num_vertices, 3)))
+    top = np.flatnonzero(base.lattice[:, 1] == base.n_fine)
+    moved = False
+    for pinned in ([top[0], top[-1]], [top[0], top[7], 40], [], top):
+        spec = ClothSpec(R.cloth_mesh(base), _flat(base), m.stretching, m.bending, m.density, pinned=np.array(pinned))
+        cloth = _start(ClipScene(spec, np.zeros(3)), base, R.mesh_state(base))
+        np.testing.assert_array_equal(_pins(cloth), np.sort(np.asarray(pinned, dtype=np.int64)))
+        cloth.quad = refined
+        points = {tuple(p) for p in base.lattice[np.asarray(pinned, dtype=np.int64)].tolist()}
+        if cloth.pin_edge:
+            points = {tuple(p) for p in refined.lattice.tolist() if p[1] == refined.n_fine}
+        want = [k for k, p in enumerate(map(tuple, refined.lattice.tolist())) if p in points]
+        got = _pins(cloth)
+        assert got.dtype == np.int64 and len(got) == len(points)
+        np.testing.assert_array_equal(got, want)
+        moved |= len(pinned) < len(top) and want != sorted(pinned)
+    assert moved, "the remesher renumbered pinned points"
+    assert len(want) > len(top), "the remesher refined the top edge"
