@@ -389,6 +389,29 @@ def test_batch_rest_is_its_cloth_by_cloth_definition():
         _batch_rest([specs[0], replace(specs[0], pinned=[81])], np.array([0, 81, 162]), shared[:1] * 2)
 
 
+def test_rest_cast_to_float32_where_it_is_made_gives_the_solver_the_same_bytes():
+    """A remeshed cloth's state carries the solver-only rest arrays as float32 (a sixth less for a remeshing worker
+    to send): the batch's rest state is byte for byte the one built from the float64 rest, masses included."""
+    from sim import remesh
+    from sim.mesh import mesh_rest
+    from sim.solver import _batch_rest
+
+    quad = remesh.uniform(9, 0.4, 1)
+    folded = np.c_[quad.uv[:, 0], 0.04 * np.exp(-((quad.uv[:, 0] - 0.15) / 0.02) ** 2), quad.uv[:, 1]]
+    refined, pos, _ = remesh.remesh(quad, folded.astype(np.float64), np.zeros((quad.num_vertices, 3)))
+    state = remesh.mesh_state(refined)
+    assert all(state.rest[k].dtype == np.float32 for k in remesh.SOLVER_FLOAT32_REST)
+    assert state.rest["area"].dtype == np.float64          # the masses are summed in float64
+    specs = [ClothSpec(state.mesh, pos.astype(np.float32), BASIS.stretching, BASIS.bending, d, pinned=None)
+             for d in (0.31, 0.17)]
+    offsets = np.concatenate([[0], np.cumsum([s.mesh.num_vertices for s in specs])])
+    cast = _batch_rest(specs, offsets, [state.rest] * 2)
+    full = _batch_rest(specs, offsets, [mesh_rest(state.mesh)] * 2)
+    assert cast.keys() == full.keys()
+    for key in full:
+        assert cast[key].dtype == full[key].dtype and cast[key].tobytes() == full[key].tobytes(), key
+
+
 def test_arm_table_is_the_arm_structs_field_by_field():
     """The cloths' arms, written as rows of the struct's NumPy dtype, are the bytes of ``kernels.Arm`` structs
     set field by field (an inactive all-zero one for a cloth without an arm)."""
