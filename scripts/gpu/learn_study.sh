@@ -49,17 +49,18 @@ fi
 margs=(); for m in $MODELS; do margs+=(--model "$m"); done
 if [ "${PARALLEL:-1}" -gt 1 ]; then
   # Recipes share the GPU, PARALLEL at a time (a model at batch 64 leaves most of an H100 idle).
-  # The frame and lattice caches are built once first, so that the processes only read them.
-  python3 - "$RUN" "$SETTING" "$VARIANT" <<'PY'
+  # The split, frame caches (at each recipe's image size) and lattices are built once first
+  # (learn.stage.prepare_shared_inputs), so that the processes only read them.
+  python3 - "$RUN" "$SETTING" "$VARIANT" $RECIPES <<'PY'
 import sys
 import clothgap.config  # noqa: F401  (registers the study config that Run.open reads)
 from clothgap.runs import Run
-from learn.dataset import build_cache
-from learn.geometry import clip_lattices
-run, setting, variant = Run.open(sys.argv[1]), sys.argv[2], sys.argv[3]
-cache = build_cache(run, variant, setting, run.config.train.image_size, False)
-clip_lattices(run, setting, sorted(cache.clips), False)
-print(f"caches ready: {len(cache.clips)} clips")
+from eval.ablation import ablation_grid, recipe_config
+from learn.stage import prepare_shared_inputs
+run, setting, variant, recipes = Run.open(sys.argv[1]), sys.argv[2], sys.argv[3], sys.argv[4:]
+grid = ablation_grid(run, setting, variant, recipes, ["lrcn"])
+prepare_shared_inputs(run, [e[:4] for e in grid], False, configs=[recipe_config(run.config, e[4]) for e in grid])
+print(f"caches ready for {len(recipes)} recipe(s)")
 PY
   tag() { echo "recipe-$(echo "$1" | tr '=+/' '-_-')"; }     # a recipe's log and table name
   read -ra gpus <<< "$(nvidia-smi --query-gpu=index --format=csv,noheader 2>/dev/null | tr '\n' ' ')"
@@ -106,15 +107,6 @@ if [ -n "$done_recipes" ]; then
   cat "$RUN/eval/$NAME.md"
 fi
 if [ "${MEASURED:-0}" = 1 ]; then
-  r=${RECIPES%% *}
-  mkdir -p "$RUN/train/$SETTING/$VARIANT"
-  for m in $MODELS; do
-    src="$RUN/ablation/$r/$SETTING/$VARIANT/$m"
-    [ -f "$src/s0/DONE" ] && rm -rf "$RUN/train/$SETTING/$VARIANT/$m" && cp -r "$src" "$RUN/train/$SETTING/$VARIANT/$m"
-  done
-  echo "== measured fabrics on recipe $r"
-  python3 -m clothgap eval measured "$RUN" --sequences ${SEQUENCES:-4} 2>&1 | tr '\r' '\n' \
-    | grep -vE "it/s\]|s/it\]|clip/s\]" | tail -3
-  cp "$RUN"/eval/measured.{md,json} "$OUT"/ 2>/dev/null; cat "$RUN/eval/measured.md" 2>/dev/null | head -40
+  VARIANT=$VARIANT bash scripts/gpu/measured.sh "$RUN" "$SETTING" "${RECIPES%% *}" "$MODELS"
 fi
 nvidia-smi --query-gpu=memory.used --format=csv,noheader

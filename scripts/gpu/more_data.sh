@@ -15,9 +15,11 @@ source scripts/gpu/env.sh
 export RUN=${RUN:-/tmp/wind} MOTIONS=${MOTIONS:-wind}; SEQ=${SEQ:-}; BUDGET=${BUDGET:-560}
 SETTING=${SETTING:-$MOTIONS-uniform1}
 LEVERS=${LEVERS-"best+seeds=1"}
-TAG=${TAG:-seq${SEQ:-96}}
 t0=$(date +%s); left() { echo $(( BUDGET - ($(date +%s) - t0) )); }
 log=$OUT/more_data.log
+# outputs are named after the data's size as the run holds it (SEQ, else the preset's): seq96, ...
+data_tag() { python3 -c "import json,sys; print('seq%d' % json.load(open(sys.argv[1]))['sim']['sequences_per_class'])" \
+  "$RUN/config.json" 2>/dev/null; }
 ngpu=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true); [ "${ngpu:-0}" -ge 1 ] || ngpu=1
 
 # 1. data (quick when finished: every clip's DONE is checked and skipped)
@@ -29,9 +31,10 @@ if [ ! -f "$RUN/.data-done" ]; then
       | tee -a "$log"
   done
   tail -2 "$RUN/gpu_timings.jsonl" | grep -q '"stage": "render", "rc": 0' && touch "$RUN/.data-done"
-  cp "$RUN/gpu_timings.jsonl" "$OUT/gpu_timings-$TAG.jsonl" 2>/dev/null
+  cp "$RUN/gpu_timings.jsonl" "$OUT/gpu_timings-${TAG:-$(data_tag)}.jsonl" 2>/dev/null
 fi
 [ -f "$RUN/.data-done" ] || { echo "data not finished: call again" | tee -a "$log"; exit 0; }
+TAG=${TAG:-$(data_tag)}
 
 # 2. the training pool, then the tables of whatever has finished
 jobs=(--job "best:lrcn,base1,base2,base3")
@@ -44,15 +47,8 @@ lever_list=$(echo best $LEVERS | tr ' ' ',')
 
 # 3. the measured fabrics on the row's models, once they are all finished
 if [ -f "$RUN/eval/models-$SETTING-$TAG.json" ] && [ ! -f "$RUN/eval/measured.json" ] && [ "$(left)" -gt 90 ]; then
-  mkdir -p "$RUN/train/$SETTING/paper"
-  for m in lrcn base1 base2 base3; do
-    rm -rf "$RUN/train/$SETTING/paper/$m"; cp -r "$RUN/ablation/best/$SETTING/paper/$m" "$RUN/train/$SETTING/paper/$m"
-  done
-  timeout -k 10 $(( $(left) - 15 )) python3 -m clothgap eval measured "$RUN" --sequences 4 2>&1 | tr '\r' '\n' \
-    | grep -vE "it/s\]|s/it\]|clip/s\]" | tail -3 | tee -a "$log"
-  cp "$RUN/eval/measured.md" "$OUT/measured-$SETTING-$TAG.md" 2>/dev/null
-  cp "$RUN/eval/measured.json" "$OUT/measured-$SETTING-$TAG.json" 2>/dev/null
-  head -30 "$RUN/eval/measured.md" 2>/dev/null
+  LIMIT=$(( $(left) - 15 )) bash scripts/gpu/measured.sh "$RUN" "$SETTING" best "lrcn base1 base2 base3" \
+    "measured-$SETTING-$TAG" 2>&1 | tee -a "$log"
 fi
 # the curves and speed of every model trained so far (finished or not), for a call that ends early
 ( cd "$RUN" && tar czf "$OUT/models-$TAG.tgz" $(ls -d ablation/*/*/*/*/s*/metrics.csv ablation/*/*/*/*/s*/config.json \
