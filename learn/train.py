@@ -109,11 +109,14 @@ def run_epoch(net: torch.nn.Module, model: ClipClassifier, batches, device: torc
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()
-            correct = (model.probs(out).argmax(-1) == y).sum()
-            shape = (((out["geometry"].detach().float() - target) ** 2).mean() if target is not None and
-                     "geometry" in out else sums.new_tensor(math.nan))
-            sums += torch.stack([loss.detach().double() * len(y), correct.double(), sums.new_tensor(len(y)),
-                                 shape.double() * len(y)])
+            # In place with Python scalars: a tensor made from a number would be a blocking copy to the device,
+            # a wait for the GPU every step.
+            n = len(y)
+            sums[0] += loss.detach().double() * n
+            sums[1] += (model.probs(out).argmax(-1) == y).sum()
+            sums[2] += n
+            sums[3] += (((out["geometry"].detach().float() - target) ** 2).mean().double() * n
+                        if target is not None and "geometry" in out else math.nan)
     return sums.cpu()
 
 

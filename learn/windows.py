@@ -89,6 +89,11 @@ class WindowSet:
         self.resident = _fits_on_device(host.numel(), self.device)
         self.frames = host.to(self.device) if self.resident else (host.pin_memory() if self.device.type == "cuda"
                                                                    else host)
+        # The index tables a batch is cut with live where the frames do: a step of a resident set copies nothing
+        # to the device (a copy from pageable host memory would make the host wait for the GPU every step).
+        self._ix = self.device if self.resident else torch.device("cpu")
+        self._starts_ix, self._offsets_ix, self._lengths_ix, self._labels_ix, self._row_ix = (
+            t.to(self._ix) for t in (self.starts, self._offsets, self._lengths, self.labels, self._row_of))
         self.targets = None
         if targets is not None:
             self.targets = torch.from_numpy(np.ascontiguousarray(targets[used], dtype=np.float32)).to(self.device)
@@ -125,28 +130,27 @@ class WindowSet:
         ``augment``: ``augment_table(seed, epoch)`` to augment, else None;
         ``crop``: the augmentation's random resized crop and flip (``augment_batch``).
         """
-        order = torch.arange(len(self)) if order is None else order
+        # One copy an epoch of the order and the augmentation table, none a step.
+        order = (torch.arange(len(self)) if order is None else order).to(self._ix)
+        augment = augment.to(self._ix) if augment is not None else None
         stop = len(order) - (len(order) % batch_size if drop_last and len(order) >= batch_size else 0)
-        steps = torch.arange(self.clip_len)
+        steps = torch.arange(self.clip_len, device=self._ix)
         for lo in range(0, stop, batch_size):
             idx = order[lo:lo + batch_size]
-            starts = self.starts[idx]
+            starts = self._starts_ix[idx]
             params = augment[idx] if augment is not None else None
             if params is not None:
                 # Temporal shift of up to half a stride either way, kept inside the clip.
                 half = self.clip_stride // 2
                 shift = (params[:, 0] * (2 * half + 1)).long() - half
-                starts = torch.minimum(torch.clamp(starts + shift, min=0), self._lengths[idx] - self.clip_len)
-            rows = self._row_of[self._offsets[idx, None] + starts[:, None] + steps]      # (B, T)
-            if self.resident:
-                raw = self.frames[self._on(rows)]
-            else:
-                raw = self._on(self.frames[rows])
+                starts = torch.minimum(torch.clamp(starts + shift, min=0), self._lengths_ix[idx] - self.clip_len)
+            rows = self._row_ix[self._offsets_ix[idx, None] + starts[:, None] + steps]      # (B, T)
+            raw = self.frames[rows] if self.resident else self._on(self.frames[rows])
             x = raw.permute(0, 1, 4, 2, 3).float().div_(255)                                # (B, T, 3, H, W)
             if params is not None:
                 x = augment_batch(x, self._on(params), crop=crop)
             target = self.targets[self._on(rows)] if self.targets is not None else None
-            yield x, self._on(self.labels[idx]), target
+            yield x, self._on(self._labels_ix[idx]), target
 
 
 def augment_batch(x: torch.Tensor, params: torch.Tensor, crop: bool = True) -> torch.Tensor:

@@ -1,0 +1,64 @@
+"""Training on a CUDA GPU: batches cut on the device equal those cut on the host, and a training step never makes
+the host wait for the GPU (a wait each step leaves the GPU idle while the next step's kernels are launched).
+
+Deselected by default; on the GPU machine: ``pytest -m gpu tests/test_learn_gpu.py``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from clothgap.config import StudyConfig
+from learn.dataset import build_cache
+from learn.models import build_model
+from learn.synthetic import synthetic_run
+from learn.train import run_epoch
+from learn.windows import WindowSet
+from render.config import RenderConfig
+from sim.config import SimConfig
+from learn.config import TrainConfig
+
+pytestmark = [pytest.mark.gpu,
+              pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")]
+SETTING, VARIANT = "wind-uniform1", "paper"
+
+
+@pytest.fixture
+def cache(tmp_path):
+    cfg = StudyConfig(sim=SimConfig(classes=(0, 8, 45, 53), sequences_per_class=3, frames=12),
+                      render=RenderConfig(resolution=40), train=TrainConfig(image_size=32))
+    return build_cache(synthetic_run(tmp_path / "run", cfg), VARIANT, SETTING, 32, progress=False)
+
+
+def test_batches_cut_on_the_device_equal_those_cut_on_the_host(cache):
+    targets = np.random.default_rng(0).random((cache.frames.shape[0], 4), dtype=np.float32)
+    host = WindowSet(cache, sorted(cache.clips), clip_len=4, clip_stride=3, targets=targets)
+    gpu = WindowSet(cache, sorted(cache.clips), clip_len=4, clip_stride=3, device="cuda", targets=targets)
+    assert gpu.resident and gpu.frames.is_cuda
+    order, table = host.order(3, 1), host.augment_table(3, 1)
+    for (xh, yh, th), (xg, yg, tg) in zip(host.batches(5, order=order, augment=table, drop_last=True),
+                                          gpu.batches(5, order=order, augment=table, drop_last=True), strict=True):
+        assert xg.is_cuda and yg.is_cuda and tg.is_cuda
+        assert torch.equal(yh, yg.cpu()) and torch.equal(th, tg.cpu())
+        assert torch.allclose(xh, xg.cpu(), atol=1e-5)      # the same resample, on two devices' kernels
+
+
+def test_a_training_step_does_not_wait_for_the_gpu(cache):
+    data = WindowSet(cache, sorted(cache.clips), clip_len=4, clip_stride=3, device="cuda")
+    model = build_model("lrcn", image_size=32, width=8, fc6=32, hidden=16, motion=True).cuda()
+    optimizer = torch.optim.AdamW(model.parameters(), lr=1e-3, fused=True)
+    run_epoch(model, model, data.batches(4), torch.device("cuda"), optimizer, amp=True)   # first-use set-up
+
+    def guarded(batches):
+        # Every step of the epoch under the sync check; the epoch's one read of its sums comes after.
+        torch.cuda.set_sync_debug_mode("error")
+        try:
+            yield from batches
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+
+    order, table = data.order(0, 1), data.augment_table(0, 1)
+    sums = run_epoch(model, model, guarded(data.batches(4, order=order, augment=table, drop_last=True)),
+                     torch.device("cuda"), optimizer, amp=True)
+    assert sums[2] == 4 * (len(data) // 4)
