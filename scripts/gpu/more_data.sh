@@ -2,10 +2,11 @@
 # GPU: one setting at full size, data to Table 3 row, one command per call until it is done.
 #   RUN=/tmp/wind bash scripts/gpu/more_data.sh                 (call it again after a cut-off: it goes on)
 #   MOTIONS=arm RUN=/tmp/arm bash scripts/gpu/more_data.sh      arm-uniform1
-#   SEQ=144 ... sequences per class (default: the preset's 96); LEVERS="..." the lrcn recipes beside `best`
+#   SEQ=144 ... sequences per class (default: the preset's 96); LEVERS="..." the lrcn recipes beside the row's
+#   ROW=best+clip_len=40 ... the recipe of the Table 3 row (default `best`, the preset's recipe), the levers' reference
 # 1. the setting at the paper preset (sim + render, scripts/gpu/paper_study.sh);
 # 2. one training pool over the machine's GPUs (scripts/gpu/learn_grid.py): the Table 3 row (lrcn, base1,
-#    base2, base3 on `best`, the preset's recipe) beside lrcn levers on the same clips, e.g.
+#    base2, base3 on ROW) beside lrcn levers on the same clips, e.g.
 #    best+train_fraction=0.5 (half the training sequences a class on this data's test clips: the data-size
 #    lever alone) or best+seeds=1 (how much a rerun moves);
 # 3. the measured-fabric set on the row's models (clothgap eval measured, held-out variant).
@@ -14,7 +15,8 @@ set -uo pipefail
 source scripts/gpu/env.sh
 export RUN=${RUN:-/tmp/wind} MOTIONS=${MOTIONS:-wind}; SEQ=${SEQ:-}; BUDGET=${BUDGET:-560}
 SETTING=${SETTING:-$MOTIONS-uniform1}
-LEVERS=${LEVERS-"best+seeds=1"}
+ROW=${ROW:-best}
+LEVERS=${LEVERS-"$ROW+seeds=1"}
 t0=$(date +%s); left() { echo $(( BUDGET - ($(date +%s) - t0) )); }
 log=$OUT/more_data.log
 # outputs are named after the data's size as the run holds it (SEQ, else the preset's): seq96, ...
@@ -37,17 +39,17 @@ fi
 TAG=${TAG:-$(data_tag)}
 
 # 2. the training pool, then the tables of whatever has finished
-jobs=(--job "best:lrcn,base1,base2,base3")
+jobs=(--job "$ROW:lrcn,base1,base2,base3")
 for r in $LEVERS; do jobs+=(--job "$r:lrcn"); done
-lever_list=$(echo best $LEVERS | tr ' ' ',')
+lever_list=$(echo $ROW $LEVERS | tr ' ' ',')
 [ "$(left)" -gt 60 ] && python3 scripts/gpu/learn_grid.py "$RUN" --setting "$SETTING" \
     --parallel "${PARALLEL:-$((3 * ngpu))}" --deadline $(( $(left) - 45 )) "${jobs[@]}" \
-    --table "models-$SETTING-$TAG=best:lrcn,base1,base2,base3" --table "levers-$SETTING-$TAG=$lever_list:lrcn" \
+    --table "models-$SETTING-$TAG=$ROW:lrcn,base1,base2,base3" --table "levers-$SETTING-$TAG=$lever_list:lrcn" \
     2>&1 | tr '\r' '\n' | grep -vE "it/s\]|s/it\]|clip/s\]|shard/s\]" | tee -a "$log"
 
 # 3. the measured fabrics on the row's models, once they are all finished
 if [ -f "$RUN/eval/models-$SETTING-$TAG.json" ] && [ ! -f "$RUN/eval/measured.json" ] && [ "$(left)" -gt 90 ]; then
-  LIMIT=$(( $(left) - 15 )) bash scripts/gpu/measured.sh "$RUN" "$SETTING" best "lrcn base1 base2 base3" \
+  LIMIT=$(( $(left) - 15 )) bash scripts/gpu/measured.sh "$RUN" "$SETTING" "$ROW" "lrcn base1 base2 base3" \
     "measured-$SETTING-$TAG" 2>&1 | tee -a "$log"
 fi
 # the curves and speed of every model trained so far (finished or not), for a call that ends early
