@@ -67,15 +67,22 @@ def geometry_targets(run: Run, setting: str, cache: FrameCache, progress: bool =
             raise MissingInputError(f"clip {cid} of {setting}: {len(lat)} simulated frames but "
                                     f"{clip.num_frames} rendered ones; re-render it")
         out[clip.offset:clip.offset + clip.num_frames] = lat.reshape(len(lat), -1)
-    used = np.concatenate([np.arange(c.offset, c.offset + c.num_frames) for c in cache.clips.values()])
-    centre = np.median(out[used], axis=0, keepdims=True)
-    targets = out - centre
-    rows = {cid: slice(c.offset, c.offset + c.num_frames) for cid, c in cache.clips.items()}
-    spread = float(np.sqrt(np.median([(targets[r] ** 2).mean() for r in rows.values()]))) or 1.0
-    targets /= spread
-    far = sorted(cid for cid, r in rows.items() if np.abs(targets[r]).max() > TARGET_LIMIT)
+    slices = {cid: slice(c.offset, c.offset + c.num_frames) for cid, c in cache.clips.items()}
+    targets, spread, far = standardise(out, slices)
     if far:
         warnings.warn(f"{len(far)} clip(s) of {setting} have lattice points more than {TARGET_LIMIT:g} spreads "
                       f"({TARGET_LIMIT * spread:.3g} m) from the usual shape; their targets are clipped: "
                       f"{', '.join(far[:5])}{' ...' if len(far) > 5 else ''}", stacklevel=2)
-    return np.clip(targets, -TARGET_LIMIT, TARGET_LIMIT)
+    return targets
+
+
+def standardise(lattice_rows: np.ndarray, clips: dict[str, slice]) -> tuple[np.ndarray, float, list[str]]:
+    """(targets, spread in metres, far clip ids) of flattened lattice rows (rows, 192), each clip's rows given
+    by a slice: minus the median over the clips' rows, over the RMS deviation of the median clip, clipped to
+    +-``TARGET_LIMIT`` (the module's docstring says why)."""
+    used = np.concatenate([np.arange(r.start, r.stop) for r in clips.values()])
+    targets = lattice_rows - np.median(lattice_rows[used], axis=0, keepdims=True)
+    spread = float(np.sqrt(np.median([(targets[r] ** 2).mean() for r in clips.values()]))) or 1.0
+    targets /= spread
+    far = sorted(cid for cid, r in clips.items() if np.abs(targets[r]).max() > TARGET_LIMIT)
+    return np.clip(targets, -TARGET_LIMIT, TARGET_LIMIT), spread, far
