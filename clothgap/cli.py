@@ -361,8 +361,9 @@ def eval_real(video_dir: Path, truth: Path, train_dir: Path, out: Path) -> None:
 @eval.command("measured")
 @click.argument("run_dir", type=click.Path(path_type=Path))
 @click.option("--model", "train_dirs", type=click.Path(path_type=Path), multiple=True,
-              help="Only this trained model's folder (RUN_DIR/train/<setting>/<variant>/<model>/s<seed>; "
-                   "repeatable). Default: every finished model of the run.")
+              help="Only this trained model's folder (RUN_DIR/train/<setting>/<variant>/<model>/s<seed>, or a "
+                   "recipe's RUN_DIR/ablation/<recipe>/<setting>/<variant>/<model>/s<seed>; repeatable). "
+                   "Default: every finished model of the run.")
 @click.option("--sequences", type=click.IntRange(min=1), metavar="N",
               help="Clips per fabric and setting (default: eval.measured_sequences, else 2).")
 @click.option("--variant", metavar="NAME", help="Render variant of the clips (default: eval.measured_variant).")
@@ -371,7 +372,8 @@ def eval_measured(run_dir: Path, train_dirs: tuple[Path, ...], sequences: int | 
     held-out variant, predicted like real videos and compared with the paper's Table 2 classes and
     the fabrics' measured stiffness and density (writes RUN_DIR/eval/measured.{csv,md,json})."""
     run = Run.open(run_dir)
-    run.require(run.train_root, "train")
+    if not train_dirs:
+        run.require(run.train_root, "train")
     from eval.measured import model_from_dir, run_measured
 
     models = [model_from_dir(run, d) for d in train_dirs] or None

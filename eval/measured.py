@@ -52,7 +52,7 @@ from clothgap.errors import ConfigError
 from clothgap.runs import Run, atomic_write_json, atomic_write_text, fresh_dir, is_done, mark_done
 from eval import classes, metrics, real
 from eval import predictions as preds
-from eval.trained import TrainedModel, finished_models
+from eval.trained import TrainedModel, checkpoint_sha256, finished_models
 
 DEFAULT_SEQUENCES = 2       # `clothgap eval measured` when the run's eval.measured_sequences is 0
 MATCH_SCORES = ("exact", "p_match", "k_match", "class_dist")
@@ -99,21 +99,35 @@ def resolve(run: Run, sequences: int | None = None, fabrics: Sequence[str] | Non
 
 
 def model_folder(run: Run, m, variant: str) -> Path:
-    return run.eval_dir / "measured" / variant / m.setting / m.variant / m.model / f"s{m.seed}"
+    """Where model ``m``'s predictions of the measured clips in ``variant`` go (a recipe's models apart)."""
+    root = run.eval_dir / "measured" / variant
+    if getattr(m, "recipe", ""):
+        root = root / "ablation" / m.recipe
+    return root / m.setting / m.variant / m.model / f"s{m.seed}"
 
 
-def model_from_dir(run: Run, train_dir: Path):
-    """The run's TrainedModel for a train folder path (``RUN/train/<setting>/<variant>/<model>/s<seed>``)."""
+def model_from_dir(run: Run, train_dir: Path) -> TrainedModel:
+    """The TrainedModel of a finished train folder of the run: ``RUN/train/<setting>/<variant>/<model>/s<seed>``,
+    or a training recipe's ``RUN/ablation/<recipe>/<setting>/<variant>/<model>/s<seed>``."""
+    expected = (f"expected {run.train_root}/<setting>/<variant>/<model>/s<seed> or "
+                f"{run.root / 'ablation'}/<recipe>/<setting>/<variant>/<model>/s<seed>")
     try:
-        parts = Path(train_dir).resolve().relative_to(run.train_root.resolve()).parts
+        parts = Path(train_dir).resolve().relative_to(run.root.resolve()).parts
     except ValueError:
-        raise ConfigError(f"--model {train_dir} is not a train folder of the run {run.root} "
-                          f"(expected {run.train_root}/<setting>/<variant>/<model>/s<seed>)") from None
-    if len(parts) != 4 or not parts[3].startswith("s") or not parts[3][1:].isdigit():
-        raise ConfigError(f"--model {train_dir}: expected {run.train_root}/<setting>/<variant>/<model>/s<seed>")
+        raise ConfigError(f"--model {train_dir} is not a train folder of the run {run.root} ({expected})") from None
+    recipe = ""
+    if parts[:1] == ("ablation",) and len(parts) == 6:
+        recipe, parts = parts[1], parts[2:]
+    elif parts[:1] == ("train",) and len(parts) == 5:
+        parts = parts[1:]
+    else:
+        raise ConfigError(f"--model {train_dir}: {expected}")
+    if not parts[3].startswith("s") or not parts[3][1:].isdigit():
+        raise ConfigError(f"--model {train_dir}: {expected}")
     if not is_done(Path(train_dir)):
         raise ConfigError(f"--model {train_dir} has no DONE marker: is that training finished?")
-    return TrainedModel(parts[0], parts[1], parts[2], int(parts[3][1:]), run.train_dir(*parts[:3], int(parts[3][1:])))
+    root = run.ablation_dir(recipe) if recipe else run.train_root
+    return TrainedModel(*parts[:3], int(parts[3][1:]), root.joinpath(*parts), recipe)
 
 
 def make_clips(run: Run, sequences: int, fabrics: Sequence[str], variant: str, progress: bool = True) -> dict:
@@ -158,7 +172,10 @@ def predict_model(run: Run, m, variant: str, names: Sequence[str], *, predictor:
     folder = model_folder(run, m, variant)
     status = "reused"
     done = folder / "DONE"
-    if not (done.is_file() and json.loads(done.read_text()).get("clips") == sorted(clips)):
+    sha = checkpoint_sha256(m)
+    record = json.loads(done.read_text()) if done.is_file() else {}
+    # Kept only for the same clips and the same weights: a model retrained in place is predicted again.
+    if not (record.get("clips") == sorted(clips) and record.get("checkpoint_sha256") == sha):
         status = "predicted"
         fresh_dir(folder)
         truth = pd.DataFrame([{"video": n, "label": f, "bending_N_m2": measured_values(f)["bending_N_m"],
@@ -174,7 +191,7 @@ def predict_model(run: Run, m, variant: str, names: Sequence[str], *, predictor:
                                inputs={n: render_dir / n / "ldr" for n in sorted(clips)})
         except real.VideoError as err:     # e.g. clips shorter than the model's sub-sequence
             raise ConfigError(f"measured clips of {m.setting} cannot be predicted by {m.folder}: {err}") from None
-        mark_done(folder, {"clips": sorted(clips), "checkpoint": str(m.checkpoint)})
+        mark_done(folder, {"clips": sorted(clips), "checkpoint": str(m.checkpoint), "checkpoint_sha256": sha})
         if progress:
             print(f"[eval measured] {m.setting}/{m.variant}/{m.model}/s{m.seed} on {variant}: {len(clips)} clips, "
                   f"{time.perf_counter() - t0:.1f} s", flush=True)
@@ -369,6 +386,12 @@ def _models_and_heldout(run: Run, models: list | None, variant: str, progress: b
     """The models to predict with (``models``, else every finished one) and whether ``variant`` is held out
     (neither a training variant of theirs nor a render variant of the run)."""
     models = list(models) if models is not None else finished_models(run)
+    keys = [(m.setting, m.variant, m.model, m.seed) for m in models]
+    twice = sorted({k for k in keys if keys.count(k) > 1})
+    if twice:
+        # The tables name a model by these four; two recipes' models of one name go in two calls.
+        raise ConfigError(f"two models named {'/'.join(map(str, twice[0]))} (setting/variant/model/seed) in one "
+                          "measured call, e.g. from two recipes: score them in separate calls")
     if not models:
         raise ConfigError(f"no finished train folder under {run.train_root}: run `clothgap train {run.root}` "
                           "first (the measured set is predicted by the run's models)")
@@ -389,6 +412,7 @@ def score_model(run: Run, m, variant: str, names: list[str], *, predictor: Predi
     videos, status = predict_model(run, m, variant, names, predictor=predictor, activations=activations,
                                    progress=progress)
     entry = {"setting": m.setting, "train_variant": m.variant, "model": m.model, "seed": m.seed,
+             **({"recipe": m.recipe} if getattr(m, "recipe", "") else {}),
              "checkpoint": _rel(run, m.checkpoint), "status": status}
     if videos is None:
         return entry, None

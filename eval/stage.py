@@ -36,12 +36,12 @@ import numpy as np
 import pandas as pd
 
 from clothgap import seeding
-from clothgap.errors import ConfigError, InputError, MissingInputError, UserError
+from clothgap.errors import ConfigError, InputError, UserError
 from clothgap.runs import Run, atomic_write_json, atomic_write_text, file_sha256, is_done, read_meta
 from clothgap.settings import to_dict
 from eval import figures, metrics, tables
 from eval import predictions as preds
-from eval.trained import TrainedModel, finished_models
+from eval.trained import TrainedModel, checkpoint_sha256, finished_models
 
 # (train_dir, clip_dirs) -> predict_clips-shaped frame; the default calls learn.predict.
 Predictor = Callable[[Path, list[Path]], pd.DataFrame]
@@ -185,14 +185,6 @@ def _read_record(path: Path) -> dict | None:
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         return None
     return record if isinstance(record, dict) else None
-
-
-def checkpoint_sha256(m: TrainedModel) -> str:
-    """sha256 of a finished model's checkpoint.pt (cached per file state), or a MissingInputError."""
-    if not m.checkpoint.is_file():
-        raise MissingInputError(f"{m.folder} is marked DONE but holds no checkpoint.pt: delete that folder and "
-                                f"run `clothgap train` again")
-    return file_sha256(m.checkpoint)
 
 
 def _left_out_reason(clip_dir: Path, caught: list[warnings.WarningMessage]) -> str:

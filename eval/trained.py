@@ -5,7 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from clothgap.runs import Run, is_done
+from clothgap.errors import MissingInputError
+from clothgap.runs import Run, file_sha256, is_done
 from learn.registry import training_grid
 
 
@@ -16,10 +17,19 @@ class TrainedModel:
     model: str
     seed: int
     folder: Path
+    recipe: str = ""        # an ``eval.ablation`` recipe's model (``RUN/ablation/<recipe>/...``), else the run's own
 
     @property
     def checkpoint(self) -> Path:
         return self.folder / "checkpoint.pt"
+
+
+def checkpoint_sha256(m: TrainedModel) -> str:
+    """sha256 of a finished model's checkpoint.pt (cached per file state), or a MissingInputError."""
+    if not m.checkpoint.is_file():
+        raise MissingInputError(f"{m.folder} is marked DONE but holds no checkpoint.pt: delete that folder and "
+                                f"run `clothgap train` again")
+    return file_sha256(m.checkpoint)
 
 
 def grid_models(run: Run) -> list[TrainedModel]:

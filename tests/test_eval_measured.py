@@ -194,3 +194,57 @@ def test_measured_config_errors_are_named(tmp_path):
     # seeds: every (fabric, sequence) has its own index, far from any training clip's
     indices = {measured_index(f, n) for f in table2_fabrics() for n in range(5)}
     assert len(indices) == 50 and min(indices) > 10 ** 8
+
+
+def test_a_recipes_models_are_scored_where_they_are_and_new_weights_are_predicted_again(tmp_path):
+    import shutil
+
+    import torch
+
+    from clothgap.config import ConfigError
+    from eval.measured import model_from_dir, run_measured
+    from sim.measured import table2_class, table2_fabrics
+    from tests.test_eval_real import fresh_model
+
+    train_dir = fresh_model(tmp_path / "run")
+    mark_done(train_dir)
+    run = Run.open(tmp_path / "run")
+    fabrics = table2_fabrics()[:2]
+    fake_measured_clips(run, fabrics, sequences=1)
+    recipe_dir = run.ablation_dir("best+clip_len=4") / SETTING / "paper" / "lrcn" / "s0"
+    shutil.copytree(train_dir, recipe_dir)
+
+    def stub(train_dir, clip_dirs):
+        names = [json.loads((d / "meta.json").read_text())["clip_id"] for d in clip_dirs]
+        return pd.DataFrame([{"clip_id": n, "start": 0, "class_index": -1, "pred": table2_class(n.rsplit("-", 1)[0]),
+                              "probs": np.eye(54)[table2_class(n.rsplit("-", 1)[0])]} for n in names])
+
+    model = model_from_dir(run, recipe_dir)
+    assert (model.recipe, model.setting, model.model, model.seed, model.folder) == \
+        ("best+clip_len=4", SETTING, "lrcn", 0, recipe_dir)
+    own_before = sorted(p.relative_to(run.train_root) for p in run.train_root.rglob("*"))
+
+    def measured():
+        return run_measured(run, models=[model], sequences=1, fabrics=fabrics, predictor=stub, progress=False,
+                            activations=0)
+
+    assert measured()["predicted"] == 1
+    folder = run.eval_dir / "measured" / "heldout" / "ablation" / "best+clip_len=4" / SETTING / "paper" / "lrcn" / "s0"
+    assert (folder / "DONE").is_file()
+    entry = json.loads((run.eval_dir / "measured.json").read_text())["models"][0]
+    assert entry["recipe"] == "best+clip_len=4" and entry["checkpoint"].startswith("ablation/best+clip_len=4/")
+    assert sorted(p.relative_to(run.train_root) for p in run.train_root.rglob("*")) == own_before
+
+    assert (measured()["predicted"], measured()["reused"]) == (0, 1)     # same weights: kept
+    state = torch.load(recipe_dir / "checkpoint.pt", weights_only=False)
+    first = next(iter(state["model"]))
+    state["model"][first] = state["model"][first] + 1.0
+    torch.save(state, recipe_dir / "checkpoint.pt")                       # retrained in place
+    assert measured()["predicted"] == 1
+
+    own = model_from_dir(run, train_dir)
+    assert own.recipe == "" and own.folder == train_dir
+    with pytest.raises(ConfigError, match="two models named wind-uniform1/paper/lrcn/0"):
+        run_measured(run, models=[own, model], sequences=1, fabrics=fabrics, predictor=stub, progress=False)
+    with pytest.raises(ConfigError, match="ablation/<recipe>"):
+        model_from_dir(run, run.root / "ablation" / "lrcn")
