@@ -8,7 +8,7 @@
 #   PARALLEL=4 ...   four recipes at a time (windows/s then is not a solo figure); on a machine of several
 #                    GPUs each recipe goes to the GPU running the fewest (CUDA_VISIBLE_DEVICES)
 #   MEASURED=1 ...   then the measured-fabric set (clothgap eval measured, held-out variant) on this call's
-#                    models of the first (or chosen) recipe, which become the run's train/ models
+#                    models of the first (or chosen) recipe, scored where they are (scripts/gpu/measured.sh)
 # The data comes first: STAGES="sim render" SPP=16 RUN=/tmp/paper_study bash scripts/gpu/paper_study.sh
 # Every recipe resumes epoch by epoch, so a call cut short loses at most one epoch: call again.
 #   RECIPES="best best+seeds=1 best+train_fraction=0.5"   another training seed (how much a rerun moves),
