@@ -19,6 +19,7 @@ KEEP = ("last", "best")                             # which epoch's weights beco
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune-no-cudagraphs", "max-autotune")   # torch.compile's
 SPLIT_BY = ("sequence", "subsequence")              # learn.split: whole sequences, or the paper's leaky windows
 IMAGE_SIZES = range(32, 225, 16)                    # FrameCNN: a multiple of 16 from 32 to 224
+GEOMETRY_CENTRES = ("median", "frame")              # learn.geometry: what a lattice target is measured from
 
 
 @dataclass(frozen=True)
@@ -70,6 +71,9 @@ class TrainConfig:
                                             # own lattice (noised by bottleneck_noise), beside the predicted one
     train_fraction: float = 1.0             # share of each class's training sequences used (a nested, seeded
                                             # draw; validation and test unchanged): the data-size learning curve
+    geometry_centre: str = "median"         # lattice targets from the median shape of all frames, or "frame":
+                                            # from the median shape at the same frame index, which takes out of
+                                            # the target what every material shares (the arm's sweep)
 
     @property
     def geometry_weight(self) -> float:
@@ -120,6 +124,7 @@ class TrainConfig:
         out += checks.number("train.reader_truth", self.reader_truth, 0)
         out += checks.number("train.train_fraction", self.train_fraction, 0, 1, lo_open=True)
         out += checks.number("train.geometry_window", self.geometry_window, 1)
+        out += checks.choice("train.geometry_centre", self.geometry_centre, GEOMETRY_CENTRES)
         if isinstance(self.geometry_window, int) and self.geometry_window % 2 == 0:
             out.append(f"train.geometry_window={self.geometry_window}: must be odd (the frame itself and as many "
                        "frames before it as after it)")

@@ -8,8 +8,10 @@ the shape the material class shows in. The target exists at training time
 only: prediction and evaluation read pixels alone.
 
 Targets are standardised per setting, robustly: each coordinate of each point
-minus its median over all frames, divided by one global spread (the RMS
-deviation of the median clip), then clipped to +-``TARGET_LIMIT``. A few clips
+minus its median over all frames (``train.geometry_centre=frame``: over the
+frames of the same index, so that what every clip does at that moment, such as
+the arm's sweep, is not part of the target), divided by one global spread (the
+RMS deviation of the median clip), then clipped to +-``TARGET_LIMIT``. A few clips
 whose cloth leaves its usual place would otherwise set the spread, shrink every
 other frame's target towards zero and leave the regression nothing to learn;
 those clips are named in a warning. The loss weight means the same on every
@@ -56,8 +58,10 @@ def clip_lattices(run: Run, setting: str, clip_ids: list[str], progress: bool = 
     return {c: stored[c] for c in clip_ids}
 
 
-def geometry_targets(run: Run, setting: str, cache: FrameCache, progress: bool = True) -> np.ndarray:
-    """(cache rows, 192) standardised lattice of the frame in each row of the frame cache."""
+def geometry_targets(run: Run, setting: str, cache: FrameCache, progress: bool = True,
+                     centre: str = "median") -> np.ndarray:
+    """(cache rows, 192) standardised lattice of the frame in each row of the frame cache (``centre``:
+    ``train.geometry_centre``)."""
     lattices = clip_lattices(run, setting, sorted(cache.clips), progress)
     rows = cache.frames.shape[0]
     out = np.zeros((rows, GEOMETRY_DIM), np.float32)
@@ -68,7 +72,7 @@ def geometry_targets(run: Run, setting: str, cache: FrameCache, progress: bool =
                                     f"{clip.num_frames} rendered ones; re-render it")
         out[clip.offset:clip.offset + clip.num_frames] = lat.reshape(len(lat), -1)
     slices = {cid: slice(c.offset, c.offset + c.num_frames) for cid, c in cache.clips.items()}
-    targets, spread, far = standardise(out, slices)
+    targets, spread, far = standardise(out, slices, centre)
     if far:
         warnings.warn(f"{len(far)} clip(s) of {setting} have lattice points more than {TARGET_LIMIT:g} spreads "
                       f"({TARGET_LIMIT * spread:.3g} m) from the usual shape; their targets are clipped: "
@@ -76,12 +80,23 @@ def geometry_targets(run: Run, setting: str, cache: FrameCache, progress: bool =
     return targets
 
 
-def standardise(lattice_rows: np.ndarray, clips: dict[str, slice]) -> tuple[np.ndarray, float, list[str]]:
+def standardise(lattice_rows: np.ndarray, clips: dict[str, slice],
+                centre: str = "median") -> tuple[np.ndarray, float, list[str]]:
     """(targets, spread in metres, far clip ids) of flattened lattice rows (rows, 192), each clip's rows given
-    by a slice: minus the median over the clips' rows, over the RMS deviation of the median clip, clipped to
-    +-``TARGET_LIMIT`` (the module's docstring says why)."""
+    by a slice: minus the median over the clips' rows (``centre="frame"``: over the rows of the same frame
+    index), over the RMS deviation of the median clip, clipped to +-``TARGET_LIMIT`` (the module's docstring
+    says why)."""
     used = np.concatenate([np.arange(r.start, r.stop) for r in clips.values()])
-    targets = lattice_rows - np.median(lattice_rows[used], axis=0, keepdims=True)
+    if centre == "median":
+        targets = lattice_rows - np.median(lattice_rows[used], axis=0, keepdims=True)
+    elif centre == "frame":
+        frame = np.concatenate([np.arange(r.stop - r.start) for r in clips.values()])
+        targets = lattice_rows.copy()
+        for t in np.unique(frame):
+            rows = used[frame == t]
+            targets[rows] -= np.median(lattice_rows[rows], axis=0)
+    else:
+        raise ValueError(f"centre={centre!r}: expected 'median' or 'frame'")
     spread = float(np.sqrt(np.median([(targets[r] ** 2).mean() for r in clips.values()]))) or 1.0
     targets /= spread
     far = sorted(cid for cid, r in clips.items() if np.abs(targets[r]).max() > TARGET_LIMIT)

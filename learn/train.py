@@ -264,7 +264,8 @@ def window_sets(run: Run, setting: str, variant: str, cfg: TrainConfig, device: 
         _barrier()
     split = get_or_make_split(run, setting)
     cache = build_cache(run, variant, setting, cfg.image_size, progress)
-    targets = geometry_targets(run, setting, cache, progress) if cfg.geometry_weight > 0 else None
+    targets = (geometry_targets(run, setting, cache, progress, cfg.geometry_centre) if cfg.geometry_weight > 0
+               else None)
     if main:
         _barrier()
     unassigned = sorted(set(cache.clips) - {c for part in PARTS for c in part_clips(split, part)})

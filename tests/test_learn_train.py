@@ -182,6 +182,27 @@ def test_geometry_targets_follow_the_frame_cache_and_train_an_auxiliary_head(tmp
     assert shape.notna().all().all() and (shape > 0).all().all()   # how well the lattice is read, per epoch
 
 
+def test_frame_centred_targets_leave_out_what_every_clip_does_at_that_frame(tmp_path):
+    import numpy as np
+
+    from learn.dataset import build_cache
+    from learn.geometry import geometry_targets
+
+    cfg = tiny_train_config(aux_geometry=1.0, geometry_centre="frame", epochs=1)
+    run = synthetic_run(tmp_path / "run", cfg)
+    _sim_clips_for(run, cfg.sim.frames)
+    cache = build_cache(run, VARIANT, SETTING, 32, progress=False)
+    # Every z of clip c at frame t is -(0.01 c + 0.002 t): the sinking all clips share is gone, the clips'
+    # order stays.
+    targets = geometry_targets(run, SETTING, cache, progress=False, centre="frame").reshape(-1, 64, 3)
+    z = {cid: targets[c.offset:c.offset + c.num_frames, 0, 2] for cid, c in sorted(cache.clips.items())}
+    assert all(np.allclose(rows, rows[0], atol=1e-4) for rows in z.values())
+    firsts = [z[cid][0] for cid in sorted(z)]
+    assert np.all(np.diff(firsts) < 0)
+    out = train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
+    assert json.loads((out / "config.json").read_text())["train"]["geometry_centre"] == "frame"
+
+
 def test_reader_truth_reaches_the_readers_through_training(tmp_path):
     readers = {}
     for weight in (0.0, 1.0):
