@@ -83,14 +83,25 @@ class ClipResult:
     collision_dropped: int | None = None   # self-collision pairs dropped (beyond the slots), unresolved; None: off
 
 
+def _lengths(d: np.ndarray) -> np.ndarray:
+    """Norms of the vectors along ``d``'s last axis (of 3): ``np.linalg.norm(d, axis=-1)``'s values, the squares
+    added in the same order in ``d``'s dtype, in elementwise passes (numpy's reduction over a 3-long axis is
+    ~10x slower, and an adaptive batch checks every cloth every frame)."""
+    sq = d * d
+    out = sq[..., 0] + sq[..., 1]
+    out += sq[..., 2]
+    return np.sqrt(out, out=out)
+
+
 def health(x: np.ndarray, x_prev: np.ndarray, frame_dt: float, edges: np.ndarray, rest: np.ndarray) -> str | None:
     """None when a recorded frame is plausible, else the reason."""
-    if not np.all(np.isfinite(x)):
+    if not np.isfinite(x).all():
         return "non-finite positions"
-    speed = float(np.linalg.norm(x - x_prev, axis=1).max()) / frame_dt
+    speed = float(_lengths(x - x_prev).max()) / frame_dt
     if speed > MAX_SPEED_MPS:
         return f"vertex speed {speed:.1f} m/s exceeds {MAX_SPEED_MPS} m/s"
-    stretch = float((np.linalg.norm(x[edges[:, 1]] - x[edges[:, 0]], axis=1) / rest).max())
+    # np.take gathers rows ~3x faster than fancy indexing with an index column
+    stretch = float((_lengths(np.take(x, edges[:, 1], axis=0) - np.take(x, edges[:, 0], axis=0)) / rest).max())
     if stretch > MAX_EDGE_STRETCH:
         return f"edge stretched {stretch:.2f}x its rest length (limit {MAX_EDGE_STRETCH}x)"
     return None
@@ -101,8 +112,8 @@ def _batch_health(cur: np.ndarray, prev: np.ndarray, frame_dt: float, edges: np.
     """``health`` for B cloths on one mesh at once: cur, prev (B, V, 3)."""
     out: list[str | None] = [None] * len(cur)
     finite = np.isfinite(cur).all(axis=(1, 2))
-    speed = np.linalg.norm(cur - prev, axis=2).max(axis=1) / frame_dt
-    stretch = (np.linalg.norm(cur[:, edges[:, 1]] - cur[:, edges[:, 0]], axis=2) / rest).max(axis=1)
+    speed = _lengths(cur - prev).max(axis=1) / frame_dt
+    stretch = (_lengths(np.take(cur, edges[:, 1], axis=1) - np.take(cur, edges[:, 0], axis=1)) / rest).max(axis=1)
     for c in np.flatnonzero(~finite | (speed > MAX_SPEED_MPS) | (stretch > MAX_EDGE_STRETCH)):
         out[c] = health(cur[c], prev[c], frame_dt, edges, rest)
     return out

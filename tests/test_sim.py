@@ -412,6 +412,63 @@ def test_rest_cast_to_float32_where_it_is_made_gives_the_solver_the_same_bytes()
         assert cast[key].dtype == full[key].dtype and cast[key].tobytes() == full[key].tobytes(), key
 
 
+def _health_by_norm(x, x_prev, frame_dt, edges, rest):
+    """The health check by its definition: ``np.linalg.norm`` of the displacements and of the edges."""
+    from sim.stage import MAX_EDGE_STRETCH, MAX_SPEED_MPS
+
+    if not np.all(np.isfinite(x)):
+        return "non-finite positions"
+    speed = float(np.linalg.norm(x - x_prev, axis=1).max()) / frame_dt
+    if speed > MAX_SPEED_MPS:
+        return f"vertex speed {speed:.1f} m/s exceeds {MAX_SPEED_MPS} m/s"
+    stretch = float((np.linalg.norm(x[edges[:, 1]] - x[edges[:, 0]], axis=1) / rest).max())
+    if stretch > MAX_EDGE_STRETCH:
+        return f"edge stretched {stretch:.2f}x its rest length (limit {MAX_EDGE_STRETCH}x)"
+    return None
+
+
+def test_health_check_is_its_norm_definition():
+    """The health check (an adaptive batch checks every cloth every frame) computes the norms of
+    ``np.linalg.norm`` to the last bit, so it fails the same clips for the same reasons, cloth by cloth
+    and for a batch on one mesh, on either side of its limits."""
+    from sim import remesh
+    from sim.stage import MAX_SPEED_MPS, _batch_health, _lengths, health
+
+    rng = np.random.default_rng(5)
+    d = rng.normal(size=(20_000, 3)) * 10.0 ** rng.uniform(-40, 40, size=(20_000, 1))
+    d[:4] = [[np.nan, 0.0, 0.0], [np.inf, 1.0, 0.0], [0.0, 0.0, 0.0], [1e-45, 0.0, 0.0]]
+    with np.errstate(over="ignore", under="ignore", invalid="ignore"):     # inf and 0 where both overflow
+        for dtype in (np.float32, np.float64):
+            a = d.astype(dtype)
+            for got, want in ((_lengths(a), np.linalg.norm(a, axis=1)),
+                              (_lengths(a.reshape(-1, 4, 3)), np.linalg.norm(a.reshape(-1, 4, 3), axis=2))):
+                assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
+
+    quad = remesh.uniform(9, 0.4, 1)
+    folded = np.c_[quad.uv[:, 0], 0.04 * np.exp(-((quad.uv[:, 0] - 0.15) / 0.02) ** 2), quad.uv[:, 1]]
+    refined, pos, _ = remesh.remesh(quad, folded.astype(np.float64), np.zeros((quad.num_vertices, 3)))
+    state = remesh.mesh_state(refined)                   # an adaptive cloth's mesh, as the stage checks it
+    x = pos.astype(np.float32)
+    frame_dt = 0.04
+    cases = []
+    for scale in np.geomspace(0.1, 4.0, 24):             # edges from a tenth to 4x their rest length
+        stretched = (x * np.float32(scale)).astype(np.float32)
+        cases.append((stretched, stretched))
+    for step in np.geomspace(0.05, 3.0, 24):             # the fastest vertex from 0.05 to 3 x the speed limit
+        prev = x.copy()
+        prev[rng.integers(len(x))] += np.float32(step * MAX_SPEED_MPS * frame_dt / np.sqrt(3.0))
+        cases.append((x, prev))
+    bad = x.copy()
+    bad[3, 1] = np.nan
+    cases.append((bad, x))
+    reasons = [_health_by_norm(c, p, frame_dt, state.edges, state.edge_rest) for c, p in cases]
+    assert {r.split()[0] if r else None for r in reasons} == {None, "edge", "vertex", "non-finite"}
+    assert [health(c, p, frame_dt, state.edges, state.edge_rest) for c, p in cases] == reasons
+    batch = _batch_health(np.stack([c for c, _ in cases]), np.stack([p for _, p in cases]), frame_dt,
+                          state.edges, state.edge_rest)
+    assert batch == reasons
+
+
 def test_arm_table_is_the_arm_structs_field_by_field():
     """The cloths' arms, written as rows of the struct's NumPy dtype, are the bytes of ``kernels.Arm`` structs
     set field by field (an inactive all-zero one for a cloth without an arm)."""
