@@ -96,11 +96,13 @@ def main(argv: list[str] | None = None) -> None:
         if use_nccl:
             torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", 0)))
         torch.distributed.init_process_group("nccl" if use_nccl else "gloo")
+    finished = False
     try:
         run = Run.open(opts.run_dir)
         cfg = run.config
         if not (opts.setting or opts.variant or opts.model or opts.seed is not None):
             run_train(run, progress=not opts.no_progress)
+            finished = True
             return
         chosen = {"--setting": (opts.setting, cfg.sim.settings()), "--variant": (opts.variant, cfg.render.variants),
                   "--model": (opts.model, cfg.train.models), "--seed": (opts.seed, cfg.train.seeds)}
@@ -114,6 +116,10 @@ def main(argv: list[str] | None = None) -> None:
             folder = train_one(run, setting, variant, model_name, seed, progress=not opts.no_progress)
             if is_main():
                 print(folder)
+        finished = True
     finally:
         if torch.distributed.is_initialized():
+            if finished:
+                # Both ranks leave together: gloo aborted a rank whose peer had already torn its group down.
+                torch.distributed.barrier()
             torch.distributed.destroy_process_group()
