@@ -9,6 +9,8 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from clothgap.config import StudyConfig, preset
 from clothgap.runs import Run, clip_id, mark_done
 from learn.config import TrainConfig
@@ -57,3 +59,10 @@ def tiny_train_config(**train) -> StudyConfig:
                 dropout=0.2, val_fraction=0.25, test_fraction=0.25, lr=3e-3, num_threads=2)
     return StudyConfig(sim=SimConfig(classes=(0, 8, 45, 53), sequences_per_class=4, frames=16),
                        render=RenderConfig(resolution=32), train=TrainConfig(**{**base, **train}))
+
+
+def flat_sheet(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The uv (n*n, 2) and the flat rest positions (n*n, 3) of an n x n vertex sheet, row by row."""
+    u, v = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
+    uv = np.stack([u.ravel(), v.ravel()], -1).astype(np.float32)
+    return uv, np.concatenate([uv, np.zeros((n * n, 1), np.float32)], 1)

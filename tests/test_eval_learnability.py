@@ -11,6 +11,7 @@ from clothgap.runs import Run, clip_id, mark_done
 from eval.learnability import markdown, probe, run_probe
 from sim.clip import SimClip
 from sim.config import SimConfig
+from tests.conftest import flat_sheet
 
 CLASSES = (0, 8, 45, 53)
 
@@ -21,9 +22,7 @@ def _fake_sim_run(root, class_signal: float, per_class: int = 12, frames: int = 
     cfg = StudyConfig(sim=SimConfig(classes=CLASSES, sequences_per_class=per_class, frames=frames))
     run = Run.create_or_resume(root, cfg)
     rng = np.random.default_rng(0)
-    u, v = np.meshgrid(np.linspace(0, 1, 6), np.linspace(0, 1, 6), indexing="ij")
-    uv = np.stack([u.ravel(), v.ravel()], -1).astype(np.float32)
-    rest = np.concatenate([uv, np.zeros((36, 1), np.float32)], 1)
+    uv, rest = flat_sheet(6)
     faces = np.array([[0, 1, 6]], np.int32)
     for i in range(len(CLASSES) * per_class):
         label = CLASSES[i % len(CLASSES)]

@@ -11,6 +11,7 @@ from clothgap.config import StudyConfig
 from clothgap.runs import Run, clip_id, mark_done
 from sim.clip import SimClip
 from sim.config import SimConfig
+from tests.conftest import flat_sheet
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "lattice_variance.py"
 CLASSES = (0, 8, 45, 53)
@@ -28,9 +29,7 @@ def _run(root, per_class: int = 4, frames: int = 12) -> Run:
     cfg = StudyConfig(sim=SimConfig(classes=CLASSES, sequences_per_class=per_class, frames=frames))
     run = Run.create_or_resume(root, cfg)
     rng = np.random.default_rng(0)
-    u, v = np.meshgrid(np.linspace(0, 1, 9), np.linspace(0, 1, 9), indexing="ij")
-    uv = np.stack([u.ravel(), v.ravel()], -1).astype(np.float32)
-    rest = np.concatenate([uv, np.zeros((81, 1), np.float32)], 1)
+    uv, rest = flat_sheet(9)
     swing = np.sin(np.linspace(0, 3, frames))[:, None, None] * np.array([0.0, 0.3, 0.0])
     for i in range(len(CLASSES) * per_class):
         label = CLASSES[i % len(CLASSES)]
