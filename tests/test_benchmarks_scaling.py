@@ -61,3 +61,20 @@ def test_train_scaling_keeps_the_global_batch_and_reuses_a_finished_side(tmp_pat
     _bench("train_scaling.py", *args)
     again = json.loads((tmp_path / "train_scaling-2gpu-lrcn.json").read_text())
     assert again["baseline"]["process_seconds"] is None and again["candidate"]["curve"] == cand["curve"]
+
+
+def test_train_step_wait_times_the_same_steps_with_and_without_a_wait(tmp_path):
+    run = synthetic_run(tmp_path / "run", tiny_train_config(num_threads=1))
+    out = tmp_path / "wait.json"
+    done = _bench("train_step_wait.py", str(run.root), "--recipe", "baseline", "--warmup", "1", "--steps", "2",
+                  "--out", str(out))
+    result = json.loads(out.read_text())
+    assert result["command"].startswith("python benchmarks/train_step_wait.py")
+    for loop in ("with_a_wait_each_step", "as_training_runs"):
+        assert result[loop]["windows_per_s"] > 0 and result[loop]["seconds"] > 0
+    assert result["steps"] == 2 and result["batch_size"] == 8 and "windows/s as training runs" in done.stdout
+    # more steps than the run has windows is refused, not silently shortened
+    too_many = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "train_step_wait.py"), str(run.root),
+                               "--recipe", "baseline", "--steps", "1000"], capture_output=True, text=True,
+                              env={**os.environ, "PYTHONPATH": str(ROOT)}, cwd=ROOT, timeout=240)
+    assert too_many.returncode != 0 and "fewer than (warmup + steps) x batch" in too_many.stderr

@@ -3,15 +3,15 @@
 #   bash scripts/gpu/train_speed.sh RUN [SETTING]        after the run's data is rendered (more_data.sh step 1)
 # Short trainings of the preset's recipe (EPOCHS, default 3; windows/s counts the epochs after the first,
 # which holds torch.compile's compilation) against the same with torch.compile, with CUDA graphs
-# (compile_mode=reduce-overhead), and CUDA graphs at batch 64; one model per GPU at a time (--parallel = the
-# GPU count), so no model shares its GPU. Table: $OUT/speed-SETTING.{md,json} (windows_per_s per recipe) and
+# (compile_mode=reduce-overhead), CUDA graphs at batch 64, and whole-clip windows in batches of 16; one model
+# per GPU at a time (--parallel = the GPU count), so no model shares its GPU. Table: $OUT/speed-SETTING.{md,json} (windows_per_s per recipe) and
 # the models' curves in $OUT/speed-SETTING.tgz. DEADLINE seconds (default 300); the same command resumes.
 set -uo pipefail
 run=$1 setting=${2:-wind-uniform1}
 e=${EPOCHS:-3}
 ngpu=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true); [ "${ngpu:-0}" -ge 1 ] || ngpu=1
 recipes=${RECIPES:-"best+epochs=$e best+epochs=$e+compile=true best+epochs=$e+compile=true+compile_mode=reduce-overhead
-best+epochs=$e+batch_size=64+compile=true+compile_mode=reduce-overhead"}
+best+epochs=$e+batch_size=64+compile=true+compile_mode=reduce-overhead best+epochs=$e+clip_len=40+batch_size=16"}
 recipes=$(echo $recipes | tr ' ' ',')
 python3 "$(dirname "$0")/learn_grid.py" "$run" --setting "$setting" --parallel "${PARALLEL:-$ngpu}" \
   --deadline "${DEADLINE:-300}" --job "$recipes:lrcn" --table "speed-$setting=$recipes:lrcn" 2>&1 \

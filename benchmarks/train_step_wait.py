@@ -1,0 +1,105 @@
+"""What a wait for the GPU in every training step costs: the real training step with and without one.
+
+    python benchmarks/train_step_wait.py RUN [--setting wind-uniform1] [--variant paper] [--recipe best]
+                                         [--model lrcn] [--warmup 20] [--steps 200] [--out FILE]
+
+Runs ``learn.train.run_epoch`` on a run's own training windows (frames resident on the device, cut by
+``learn.windows.WindowSet`` as training does, the recipe's model, optimiser, bf16 and compile settings) for
+``--steps`` steps twice in one process: as training runs them now, and with a blocking host-to-device copy
+before each step, which is what ``run_epoch`` did until the step's clip count stopped being made as a tensor
+from a number (the host then waits for the GPU to finish a step before it launches the next). Windows/s of
+both and their ratio, the same batches in the same order. On a CPU the copy costs nothing; the figure is a
+GPU's. Writes benchmarks/results/train_step_wait-<device>-<setting>.json with the command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from common import RESULTS, write_result  # noqa: E402  (benchmarks/common.py)
+from clothgap.runs import Run  # noqa: E402
+from eval.ablation import recipe_config  # noqa: E402
+from learn.models import build_model, model_args  # noqa: E402
+from learn.train import resolve_device, run_epoch, window_sets  # noqa: E402
+
+
+def _with_wait(batches, device: torch.device):
+    for batch in batches:
+        torch.tensor(float(len(batch[1])), device=device)      # blocking: the host waits for the stream
+        yield batch
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("run", type=Path)
+    ap.add_argument("--setting", default="wind-uniform1")
+    ap.add_argument("--variant", default="paper")
+    ap.add_argument("--recipe", default="best", help="an eval.ablation recipe (its train settings)")
+    ap.add_argument("--model", default="lrcn")
+    ap.add_argument("--warmup", type=int, default=20, help="untimed steps first (cuDNN and compile set-up)")
+    ap.add_argument("--steps", type=int, default=200)
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args(argv)
+    run = Run.open(args.run)
+    cfg = recipe_config(run.config, args.recipe)
+    device = resolve_device(cfg.device)
+    train_set, _val = window_sets(run, args.setting, args.variant, cfg, device, progress=False)
+    needed = (args.warmup + args.steps) * cfg.batch_size
+    if len(train_set) < needed:
+        raise SystemExit(f"{len(train_set)} training windows, fewer than (warmup + steps) x batch = {needed}")
+    amp = cfg.amp and device.type == "cuda"
+    order = train_set.order(0, 0)
+
+    def timed(wait: bool) -> dict:
+        torch.manual_seed(0)
+        model = build_model(args.model, **model_args(cfg)).to(device)
+        if device.type == "cuda":
+            torch.backends.cudnn.benchmark = True
+            model.cnn.to(memory_format=torch.channels_last)
+            model.channels_last = True
+        net = (torch.compile(model, mode=None if cfg.compile_mode == "default" else cfg.compile_mode)
+               if cfg.compile and device.type == "cuda" else model)
+        optimizer = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=cfg.lr,
+                                      weight_decay=cfg.weight_decay, fused=device.type == "cuda")
+        batches = iter(train_set.batches(cfg.batch_size, order=order, drop_last=True))
+        if wait:
+            batches = _with_wait(batches, device)
+
+        def steps(n: int) -> None:     # run_epoch reads its sums back once at the end: every step has finished
+            run_epoch(net, model, itertools.islice(batches, n), device, optimizer, amp,
+                      geometry_weight=cfg.geometry_weight, label_smoothing=cfg.label_smoothing,
+                      truth_weight=cfg.reader_truth)
+
+        steps(args.warmup)
+        started = time.perf_counter()
+        steps(args.steps)
+        seconds = time.perf_counter() - started
+        return {"seconds": round(seconds, 4), "step_ms": round(1000 * seconds / args.steps, 3),
+                "windows_per_s": round(args.steps * cfg.batch_size / seconds, 1)}
+
+    with_wait = timed(wait=True)
+    without = timed(wait=False)
+    result = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+              "torch": torch.__version__, "run": str(args.run), "setting": args.setting, "variant": args.variant,
+              "recipe": args.recipe, "model": args.model, "batch_size": cfg.batch_size, "clip_len": cfg.clip_len,
+              "compile": cfg.compile and device.type == "cuda", "compile_mode": cfg.compile_mode,
+              "frames_on_device": train_set.resident, "warmup": args.warmup, "steps": args.steps,
+              "with_a_wait_each_step": with_wait, "as_training_runs": without,
+              "speedup": round(without["windows_per_s"] / with_wait["windows_per_s"], 3)}
+    out = args.out or RESULTS / f"train_step_wait-{device.type}-{args.setting}.json"
+    write_result("train_step_wait.py", argv, result, out)
+    print(f"{result['as_training_runs']['windows_per_s']} windows/s as training runs, "
+          f"{result['with_a_wait_each_step']['windows_per_s']} with a wait each step: {result['speedup']}x")
+    return result
+
+
+if __name__ == "__main__":
+    main()
