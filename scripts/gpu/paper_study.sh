@@ -5,6 +5,8 @@
 #   RENDER_ARGS="--executor process --workers 12 --gpus-per-worker 0.0833" overlaps the per-clip host work;
 #   on a machine of several GPUs the default is "--executor process --gpus-per-worker 1" (1.8x on two).
 #   TRAIN_ARGS (default "--parallel <4 x GPUs>") trains that many models at once over the machine's GPUs.
+#   SIM_ARGS="--executor process --workers 2 --gpus-per-worker 0.5" simulates two shards on one GPU, so one's
+#   host work (an adaptive setting's health, remesh and rebuild: a third of its stage) overlaps the other's steps.
 #   The paper preset writes each clip's frames.npy alone; EXTRA='--set render.write_png=true' adds the PNGs
 #   (the cost every clip paid before). The render line's summary has frames and seconds: frames/s over the
 #   ceiling of scripts/gpu/render_bench.sh (RESOLUTIONS=112) on the same machine is the render's ratio.
@@ -28,7 +30,8 @@ TRAIN_ARGS=${TRAIN_ARGS-"--parallel $((4 * ngpu))"}
 for stage in $STAGES; do
   t0=$(date +%s.%N)
   if [ -f "$RUN/config.json" ]; then args=("$RUN"); else args=(--preset paper --out "$RUN" "${SETS[@]}"); fi
-  extra=(); [ "$stage" = render ] && extra=(${RENDER_ARGS:-}); [ "$stage" = train ] && extra=(${TRAIN_ARGS:-})
+  extra=(); [ "$stage" = sim ] && extra=(${SIM_ARGS:-})
+  [ "$stage" = render ] && extra=(${RENDER_ARGS:-}); [ "$stage" = train ] && extra=(${TRAIN_ARGS:-})
   # GPU memory sampled while the stage runs (after it ends the process has freed it all): its peak.
   # (beside the run, which the first stage creates)
   nvidia-smi --query-gpu=memory.used --format=csv,noheader,nounits -lms 500 > "/tmp/gpu_memory_$stage.txt" 2>/dev/null &
