@@ -17,7 +17,8 @@ set -uo pipefail
 source scripts/gpu/env.sh
 RUN=${RUN:-/tmp/paper_study}; SETTING=${SETTING:-wind-uniform1}; VARIANT=${VARIANT:-paper}
 MODELS=${MODELS:-lrcn}; DEADLINE=${DEADLINE:-520}; FIRST=${FIRST:-baseline}
-NAME=${NAME:-ablation-$SETTING-$VARIANT}    # the combined table of this call's models
+# the combined table of this call's models (lrcn's recipes: the table RECIPES=auto chooses from)
+[ "$MODELS" = lrcn ] && NAME=${NAME:-ablation-$SETTING-$VARIANT} || NAME=${NAME:-models-$SETTING-$VARIANT}
 ABL=(python3 -m clothgap eval ablation "$RUN" --setting "$SETTING" --variant "$VARIANT")
 t0=$(date +%s)
 finished() {  # recipes whose every model is DONE, FIRST first
@@ -36,12 +37,15 @@ import json, sys
 # measurements rather than recipes (another seed, less data) are not candidates; epochs are a lever
 rows = [r for r in json.load(open(sys.argv[1]))["recipes"] if r["model"] == "lrcn"
         and not any(k in r["recipe"] for k in ("seeds=", "train_fraction="))]
+if not rows:
+    sys.exit(f"RECIPES=auto: {sys.argv[1]} has no lrcn recipe to choose from; run lrcn recipes first")
 def val(r):   # validation accuracy of the kept epoch: recipes are chosen on validation clips, never test
     kept = r["speed"][0]["kept_epoch"]
     return next(iter(r["curves"].values()))[kept]["val_acc"]
 print(max(rows, key=val)["recipe"])
 PY
 )
+  [ -n "$RECIPES" ] || exit 1
   echo "recipe chosen on validation accuracy: $RECIPES"
   echo "$RECIPES" > "$RUN/eval/chosen-recipe.txt"
 fi
