@@ -7,6 +7,10 @@ the run's seed, and prints top-1 and within-one-bin on the test windows. ``--noi
 (standardised units) to train and test lattices: what white regression error of that size alone costs.
 
     python scripts/reader_ceiling.py RUN_DIR --setting wind-uniform1 [--noise 0.18] [--per-coordinate]
+                                     [--clip-len 10 --stride 5] [--centre median|frame]
+
+``--clip-len``/``--stride`` cut the windows as ``train.clip_len``/``train.clip_stride`` do (40: the whole clip);
+``--centre frame`` measures each lattice from the median shape at its frame index, as ``train.geometry_centre``.
 """
 
 from __future__ import annotations
@@ -27,15 +31,12 @@ from learn.models import build_model, model_args
 from learn.split import split_sequences
 from sim.lattice import clip_lattice
 
-CLIP_LEN, STRIDE = 10, 5
-
-
-def windows(lattices, labels, clips, centre, scale):
+def windows(lattices, labels, clips, centre, scale, clip_len, stride):
     x, y = [], []
     for c in clips:
-        lat = np.clip((lattices[c] - centre) / scale, -10, 10)
-        for s in range(0, len(lat) - CLIP_LEN + 1, STRIDE):
-            x.append(lat[s:s + CLIP_LEN])
+        lat = np.clip((lattices[c] - centre[:len(lattices[c])]) / scale, -10, 10)
+        for s in range(0, len(lat) - clip_len + 1, stride):
+            x.append(lat[s:s + clip_len])
             y.append(labels[c])
     return torch.tensor(np.array(x), dtype=torch.float32), torch.tensor(y)
 
@@ -46,6 +47,9 @@ def main(argv=None):
     ap.add_argument("--setting", required=True)
     ap.add_argument("--noise", type=float, default=0.0, help="std of noise on the lattices (standardised units)")
     ap.add_argument("--per-coordinate", action="store_true", help="standardise each coordinate on its own")
+    ap.add_argument("--clip-len", type=int, default=10)
+    ap.add_argument("--stride", type=int, default=5)
+    ap.add_argument("--centre", choices=("median", "frame"), default="median")
     ap.add_argument("--epochs", type=int, default=30)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
@@ -57,12 +61,15 @@ def main(argv=None):
     labels = {c: int(json.loads((folder / c / "meta.json").read_text())["class_index"]) for c in ids}
     split = split_sequences(labels, run.config.train.val_fraction, run.config.train.test_fraction, run.config.seed)
     # Scaled as learn.geometry does (median centre, the median clip's RMS spread), or per coordinate.
-    every = np.concatenate([lattices[c] for c in split["train"]])
-    centre = np.median(every, 0)
-    scale = ((every - centre).std(0) + 1e-9 if args.per_coordinate else
-             float(np.sqrt(np.median([((lattices[c] - centre) ** 2).mean() for c in split["train"]]))))
-    xtr, ytr = windows(lattices, labels, split["train"], centre, scale)
-    xte, yte = windows(lattices, labels, split["test"], centre, scale)
+    train = [lattices[c] for c in split["train"]]
+    every = np.concatenate(train)
+    frames = min(len(t) for t in train)
+    centre = (np.median(np.stack([t[:frames] for t in train]), 0) if args.centre == "frame" else
+              np.broadcast_to(np.median(every, 0), (max(len(t) for t in lattices.values()), every.shape[1])))
+    scale = (np.concatenate([t - centre[:len(t)] for t in train]).std(0) + 1e-9 if args.per_coordinate else
+             float(np.sqrt(np.median([((t - centre[:len(t)]) ** 2).mean() for t in train]))))
+    xtr, ytr = windows(lattices, labels, split["train"], centre, scale, args.clip_len, args.stride)
+    xte, yte = windows(lattices, labels, split["test"], centre, scale, args.clip_len, args.stride)
     torch.manual_seed(args.seed)
     # The run's lrcn with the bottleneck on (its CNN is built but never used here).
     model = build_model("lrcn", **model_args(dataclasses.replace(run.config.train, bottleneck=True)))
@@ -85,6 +92,7 @@ def main(argv=None):
     print(json.dumps({"run": str(run.root), "setting": args.setting, "clips": len(ids),
                       "test_sequences": len(split["test"]), "test_windows": int(len(truth)),
                       "noise": args.noise, "per_coordinate": args.per_coordinate, "epochs": args.epochs,
+                      "clip_len": args.clip_len, "stride": args.stride, "centre": args.centre,
                       "top1": round(float((pred == truth).mean()), 4),
                       "within_one": round(float(metrics.within_one_bin(truth, pred).mean()), 4),
                       "seconds": round(time.perf_counter() - t0, 1)}))

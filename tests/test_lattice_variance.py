@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import json
 from pathlib import Path
 
 import numpy as np
@@ -50,3 +51,16 @@ def test_the_frame_index_explains_the_common_swing_and_the_class_the_rest(tmp_pa
     assert mse["frame"] < 0.5 * mse["constant"]                 # the swing every clip shares
     assert mse["class_and_frame"] < 0.2 * mse["frame"]          # the sag only the class knows
     assert (tmp_path / "r.json").is_file()
+
+
+def test_the_reader_reads_the_class_from_whole_clips_of_frame_centred_lattices(tmp_path, capsys):
+    spec = importlib.util.spec_from_file_location("reader_ceiling", SCRIPT.parent / "reader_ceiling.py")
+    reader_ceiling = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(reader_ceiling)
+    _run(tmp_path / "run", per_class=6)
+    reader_ceiling.main([str(tmp_path / "run"), "--setting", "wind-uniform1", "--clip-len", "12", "--centre",
+                         "frame", "--epochs", "40"])
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert (result["clip_len"], result["centre"]) == (12, "frame")
+    assert result["test_windows"] == result["test_sequences"] > 0      # one whole-clip window a sequence
+    assert result["top1"] >= 0.75                                       # the sag tells the class
