@@ -27,8 +27,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from common import RESULTS, write_result  # noqa: E402  (benchmarks/common.py)
 from clothgap.runs import Run  # noqa: E402
 from eval.ablation import recipe_config  # noqa: E402
-from learn.models import build_model, model_args  # noqa: E402
-from learn.train import resolve_device, run_epoch, window_sets  # noqa: E402
+from learn.models import model_args  # noqa: E402
+from learn.train import (build_training_model, forward_net, make_optimizer, resolve_device, run_epoch,  # noqa: E402
+                         window_sets)
 
 
 def _with_wait(batches, device: torch.device):
@@ -59,16 +60,9 @@ def main(argv: list[str] | None = None) -> dict:
     order = train_set.order(0, 0)
 
     def timed(wait: bool) -> dict:
-        torch.manual_seed(0)
-        model = build_model(args.model, **model_args(cfg)).to(device)
-        if device.type == "cuda":
-            torch.backends.cudnn.benchmark = True
-            model.cnn.to(memory_format=torch.channels_last)
-            model.channels_last = True
-        net = (torch.compile(model, mode=None if cfg.compile_mode == "default" else cfg.compile_mode)
-               if cfg.compile and device.type == "cuda" else model)
-        optimizer = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=cfg.lr,
-                                      weight_decay=cfg.weight_decay, fused=device.type == "cuda")
+        model = build_training_model({"model": args.model, "model_args": model_args(cfg), "torch_seed": 0,
+                                      "cnn_init": "random"}, device)
+        net, optimizer = forward_net(model, cfg, device), make_optimizer(model, cfg, device)
         batches = iter(train_set.batches(cfg.batch_size, order=order, drop_last=True))
         if wait:
             batches = _with_wait(batches, device)

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections import Counter
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -101,7 +102,7 @@ def resolve(run: Run, sequences: int | None = None, fabrics: Sequence[str] | Non
 def model_folder(run: Run, m, variant: str) -> Path:
     """Where model ``m``'s predictions of the measured clips in ``variant`` go (a recipe's models apart)."""
     root = run.eval_dir / "measured" / variant
-    if getattr(m, "recipe", ""):
+    if m.recipe:
         root = root / "ablation" / m.recipe
     return root / m.setting / m.variant / m.model / f"s{m.seed}"
 
@@ -386,8 +387,7 @@ def _models_and_heldout(run: Run, models: list | None, variant: str, progress: b
     """The models to predict with (``models``, else every finished one) and whether ``variant`` is held out
     (neither a training variant of theirs nor a render variant of the run)."""
     models = list(models) if models is not None else finished_models(run)
-    keys = [(m.setting, m.variant, m.model, m.seed) for m in models]
-    twice = sorted({k for k in keys if keys.count(k) > 1})
+    twice = sorted(k for k, n in Counter((m.setting, m.variant, m.model, m.seed) for m in models).items() if n > 1)
     if twice:
         # The tables name a model by these four; two recipes' models of one name go in two calls.
         raise ConfigError(f"two models named {'/'.join(map(str, twice[0]))} (setting/variant/model/seed) in one "
@@ -412,7 +412,7 @@ def score_model(run: Run, m, variant: str, names: list[str], *, predictor: Predi
     videos, status = predict_model(run, m, variant, names, predictor=predictor, activations=activations,
                                    progress=progress)
     entry = {"setting": m.setting, "train_variant": m.variant, "model": m.model, "seed": m.seed,
-             **({"recipe": m.recipe} if getattr(m, "recipe", "") else {}),
+             **({"recipe": m.recipe} if m.recipe else {}),
              "checkpoint": _rel(run, m.checkpoint), "status": status}
     if videos is None:
         return entry, None

@@ -86,18 +86,27 @@ def standardise(lattice_rows: np.ndarray, clips: dict[str, slice],
     by a slice: minus the median over the clips' rows (``centre="frame"``: over the rows of the same frame
     index), over the RMS deviation of the median clip, clipped to +-``TARGET_LIMIT`` (the module's docstring
     says why)."""
-    used = np.concatenate([np.arange(r.start, r.stop) for r in clips.values()])
+    shape = median_shape(lattice_rows, clips, centre)
     if centre == "median":
-        targets = lattice_rows - np.median(lattice_rows[used], axis=0, keepdims=True)
-    elif centre == "frame":
-        frame = np.concatenate([np.arange(r.stop - r.start) for r in clips.values()])
-        targets = lattice_rows.copy()
-        for t in np.unique(frame):
-            rows = used[frame == t]
-            targets[rows] -= np.median(lattice_rows[rows], axis=0)
+        targets = lattice_rows - shape
     else:
-        raise ValueError(f"centre={centre!r}: expected 'median' or 'frame'")
+        targets = lattice_rows.copy()
+        for r in clips.values():
+            targets[r] -= shape[:r.stop - r.start]
     spread = float(np.sqrt(np.median([(targets[r] ** 2).mean() for r in clips.values()]))) or 1.0
     targets /= spread
     far = sorted(cid for cid, r in clips.items() if np.abs(targets[r]).max() > TARGET_LIMIT)
     return np.clip(targets, -TARGET_LIMIT, TARGET_LIMIT), spread, far
+
+
+def median_shape(lattice_rows: np.ndarray, clips: dict[str, slice], centre: str = "median") -> np.ndarray:
+    """What targets are measured from (``train.geometry_centre``): the median of the clips' rows, (1, 192), or
+    with ``centre="frame"`` the median of the rows at each frame index, (longest clip's frames, 192)."""
+    if centre == "median":
+        used = np.concatenate([np.arange(r.start, r.stop) for r in clips.values()])
+        return np.median(lattice_rows[used], axis=0, keepdims=True)
+    if centre != "frame":
+        raise ValueError(f"centre={centre!r}: expected 'median' or 'frame'")
+    frames = max(r.stop - r.start for r in clips.values())
+    return np.stack([np.median(lattice_rows[[r.start + t for r in clips.values() if r.stop - r.start > t]], axis=0)
+                     for t in range(frames)])

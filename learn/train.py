@@ -404,16 +404,14 @@ def _start(out: Path, cfg: TrainConfig, device: torch.device, resolved: dict, tr
     if state is None and is_main():
         fresh_dir(out)
         atomic_write_json(out / "config.json", resolved)
-    model = _build_model(resolved, device)
-    # fused on CUDA: one kernel updates every parameter (a small model's step is bounded by launches)
-    optimizer = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=cfg.lr,
-                                  weight_decay=cfg.weight_decay, fused=device.type == "cuda")
+    model = build_training_model(resolved, device)
+    optimizer = make_optimizer(model, cfg, device)
     scheduler = make_scheduler(optimizer, cfg.schedule, cfg.epochs)
     t = Training(out, cfg, device, resolved, train_set, val_set, model, model, optimizer, scheduler,
                  metrics=[], best=None, start_epoch=0)
     if state is not None:
         _resume(t, state)
-    t.net = _forward_net(model, cfg, device)
+    t.net = forward_net(model, cfg, device)
     if is_main():
         # Imported here: TensorBoard is slow to import and only training needs it.
         from torch.utils.tensorboard import SummaryWriter
@@ -422,8 +420,9 @@ def _start(out: Path, cfg: TrainConfig, device: torch.device, resolved: dict, tr
     return t
 
 
-def _build_model(resolved: dict, device: torch.device) -> ClipClassifier:
-    """The model at its starting weights (seeded from ``torch_seed``, its CNN from ``cnn_init``), on ``device``."""
+def build_training_model(resolved: dict, device: torch.device) -> ClipClassifier:
+    """The model at its starting weights (``resolved``: ``model``, ``model_args``, seeded from ``torch_seed``, its
+    CNN from ``cnn_init``), on ``device`` in the layout training runs it in."""
     seed_everything(resolved["torch_seed"])
     model = build_model(resolved["model"], **resolved["model_args"])
     if resolved["cnn_init"] != "random":
@@ -434,6 +433,13 @@ def _build_model(resolved: dict, device: torch.device) -> ClipClassifier:
         model.cnn.to(memory_format=torch.channels_last)
         model.channels_last = True
     return model
+
+
+def make_optimizer(model: ClipClassifier, cfg: TrainConfig, device: torch.device) -> torch.optim.Optimizer:
+    """AdamW over the trainable parameters; fused on CUDA: one kernel updates every parameter (a small model's
+    step is bounded by launches)."""
+    return torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=cfg.lr,
+                             weight_decay=cfg.weight_decay, fused=device.type == "cuda")
 
 
 def _resume(t: Training, state: dict) -> None:
@@ -449,7 +455,7 @@ def _resume(t: Training, state: dict) -> None:
     t.metrics, t.start_epoch, t.best = state["metrics"], state["epoch"] + 1, state.get("best")
 
 
-def _forward_net(model: ClipClassifier, cfg: TrainConfig, device: torch.device) -> torch.nn.Module:
+def forward_net(model: ClipClassifier, cfg: TrainConfig, device: torch.device) -> torch.nn.Module:
     """What runs the training forward pass: ``model``, wrapped by DDP under torchrun, compiled on CUDA if asked."""
     on_cuda = device.type == "cuda"
     net: torch.nn.Module = model

@@ -72,8 +72,6 @@ class WindowSet:
                 labels.append(clip.class_index)
         self.clip_ids = ids
         self.starts = torch.tensor(starts, dtype=torch.long)
-        self._offsets = torch.tensor(offsets, dtype=torch.long)
-        self._lengths = torch.tensor(lengths, dtype=torch.long)
         self.labels = torch.tensor(labels, dtype=torch.long)
         # Only the rows some window reads travel to the device; the row map re-bases them.
         frames = cache.frames
@@ -84,7 +82,6 @@ class WindowSet:
             used = np.zeros(0, np.int64)
         row_of = np.full(frames.shape[0] if frames.shape[0] else 1, -1, np.int64)
         row_of[used] = np.arange(len(used))
-        self._row_of = torch.from_numpy(row_of)
         host = torch.from_numpy(np.ascontiguousarray(frames[used]))
         self.resident = _fits_on_device(host.numel(), self.device)
         self.frames = host.to(self.device) if self.resident else (host.pin_memory() if self.device.type == "cuda"
@@ -92,8 +89,9 @@ class WindowSet:
         # The index tables a batch is cut with live where the frames do: a step of a resident set copies nothing
         # to the device (a copy from pageable host memory would make the host wait for the GPU every step).
         self._ix = self.device if self.resident else torch.device("cpu")
-        self._starts_ix, self._offsets_ix, self._lengths_ix, self._labels_ix, self._row_ix = (
-            t.to(self._ix) for t in (self.starts, self._offsets, self._lengths, self.labels, self._row_of))
+        self._starts_ix, self._labels_ix = self.starts.to(self._ix), self.labels.to(self._ix)
+        self._offsets, self._lengths, self._row_of = (torch.as_tensor(a, dtype=torch.long, device=self._ix)
+                                                      for a in (offsets, lengths, row_of))
         self.targets = None
         if targets is not None:
             self.targets = torch.from_numpy(np.ascontiguousarray(targets[used], dtype=np.float32)).to(self.device)
@@ -143,8 +141,8 @@ class WindowSet:
                 # Temporal shift of up to half a stride either way, kept inside the clip.
                 half = self.clip_stride // 2
                 shift = (params[:, 0] * (2 * half + 1)).long() - half
-                starts = torch.minimum(torch.clamp(starts + shift, min=0), self._lengths_ix[idx] - self.clip_len)
-            rows = self._row_ix[self._offsets_ix[idx, None] + starts[:, None] + steps]      # (B, T)
+                starts = torch.minimum(torch.clamp(starts + shift, min=0), self._lengths[idx] - self.clip_len)
+            rows = self._row_of[self._offsets[idx, None] + starts[:, None] + steps]      # (B, T)
             raw = self.frames[rows] if self.resident else self._on(self.frames[rows])
             x = raw.permute(0, 1, 4, 2, 3).float().div_(255)                                # (B, T, 3, H, W)
             if params is not None:

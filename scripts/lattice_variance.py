@@ -14,7 +14,6 @@ near a predictor's error has learnt about as much as that predictor knows.
 from __future__ import annotations
 
 import argparse
-import ast
 import json
 import sys
 from pathlib import Path
@@ -24,7 +23,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import clothgap.config  # noqa: E402,F401  (registers the study config that Run.open reads)
-from clothgap.runs import Run  # noqa: E402
+from clothgap.runs import Run, read_meta  # noqa: E402
 from learn.geometry import clip_lattices, standardise  # noqa: E402
 
 
@@ -47,11 +46,11 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     run = Run.open(args.run)
     sim_dir = run.sim_dir(args.setting)
-    ids = sorted(p.name for p in sim_dir.iterdir() if (p / "DONE").is_file())
+    ids = run.done_clips(sim_dir)
     if not ids:
         raise SystemExit(f"{sim_dir}: no finished clip")
     lattices = clip_lattices(run, args.setting, ids, progress=False)
-    meta = [json.loads((sim_dir / cid / "meta.json").read_text()) for cid in ids]
+    meta = [read_meta(sim_dir / cid) for cid in ids]
     frames = {len(lattices[c]) for c in ids}
     if len(frames) != 1:
         raise SystemExit(f"clips of {args.setting} have different frame counts: {sorted(frames)}")
@@ -73,8 +72,7 @@ def main(argv: list[str] | None = None) -> dict:
               "held_out_clips": int(held_out.sum()), "spread_m": round(spread, 5),
               "mse": {"constant": error(zero), "frame": error(by_frame)}}
     if meta[0]["motion"] == "arm":
-        params = [m["motion_params"] if isinstance(m["motion_params"], dict) else ast.literal_eval(m["motion_params"])
-                  for m in meta]
+        params = [m["motion_params"] for m in meta]
         angle = np.array([p["forearm_angle_deg_per_frame"] for p in params])
         sweep = np.array([p["arm_sweep_deg"] for p in params])[:, None]
         since = np.cumsum(angle >= sweep - 1e-6, axis=1)          # frames since the sweep ended, 0 while it sweeps

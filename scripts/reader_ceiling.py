@@ -27,6 +27,7 @@ import torch
 import clothgap.config  # noqa: F401  (registers the study config that Run.open reads)
 from clothgap.runs import Run
 from eval import metrics
+from learn.geometry import median_shape
 from learn.models import build_model, model_args
 from learn.split import split_sequences
 from sim.lattice import clip_lattice
@@ -62,10 +63,9 @@ def main(argv=None):
     split = split_sequences(labels, run.config.train.val_fraction, run.config.train.test_fraction, run.config.seed)
     # Scaled as learn.geometry does (median centre, the median clip's RMS spread), or per coordinate.
     train = [lattices[c] for c in split["train"]]
-    every = np.concatenate(train)
-    frames = min(len(t) for t in train)
-    centre = (np.median(np.stack([t[:frames] for t in train]), 0) if args.centre == "frame" else
-              np.broadcast_to(np.median(every, 0), (max(len(t) for t in lattices.values()), every.shape[1])))
+    ends = np.cumsum([len(t) for t in train])
+    centre = median_shape(np.concatenate(train), dict(enumerate(slice(e - len(t), e) for t, e in zip(train, ends))),
+                          args.centre)
     scale = (np.concatenate([t - centre[:len(t)] for t in train]).std(0) + 1e-9 if args.per_coordinate else
              float(np.sqrt(np.median([((t - centre[:len(t)]) ** 2).mean() for t in train]))))
     xtr, ytr = windows(lattices, labels, split["train"], centre, scale, args.clip_len, args.stride)
