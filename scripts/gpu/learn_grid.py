@@ -10,7 +10,7 @@
 after its base1). Unlike ``eval ablation --parallel`` the recipes need not share their models, so a Table 3
 row and lrcn-only levers fill the GPUs together. Training runs in its own process group, stopped at
 ``--deadline`` seconds; every model resumes epoch by epoch, so the same command again goes on where it
-stopped. ``--table NAME=RECIPES:MODELS`` then writes ``RUN/eval/NAME.{json,md}`` (``clothgap eval ablation``'s
+stopped (exit status 0; 1 when a model failed). ``--table NAME=RECIPES:MODELS`` then writes ``RUN/eval/NAME.{json,md}`` (``clothgap eval ablation``'s
 tables, the first recipe the reference) once every model it needs is finished, and copies them to ``--out``.
 """
 
@@ -51,12 +51,13 @@ def _train(args, run) -> None:
     run_train_parallel(run, grid, args.parallel)
 
 
-def _train_with_deadline(args) -> bool:
-    """Training in a child process group; True when it finished before the deadline."""
+def _train_with_deadline(args) -> bool | None:
+    """Training in a child process group: True when it finished before the deadline, False when the deadline
+    stopped it, None when it failed."""
     argv = [sys.executable, __file__, "--train-only", *sys.argv[1:]]
     child = subprocess.Popen(argv, start_new_session=True)
     try:
-        return child.wait(timeout=args.deadline) == 0
+        return True if child.wait(timeout=args.deadline) == 0 else None
     except subprocess.TimeoutExpired:
         print(f"deadline: training stopped after {args.deadline:.0f} s; the same command resumes it", flush=True)
         os.killpg(child.pid, signal.SIGTERM)
@@ -112,9 +113,11 @@ def main() -> None:
         return
     t0 = time.perf_counter()
     finished = _train_with_deadline(args) if args.job else True
-    print(f"training call: {time.perf_counter() - t0:.0f} s, {'finished' if finished else 'to be resumed'}",
-          flush=True)
+    state = {True: "finished", False: "to be resumed", None: "FAILED (the first error is above)"}[finished]
+    print(f"training call: {time.perf_counter() - t0:.0f} s, {state}", flush=True)
     _tables(args, run)
+    if finished is None:
+        sys.exit(1)
 
 
 if __name__ == "__main__":

@@ -34,14 +34,14 @@ for stage in $STAGES; do
   [ "$stage" = render ] && extra=(${RENDER_ARGS:-}); [ "$stage" = train ] && extra=(${TRAIN_ARGS:-})
   # GPU memory sampled while the stage runs (after it ends the process has freed it all): its peak.
   # (beside the run, which the first stage creates)
-  nvidia-smi --query-gpu=memory.used --format=csv,noheader,nounits -lms 500 > "/tmp/gpu_memory_$stage.txt" 2>/dev/null &
+  nvidia-smi --query-gpu=memory.used --format=csv,noheader,nounits -lms 500 > "/tmp/gpu_memory_$(basename "$RUN")_$stage.txt" 2>/dev/null &
   sampler=$!
   # LIMIT (seconds, optional) stops the stage in time for the call's 10 minutes; it resumes next call.
   ${LIMIT:+timeout -k 10 "$LIMIT"} python3 -m clothgap $stage "${args[@]}" "${extra[@]}" 2>&1 | tr '\r' '\n' | grep -vE "it/s\]|clip/s\]|shard/s\]|s/it\]|clip-frame/s\]" | tail -8
   rc=${PIPESTATUS[0]}
   t1=$(date +%s.%N)
   kill $sampler 2>/dev/null; wait $sampler 2>/dev/null
-  peak=$(sort -n "/tmp/gpu_memory_$stage.txt" 2>/dev/null | tail -1)
+  peak=$(sort -n "/tmp/gpu_memory_$(basename "$RUN")_$stage.txt" 2>/dev/null | tail -1)
   python3 -c "import json,sys; print(json.dumps({'stage': '$stage', 'rc': $rc, 'seconds': round($t1-$t0, 1), 'peak_gpu_mib': int('${peak:-0}' or 0)}))" >> "$RUN/gpu_timings.jsonl"
 done
 cat "$RUN/gpu_timings.jsonl"

@@ -6,6 +6,7 @@
 # (compile_mode=reduce-overhead), CUDA graphs at batch 64, and whole-clip windows in batches of 16; one model
 # per GPU at a time (--parallel = the GPU count), so no model shares its GPU. Table: $OUT/speed-SETTING.{md,json} (windows_per_s per recipe) and
 # the models' curves in $OUT/speed-SETTING.tgz. DEADLINE seconds (default 300); the same command resumes.
+# Exit status: 0 with the table, 75 when it stopped for time (call again), 1 when a model failed.
 set -uo pipefail
 run=$1 setting=${2:-wind-uniform1}
 e=${EPOCHS:-3}
@@ -16,6 +17,7 @@ recipes=$(echo $recipes | tr ' ' ',')
 python3 "$(dirname "$0")/learn_grid.py" "$run" --setting "$setting" --parallel "${PARALLEL:-$ngpu}" \
   --deadline "${DEADLINE:-300}" --job "$recipes:lrcn" --table "speed-$setting=$recipes:lrcn" 2>&1 \
   | tr '\r' '\n' | grep -vE "it/s\]|s/it\]|clip/s\]|shard/s\]"
+grid_rc=${PIPESTATUS[0]}
 ( cd "$run" && tar czf "${OUT:-.}/speed-$setting.tgz" $(ls -d ablation/best+epochs=*/"$setting"/*/lrcn/s*/metrics.csv \
     ablation/best+epochs=*/"$setting"/*/lrcn/s*/config.json 2>/dev/null) 2>/dev/null )
 python3 - "$run/eval/speed-$setting.json" <<'EOF'
@@ -23,8 +25,12 @@ import json, sys
 try:
     rows = json.load(open(sys.argv[1]))["recipes"]
 except OSError:
-    sys.exit("no speed table yet: call again")
+    print("no speed table yet: call again")
+    sys.exit(75)
 for r in rows:
     s = r["speed"][0]
     print(f"{r['recipe']:70s} {s['windows_per_s']:>8} windows/s  first epoch {s['first_epoch_seconds']} s")
 EOF
+rc=$?
+[ "$grid_rc" = 0 ] || { echo "train_speed: a model failed (learn_grid exit $grid_rc)"; exit 1; }
+exit $rc

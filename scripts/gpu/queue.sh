@@ -1,0 +1,55 @@
+#!/usr/bin/env bash
+# GPU: a session's plan, step after step, across the device's calls of at most 10 minutes.
+#   bash scripts/gpu/queue.sh PLAN            (the same command in every call: finished steps are skipped)
+# PLAN has one step a line, "NAME: COMMAND" (bash; blank lines and # comments skipped). A step's command
+# gets BUDGET (the seconds this call has left for it) and its own OUT folder, and must resume when called
+# again. Its exit status says what happened:
+#   0   done: never run again;
+#   75  stopped for time (124/137: cut off by the budget, the same): the queue stops, the next call goes on
+#       with this step;
+#   any other: failed: recorded and left (its log says why), the queue goes on to the next step, so one
+#       broken step does not cost a session. Remove QUEUE_STATE/NAME.failed to try it again.
+# BUDGET seconds for the whole call (default 560, the device's 600 less the start and the transfers).
+# $OUT gets queue.log (every step's output, written as it runs, so a call killed anyway still brings it back)
+# and queue.tgz (every step's OUT folder, accumulated over the calls and packed after each step: the last
+# call's tarball holds all),
+# two files of the device's eight.
+set -uo pipefail
+plan=${1:?usage: bash scripts/gpu/queue.sh PLAN}
+[ -f "$plan" ] || { echo "queue: no plan file $plan" >&2; exit 2; }
+BUDGET=${BUDGET:-560}
+state=${QUEUE_STATE:-/tmp/queue}
+out=${OUT:-/tmp/out}
+mkdir -p "$state/out" "$out"
+t0=$(date +%s)
+left() { echo $(( BUDGET - ($(date +%s) - t0) )); }
+log=$out/queue.log
+pack() { tar czf "$out/queue.tgz" -C "$state/out" . 2>/dev/null; }
+trap pack EXIT
+names=()
+while IFS= read -r line || [ -n "$line" ]; do
+  line=${line%%#*}
+  [[ "$line" =~ ^[[:space:]]*$ ]] && continue
+  name=$(echo "${line%%:*}" | tr -d '[:space:]')
+  cmd=${line#*:}
+  [[ "$name" =~ ^[A-Za-z0-9_.-]+$ ]] || { echo "queue: bad step name '$name' in $plan" | tee -a "$log"; exit 2; }
+  [[ " ${names[*]-} " == *" $name "* ]] && { echo "queue: step $name twice in $plan" | tee -a "$log"; exit 2; }
+  names+=("$name")
+  if [ -f "$state/$name.done" ]; then echo "== $name: done before" | tee -a "$log"; continue; fi
+  if [ -f "$state/$name.failed" ]; then echo "== $name: failed before, left" | tee -a "$log"; continue; fi
+  budget=$(( $(left) - 15 ))                  # the tarball's time
+  [ "$budget" -gt 30 ] || { echo "== $name: no time left in this call: call again" | tee -a "$log"; exit 0; }
+  echo "== $name ($budget s left): $cmd" | tee -a "$log"
+  mkdir -p "$state/out/$name"
+  s0=$(date +%s)
+  BUDGET=$budget OUT="$state/out/$name" timeout -k 10 "$budget" bash -c "$cmd" < /dev/null 2>&1 | tee -a "$log"
+  rc=${PIPESTATUS[0]}
+  echo "== $name: exit $rc after $(( $(date +%s) - s0 )) s" | tee -a "$log"
+  pack                                        # so a call the device cuts off still brings the finished steps
+  case $rc in
+    0) touch "$state/$name.done" ;;
+    75|124|137) echo "queue: $name goes on in the next call" | tee -a "$log"; exit 0 ;;
+    *) echo "$rc" > "$state/$name.failed" ;;
+  esac
+done < "$plan"
+echo "queue: every step of $plan has run ($(ls "$state"/*.failed 2>/dev/null | wc -l) failed)" | tee -a "$log"
