@@ -102,6 +102,11 @@ class WindowSet:
     def _on(self, t: torch.Tensor) -> torch.Tensor:
         return t.to(self.device, non_blocking=True)
 
+    def _to_index_device(self, t: torch.Tensor) -> torch.Tensor:
+        if self._ix.type == "cuda" and t.device.type == "cpu":
+            return t.pin_memory().to(self._ix, non_blocking=True)
+        return t.to(self._ix)
+
     # ---------------------------------------------------------------- batches
 
     def augment_table(self, seed: int, epoch: int) -> torch.Tensor:
@@ -128,9 +133,10 @@ class WindowSet:
         ``augment``: ``augment_table(seed, epoch)`` to augment, else None;
         ``crop``: the augmentation's random resized crop and flip (``augment_batch``).
         """
-        # One copy an epoch of the order and the augmentation table, none a step.
-        order = (torch.arange(len(self)) if order is None else order).to(self._ix)
-        augment = augment.to(self._ix) if augment is not None else None
+        # One copy an epoch of the order and the augmentation table, none a step; from pinned memory, so that
+        # the host does not wait for the GPU even then.
+        order = torch.arange(len(self), device=self._ix) if order is None else self._to_index_device(order)
+        augment = self._to_index_device(augment) if augment is not None else None
         stop = len(order) - (len(order) % batch_size if drop_last and len(order) >= batch_size else 0)
         steps = torch.arange(self.clip_len, device=self._ix)
         for lo in range(0, stop, batch_size):
