@@ -53,19 +53,29 @@ def _train(args, run) -> None:
 
 def _train_with_deadline(args) -> bool | None:
     """Training in a child process group: True when it finished before the deadline, False when the deadline
-    stopped it, None when it failed."""
+    stopped it, None when it failed. Stopping this process (SIGTERM, Ctrl-C) stops the group too."""
     argv = [sys.executable, __file__, "--train-only", *sys.argv[1:]]
     child = subprocess.Popen(argv, start_new_session=True)
-    try:
-        return True if child.wait(timeout=args.deadline) == 0 else None
-    except subprocess.TimeoutExpired:
-        print(f"deadline: training stopped after {args.deadline:.0f} s; the same command resumes it", flush=True)
-        os.killpg(child.pid, signal.SIGTERM)
+
+    def stop_group(signum=None, _frame=None) -> None:
         try:
+            os.killpg(child.pid, signal.SIGTERM)
             child.wait(timeout=20)
         except subprocess.TimeoutExpired:
             os.killpg(child.pid, signal.SIGKILL)
             child.wait()
+        except ProcessLookupError:
+            pass
+        if signum is not None:
+            sys.exit(128 + signum)
+
+    signal.signal(signal.SIGTERM, stop_group)
+    signal.signal(signal.SIGINT, stop_group)
+    try:
+        return True if child.wait(timeout=args.deadline) == 0 else None
+    except subprocess.TimeoutExpired:
+        print(f"deadline: training stopped after {args.deadline:.0f} s; the same command resumes it", flush=True)
+        stop_group()
         return False
 
 
