@@ -389,7 +389,7 @@ def _write_tables(run: Run, cells: dict[tuple, tables.Cell]) -> _Tables:
     atomic_write_text(out / "table3.csv", table3.to_csv(index=False, float_format="%.6g"))
     atomic_write_text(out / "table3.md", f"# Table 3 ({cfg.name}: `{run.root}`)\n\n" + tables.table3_markdown(table3))
 
-    gap = tables.domain_gap(cells, results, **opts)
+    gap = tables.domain_gap(cells, results, **opts, reference=cfg.render.variants[0])
     atomic_write_text(out / "domain_gap.csv", gap.to_csv(index=False, float_format="%.6g"))
     ranking = tables.rank_axes(gap, settings_of, cells, resamples=cfg.eval.bootstrap, confidence=cfg.eval.confidence,
                                rng=rng_for("axes"))

@@ -153,14 +153,16 @@ def table3_markdown(table: pd.DataFrame) -> str:
 # ------------------------------------------------------------------ domain gap
 
 def domain_gap(cells: dict[tuple, Cell], results: pd.DataFrame, *, resamples: int, confidence: float,
-               rng_for: RngFactory) -> pd.DataFrame:
+               rng_for: RngFactory, reference: str | None = None) -> pd.DataFrame:
     """Accuracy and correlation for every (train variant, test variant) pair and its drops, paired by clip.
 
     ``drop`` = acc(trained on A, tested on A) - acc(A on B): what leaving the
     training domain costs. ``gap`` = acc(B on B) - acc(A on B): how far A's model
     stays from one trained in the test domain itself (the sim-to-"real" gap when B
-    stands in for reality). Both intervals resample clip ids jointly for the two
-    terms, since the same clip id has the same simulation under every variant.
+    stands in for reality). ``gain`` = acc(A on B) - acc(R on B), R the ``reference``
+    training variant (a study's `paper`): what training on A instead of R buys on B,
+    e.g. on a held-out look no model trains on. The intervals resample clip ids jointly
+    for the two terms, since the same clip id has the same simulation under every variant.
     ``p_spearman``, ``p_pearson``, ``k_spearman``, ``k_pearson`` (each with ``_lo``/``_hi``):
     how the predicted class's stiffness coefficients follow the true ones
     (``coefficient_correlations``).
@@ -171,15 +173,18 @@ def domain_gap(cells: dict[tuple, Cell], results: pd.DataFrame, *, resamples: in
         cell = cells[(s, a, m, b)]
         own = cells.get((s, a, m, a))
         target = cells.get((s, b, m, b))
+        baseline = cells.get((s, reference, m, b)) if reference is not None else None
         row = {k: r[k] for k in ("setting", "model", "train_variant", "test_variant", "in_domain", "seeds",
                                  "sequences", "acc", "acc_lo", "acc_hi")}
-        for name, ref in (("drop", own), ("gap", target)):
+        # drop and gap: a reference minus this cell; gain: this cell minus the reference training variant's
+        for name, ref, sign in (("drop", own, 1), ("gap", target, 1), ("gain", baseline, -1)):
             if ref is None:
                 est = metrics.Estimate(float("nan"), float("nan"), float("nan"))
             else:
+                first, second = (ref, cell) if sign > 0 else (cell, ref)
                 est = metrics.bootstrap_mean_difference(
-                    metrics.correct(ref.frame["class_index"], ref.frame["pred"]), ref.frame["clip_id"],
-                    metrics.correct(cell.frame["class_index"], cell.frame["pred"]), cell.frame["clip_id"],
+                    metrics.correct(first.frame["class_index"], first.frame["pred"]), first.frame["clip_id"],
+                    metrics.correct(second.frame["class_index"], second.frame["pred"]), second.frame["clip_id"],
                     resamples=resamples, confidence=confidence, rng=rng_for(name, s, a, m, b))
             row[f"{name}_reference_acc"] = (metrics.accuracy(ref.frame["class_index"], ref.frame["pred"])
                                             if ref is not None else float("nan"))

@@ -115,6 +115,11 @@ def test_run_eval_writes_tables_and_resumes(tmp_path):
     assert off["drop"] == pytest.approx(on["acc"] - off["acc"])
     assert off["drop"] > 0 and off["drop_lo"] <= off["drop"] <= off["drop_hi"]
     assert on["drop"] == 0
+    # gain: what training on a variant buys over the run's first (paper) on the same test variant, paired
+    grid_on_paper = gap[(gap.train_variant == "grid") & (gap.test_variant == "paper") & (gap.model == "lrcn")].iloc[0]
+    assert grid_on_paper["gain"] == pytest.approx(grid_on_paper["acc"] - on["acc"])
+    assert grid_on_paper["gain"] < 0 and grid_on_paper["gain_lo"] <= grid_on_paper["gain"] <= grid_on_paper["gain_hi"]
+    assert on["gain"] == 0 and off["gain"] == 0
     # correlation of predicted with true stiffness coefficients, beside accuracy, per (train, test) pair
     for column in tables.CORRELATION_COLUMNS:
         assert {column, f"{column}_lo", f"{column}_hi"} <= set(gap.columns)
