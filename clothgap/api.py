@@ -185,6 +185,17 @@ def open(path: Path | str) -> "Study":  # noqa: A001 - api.open, as gzip.open
     return Study(Run.open(path).root)
 
 
+def run_for_test_variants(run: Run, variants: Iterable[str]) -> Run:
+    """The run seen with only ``variants`` as its render variants, for rendering looks no model trains on
+    (``clothgap eval`` tests every model on every rendered variant). Its config is never saved: the run's own
+    variants stay its training set. Render it in this process (``render.stage.run_render``): an executor's
+    workers reopen the run from its saved config."""
+    from clothgap.config import validate
+
+    cfg = replace(run.config, render=replace(run.config.render, variants=tuple(variants), variant_settings=()))
+    return Run(run.root, validate(cfg))
+
+
 class Study:
     """One run folder and the stages that fill it; every method reads the run's current ``config.json``."""
 
@@ -305,15 +316,10 @@ class Study:
         for setting in run.config.sim.settings():
             run.require(run.sim_dir(setting), "sim")
         test_variants = tuple(dict.fromkeys(test_variants))
-        if test_variants:
-            # A config that names only these variants, never saved: the run's own variants stay its training set.
-            cfg = replace(run.config, render=replace(run.config.render, variants=test_variants, variant_settings=()))
-            from clothgap.config import validate
-
-            extra = Run(run.root, validate(cfg))
+        extra = run_for_test_variants(run, test_variants) if test_variants else None
         opts = replace(executor or ExecutorOptions(), progress=progress)
         summary = self._check("render", run_stage(run, "render", opts), allow_failures)
-        if test_variants:
+        if extra is not None:
             summary["test_variants"] = self._check("render", run_render(extra, progress=progress), allow_failures)
         return summary
 

@@ -91,6 +91,18 @@ def test_a_test_only_variant_is_rendered_and_tested_but_not_trained_on(paper_run
     assert np.isfinite(gap.loc["heldout", "acc"]) and np.isnan(gap.loc["heldout", "gap"])   # no heldout model
 
 
+@pytest.mark.slow
+def test_cli_renders_a_test_only_variant_without_making_it_a_training_variant(paper_run, tmp_path):
+    root = copy_of(paper_run, tmp_path)
+    r = clothgap("render", str(root), "--test-variant", "heldout")
+    assert r.returncode == 0, r.stderr
+    assert "render (test only)" in r.stdout and '"rendered": 4' in r.stdout
+    assert len(list((root / "render" / "heldout" / "wind-uniform1").glob("*/DONE"))) == 4
+    assert Run.open(root).config.render.variants == ("paper",)          # the config is not changed
+    r = clothgap("render", str(root), "--test-variant", "no-such-look")
+    assert r.returncode != 0 and "no-such-look" in r.stderr and "Traceback" not in r.stderr
+
+
 def test_cli_adds_a_variant_to_a_finished_run_and_refuses_what_invalidates_it(paper_run, tmp_path):
     root = copy_of(paper_run, tmp_path)
     # adding a variant only adds work: accepted and said, then the stage asks for the renders it needs

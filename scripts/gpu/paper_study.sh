@@ -12,7 +12,10 @@
 #   ceiling of scripts/gpu/render_bench.sh (RESOLUTIONS=112) on the same machine is the render's ratio.
 # Every stage resumes, so a call cut off at the device's 10-minute limit loses nothing:
 # call again with the same STAGES. Timings accumulate in $RUN/gpu_timings.jsonl; each
-# call copies them, the config and the eval tables to $OUT (one tarball).
+# call copies them, the config and the eval tables to $OUT (one tarball). RUN_SETS="--set ..." applies to a
+# run that exists (e.g. variants added to it). BUDGET (seconds, as scripts/gpu/queue.sh gives) bounds each stage
+# by what is left of it when LIMIT is not set. Exit status: 0 when every stage finished, 75 when one was cut
+# off by its time limit (call again), 1 when one failed.
 set -uo pipefail
 source scripts/gpu/env.sh
 RUN=${RUN:-/tmp/paper_study}
@@ -27,9 +30,12 @@ SETS=(--set sim.motions=${MOTIONS:-wind} --set sim.remeshing=${REMESHING:-unifor
 ngpu=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true); [ "${ngpu:-0}" -ge 1 ] || ngpu=1
 [ "$ngpu" -ge 2 ] && RENDER_ARGS=${RENDER_ARGS-"--executor process --gpus-per-worker 1"}
 TRAIN_ARGS=${TRAIN_ARGS-"--parallel $((4 * ngpu))"}
+started=$(date +%s) status=0 fixed_limit=${LIMIT:-}
 for stage in $STAGES; do
   t0=$(date +%s.%N)
-  if [ -f "$RUN/config.json" ]; then args=("$RUN"); else args=(--preset paper --out "$RUN" "${SETS[@]}"); fi
+  [ -z "$fixed_limit" ] && [ -n "${BUDGET:-}" ] && LIMIT=$(( BUDGET - ($(date +%s) - started) - 10 ))
+  [ -n "${LIMIT:-}" ] && [ "$LIMIT" -lt 20 ] && { echo "no time left for $stage: call again"; status=75; break; }
+  if [ -f "$RUN/config.json" ]; then args=("$RUN" ${RUN_SETS:-}); else args=(--preset paper --out "$RUN" "${SETS[@]}"); fi
   extra=(); [ "$stage" = sim ] && extra=(${SIM_ARGS:-})
   [ "$stage" = render ] && extra=(${RENDER_ARGS:-}); [ "$stage" = train ] && extra=(${TRAIN_ARGS:-})
   # GPU memory sampled while the stage runs (after it ends the process has freed it all): its peak.
@@ -43,8 +49,14 @@ for stage in $STAGES; do
   kill $sampler 2>/dev/null; wait $sampler 2>/dev/null
   peak=$(sort -n "/tmp/gpu_memory_$(basename "$RUN")_$stage.txt" 2>/dev/null | tail -1)
   python3 -c "import json,sys; print(json.dumps({'stage': '$stage', 'rc': $rc, 'seconds': round($t1-$t0, 1), 'peak_gpu_mib': int('${peak:-0}' or 0)}))" >> "$RUN/gpu_timings.jsonl"
+  case $rc in
+    0) ;;
+    124|137) status=75; break ;;
+    *) status=1; break ;;
+  esac
 done
 cat "$RUN/gpu_timings.jsonl"
 cd "$RUN" && tar czf "$OUT/paper_study.tgz" config.json gpu_timings.jsonl train/index.json \
   $(ls train/*/*/*/s*/metrics.csv eval/*.csv eval/*.md eval/summary.json report/report.html 2>/dev/null) 2>/dev/null
 ls -la "$OUT"
+exit $status
