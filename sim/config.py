@@ -96,6 +96,11 @@ class SimConfig:
     def class_indices(self) -> tuple[int, ...]:
         return self.classes or tuple(range(54))
 
+    def sequence_of(self, index: int) -> int:
+        """The sequence number of clip ``index``: clips go round the classes (class ``class_indices()[index %
+        n]``), so the n clips of one round are sequence ``index // n`` of each class."""
+        return index // len(self.class_indices())
+
     def settings(self) -> list[str]:
         """Dataset names, one per (motion, remeshing): e.g. 'wind-uniform1'."""
         return [f"{m}-{r}" for m in self.motions for r in self.remeshing]

@@ -276,9 +276,8 @@ def run_sim(run: Run, progress: bool = True, indices: Sequence[int] | None = Non
     cfg = run.config.sim
     for c in cfg.class_indices():
         classes.class_indices(c)          # validate early
-    n_classes = len(cfg.class_indices())
     wanted = select_clips(cfg.num_clips(), indices)
-    jobs = [ClipJob(i, clip_id(i), i // n_classes) for i in wanted]
+    jobs = [ClipJob(i, clip_id(i), cfg.sequence_of(i)) for i in wanted]
     return simulate_jobs(run, {s: jobs for s in cfg.settings()}, run.sim_dir, progress)
 
 
