@@ -15,7 +15,7 @@ class's sequences fall in both halves, and a clip id is the same simulation unde
   differences combined - reference and combined - best single (the single with the largest gain on the
   even half, so that it too is chosen without looking at the odd half).
 
-Accuracy is per 10-frame test sub-sequence with the seeds' predictions pooled, as in ``eval/results.csv``;
+Accuracy is per test sub-sequence (train.clip_len frames: the whole clip in the paper preset) with the seeds' predictions pooled, as in ``eval/results.csv``;
 intervals resample whole test sequences (``eval.metrics``), seeded from the run's seed.
 ``scripts/combined_variant.py`` is the command.
 """
@@ -41,7 +41,7 @@ from eval.trained import TrainedModel, checkpoint_sha256, finished_models
 from render.variants import VARIANT_NAME, VARIANTS_DIR, RenderVariant
 
 SELECTION, REPORT = "even", "odd"
-UNIT = ("accuracy over 54 classes per 10-frame test sub-sequence (as eval/results.csv), the seeds' predictions "
+UNIT = ("accuracy over 54 classes per test sub-sequence (train.clip_len frames: the whole clip in the paper preset) (as eval/results.csv), the seeds' predictions "
         "pooled; intervals resample whole test sequences; differences are paired by clip id")
 HALF_RULE = ("sequence number = clip index // number of classes (sim.config.SimConfig.sequence_of); the even "
              "half chooses the variants, the odd half reports them")

@@ -13,7 +13,7 @@
    ``fabric``;
 3. **predict** them through the real-video path: every finished model of the run
    gets ``eval.real.evaluate_real`` on the clips' ``ldr/`` frame folders (frames
-   -> 10-frame sub-sequences -> mean probabilities per clip; Table 4 against the
+   -> ``train.clip_len``-frame sub-sequences -> mean probabilities per clip; Table 4 against the
    measured bending stiffness and density), in
    ``eval/measured/<variant>/<setting>/<train_variant>/<model>/s<seed>/``
    (``videos.csv``, ``table4.csv/.md``, ``truth.csv``, ``scatter.png``,

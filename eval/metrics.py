@@ -1,6 +1,6 @@
 """Classification metrics, correlations and bootstrap intervals for the eval stage.
 
-Predictions arrive one row per 10-frame sub-sequence, but sub-sequences of one
+Predictions arrive one row per sub-sequence (``train.clip_len`` frames), but sub-sequences of one
 sequence share material, forces and texture, so they are not independent. Every
 interval here therefore resamples whole SEQUENCES (``groups``), never rows: a
 resample draws sequences with replacement and keeps all sub-sequences of each.

@@ -1,6 +1,6 @@
 """Prediction frames: what ``learn.predict.predict_clips`` returns, on disk as CSV.
 
-One row per 10-frame sub-sequence: ``clip_id, start, class_index, pred`` and the
+One row per sub-sequence (``train.clip_len`` frames): ``clip_id, start, class_index, pred`` and the
 54 class probabilities, stored as columns ``prob_00 .. prob_53`` so that the CSV
 opens in any tool. In memory ``probs`` is an (rows, 54) array beside the frame.
 """

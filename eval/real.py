@@ -25,8 +25,8 @@ ground-truth file, so that file works once a ``video`` column is added):
 
 What is correlated
 ------------------
-Each video is cut into frames at the simulation's frame rate (so a 10-frame
-sub-sequence spans the time the network was trained on), centre-cropped to a
+Each video is cut into frames at the simulation's frame rate (so a
+sub-sequence of ``train.clip_len`` frames spans the time the network was trained on), centre-cropped to a
 square and resized to the model's input size; the frames go through the same
 ``learn.predict.predict_clips`` as simulated clips. The video's class is the
 argmax of the mean sub-sequence probabilities. Two scores are correlated:

@@ -181,7 +181,7 @@ def _section_table3(run: Run) -> str:
                          else _empty("acc", f"no {m} trained on {r['variant']}") for m in models)
         rows.append(f"<tr>{cells}</tr>")
     out = ['<h2 id="table3">Table 3: accuracy on simulated test sequences</h2>',
-           "<p>Accuracy over 54 classes (% of 10-frame test sub-sequences) of each model trained and tested on the "
+           "<p>Accuracy over 54 classes (% of test sub-sequences of train.clip_len frames; one a clip when it is the whole clip) of each model trained and tested on the "
            "same render variant, with the 95% interval from resampling test <em>sequences</em>. "
            f"Source: {_link(run, run.eval_dir / 'table3.csv')}. Paper (wind, Unif-1, Rand): "
            "Base-1 53.6, Base-2 53.3, CNN+LSTM 64.7.</p>",

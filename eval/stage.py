@@ -4,7 +4,7 @@
 docs/contracts.md) and writes under ``run.eval_dir``::
 
     predictions/<setting>/<train_variant>/<model>/s<seed>/<test_variant>.csv
-                           one row per 10-frame test sub-sequence (resumable: kept if present)
+                           one row per test sub-sequence (train.clip_len frames) (resumable: kept if present)
     results.csv            one row per (setting, train variant, model, test variant), seeds pooled
     table3.csv, table3.md  the paper's Table 3 shape (in-domain rows)
     domain_gap.csv         every (train, test) variant pair: accuracy, drop, gap, intervals

@@ -129,7 +129,7 @@ def table3_markdown(table: pd.DataFrame) -> str:
         cells = [r["motion"], r["remeshing"], r["texture"], r["variant"]]
         cells += [_pct(r, f"{m}_acc") if pd.notna(r.get(f"{m}_acc")) else "" for m in models]
         lines.append("| " + " | ".join(str(c) for c in cells) + " |")
-    out = ["Accuracy over 54 classes, % of 10-frame sub-sequences, with a 95% interval from "
+    out = ["Accuracy over 54 classes, % of test sub-sequences (train.clip_len frames each), with a 95% interval from "
            "resampling test sequences.", "", *lines, ""]
     detail_head = ["Motion", "Re-mesh", "Texture", "Variant", "Top-3 %", "Stretch-factor %", "Bend-factor %",
                    "Class distance (grid steps)", "Per-video %", "Test sequences", "Seeds", "Checkpoint(s)"]

@@ -6,9 +6,10 @@
 # names the study's settings:
 #   STAGES="sim render" bash scripts/gpu/domain_gap.sh          then STAGES=train, then STAGES="eval report"
 # or the whole study through scripts/gpu/queue.sh scripts/gpu/plans/domain-gap-wind.plan.
-# N sequences per class (default 24 on a machine of several GPUs, else 12); VARIANTS comma-separated (the
-# training variants each change one axis of `paper`: texture, two BSDFs, lighting, background, tone curve,
-# camera, motion blur; `heldout` is a look no model trains on: lighting, tone curve and camera at once).
+# N sequences per class (default 24 on a machine of several GPUs, else 12); VARIANTS comma-separated, the
+# training variants, each changing one axis of `paper` (texture, two BSDFs, lighting, background, tone curve,
+# camera, motion blur); TEST_VARIANTS rendered for testing only (`clothgap render --test-variant`; default
+# heldout: lighting, tone curve and camera changed at once, a look no model trains on).
 # MOTIONS (default wind). One lrcn per variant, all at once (TRAIN_ARGS). The sim stage's material analyses
 # are left out (eval.sim_analysis): they are the same for every variant and the paper study measures them.
 # On two H100s the render of one setting's 5,184 clips took 202-270 s, so N=24 (1,296 clips) renders the ten
@@ -16,8 +17,12 @@
 set -uo pipefail
 ngpu=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true)
 N=${N:-$([ "${ngpu:-0}" -ge 2 ] && echo 24 || echo 12)}
-VARIANTS=${VARIANTS:-paper,grid,diffuse,fabric-table,lighting-random,room,filmic,camera-noise,motion-blur,heldout}
-nvariants=$(echo "$VARIANTS" | tr ',' '\n' | grep -vc '^heldout$')
+VARIANTS=${VARIANTS:-paper,grid,diffuse,fabric-table,lighting-random,room,filmic,camera-noise,motion-blur}
+TEST_VARIANTS=${TEST_VARIANTS-heldout}
+nvariants=$(echo "$VARIANTS" | tr ',' '\n' | grep -c .)
+render_args="--executor process --gpus-per-worker 1"; [ "${ngpu:-0}" -ge 2 ] || render_args=""
+for v in ${TEST_VARIANTS//,/ }; do render_args+=" --test-variant $v"; done
 RUN=${RUN:-/tmp/gap} EXTRA="--set sim.sequences_per_class=$N --set sim.batch_size=$((N * 54))
   --set render.variants=$VARIANTS --set train.models=lrcn --set eval.sim_analysis= ${EXTRA:-}" SPP=${SPP:-16} \
-  TRAIN_ARGS=${TRAIN_ARGS:-"--parallel $nvariants"} exec bash scripts/gpu/paper_study.sh
+  TRAIN_ARGS=${TRAIN_ARGS:-"--parallel $nvariants"} RENDER_ARGS=${RENDER_ARGS:-$render_args} \
+  exec bash scripts/gpu/paper_study.sh
