@@ -196,6 +196,16 @@ def run_for_test_variants(run: Run, variants: Iterable[str]) -> Run:
     return Run(run.root, validate(cfg))
 
 
+def tested_clip_indices(run: Run) -> list[int]:
+    """The clips a test-only variant needs: those some setting's split tests on (the split training makes,
+    when the run has none yet)."""
+    from clothgap.runs import clip_index
+    from learn.split import current_split, part_clips
+
+    return sorted({clip_index(c) for setting in run.config.sim.settings()
+                   for c in part_clips(current_split(run, setting), "test")})
+
+
 class Study:
     """One run folder and the stages that fill it; every method reads the run's current ``config.json``."""
 
@@ -298,7 +308,8 @@ class Study:
         Args:
             executor: A ``clothgap.executor.ExecutorOptions``; None: this process.
             test_variants: Variants rendered for testing only (no model trains on them; ``evaluate`` tests every
-                model on them), e.g. ``["heldout"]``. Rendered in this process.
+                model on them), e.g. ``["heldout"]``: the test clips of the run's split (the one training makes,
+                when there is none yet), in this process.
             progress: Show progress bars.
             allow_failures: Return even when clips failed.
 
@@ -320,7 +331,8 @@ class Study:
         opts = replace(executor or ExecutorOptions(), progress=progress)
         summary = self._check("render", run_stage(run, "render", opts), allow_failures)
         if extra is not None:
-            summary["test_variants"] = self._check("render", run_render(extra, progress=progress), allow_failures)
+            summary["test_variants"] = self._check(
+                "render", run_render(extra, progress=progress, indices=tested_clip_indices(run)), allow_failures)
         return summary
 
     def train(self, *, settings: Iterable[str] | None = None, variants: Iterable[str] | None = None,

@@ -259,7 +259,8 @@ def sim_export(run_dir: Path, clip: str, setting: str | None, frames: str | None
 @click.option("--list-variants", is_flag=True, help="List the named render variants and exit.")
 @click.option("--test-variant", "test_variants", multiple=True, metavar="NAME",
               help="Also render this variant for testing only (repeatable): no model trains on it, and "
-                   "`clothgap eval` tests every model on it, e.g. heldout. Rendered in this process.")
+                   "`clothgap eval` tests every model on it, e.g. heldout. Only the split's test clips, in "
+                   "this process.")
 @_executor_options
 @_allow_failures_option
 def render(run_dir, preset_name, out, overrides, config_file, list_variants, test_variants, allow_failures,
@@ -281,11 +282,12 @@ def render(run_dir, preset_name, out, overrides, config_file, list_variants, tes
     _echo_summary("render", summary, time.perf_counter() - t0)
     check_failures("render", summary, allow_failures)
     if test_variants:
-        from clothgap.api import run_for_test_variants
+        from clothgap.api import run_for_test_variants, tested_clip_indices
         from render.stage import run_render
 
         t0 = time.perf_counter()
-        summary = run_render(run_for_test_variants(run, dict.fromkeys(test_variants)), progress=opts.progress)
+        summary = run_render(run_for_test_variants(run, dict.fromkeys(test_variants)), progress=opts.progress,
+                             indices=tested_clip_indices(run))
         _echo_summary("render (test only)", summary, time.perf_counter() - t0)
         check_failures("render", summary, allow_failures)
 

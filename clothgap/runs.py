@@ -185,6 +185,13 @@ def clip_id(index: int) -> str:
     return f"c{index:05d}"
 
 
+def clip_index(cid: str) -> int:
+    """The index of clip id ``cid`` (``clip_id``'s inverse): ``"c00018"`` -> 18."""
+    if not (len(cid) > 1 and cid[0] == "c" and cid[1:].isdigit()):
+        raise ValueError(f"{cid!r} is not a clip id (c and a number, e.g. c00018)")
+    return int(cid[1:])
+
+
 def select_clips(num_clips: int, indices: Sequence[int] | None = None) -> list[int]:
     """The clip indices a stage works on: all ``num_clips``, or the given ones (sorted, once each).
 

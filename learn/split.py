@@ -140,18 +140,30 @@ def split_subsequences(labels: dict[str, int], num_frames: int, clip_len: int, c
 def get_or_make_split(run: Run, setting: str) -> dict:
     """The run's split of ``setting``: read from ``splits/<setting>.json``, made once if absent."""
     path = run.split_path(setting)
-    cfg = run.config.train
     if path.is_file():
-        return load_split(path, cfg.split_by)
+        return load_split(path, run.config.train.split_by)
+    split = make_split(run, setting)
+    atomic_write_json(path, split)
+    return split
+
+
+def current_split(run: Run, setting: str) -> dict:
+    """The split training uses: the saved one, else the one it would make now (not saved, so that a train
+    setting changed before training still shapes the split training makes)."""
+    path = run.split_path(setting)
+    return load_split(path, run.config.train.split_by) if path.is_file() else make_split(run, setting)
+
+
+def make_split(run: Run, setting: str) -> dict:
+    """A split of ``setting``'s simulated clips from the run's train settings and seed (deterministic)."""
+    cfg = run.config.train
     labels = clip_labels(run, setting)
     if cfg.split_by == "subsequence":
         parts = split_subsequences(labels, run.config.sim.frames, cfg.clip_len, cfg.clip_stride, cfg.val_fraction,
                                    cfg.test_fraction, run.config.seed)
     else:
         parts = split_sequences(labels, cfg.val_fraction, cfg.test_fraction, run.config.seed)
-    split = {"by": cfg.split_by, "seed": run.config.seed, **parts}
-    atomic_write_json(path, split)
-    return split
+    return {"by": cfg.split_by, "seed": run.config.seed, **parts}
 
 
 def load_split(path: Path, by: str = "sequence") -> dict:

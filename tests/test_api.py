@@ -83,7 +83,13 @@ def test_example_sweep_adds_variants_to_a_finished_run(paper_run, tmp_path, caps
 def test_a_test_only_variant_is_rendered_and_tested_but_not_trained_on(paper_run, tmp_path):
     study = api.open(copy_of(paper_run, tmp_path))
     summary = study.render(test_variants=["heldout"], progress=False)
-    assert summary["rendered"] == 0 and summary["test_variants"]["rendered"] == 4
+    # only the clips the split tests on: one sequence of each of the two classes
+    from learn.split import get_or_make_split, part_clips
+
+    tested = part_clips(get_or_make_split(Run.open(study.root), "wind-uniform1"), "test")
+    assert summary["rendered"] == 0 and summary["test_variants"]["rendered"] == len(tested) == 2
+    done = sorted(p.parent.name for p in (study.root / "render" / "heldout" / "wind-uniform1").glob("*/DONE"))
+    assert done == tested
     study.evaluate(progress=False)
     assert study.variants == ("paper",) and not (study.root / "train" / "wind-uniform1" / "heldout").exists()
     gap = study.domain_gap().set_index("test_variant")
@@ -93,11 +99,16 @@ def test_a_test_only_variant_is_rendered_and_tested_but_not_trained_on(paper_run
 
 @pytest.mark.slow
 def test_cli_renders_a_test_only_variant_without_making_it_a_training_variant(paper_run, tmp_path):
+    from learn.split import make_split, part_clips
+
     root = copy_of(paper_run, tmp_path)
+    shutil.rmtree(root / "splits")                 # as before training: the split training would make is used
     r = clothgap("render", str(root), "--test-variant", "heldout")
     assert r.returncode == 0, r.stderr
-    assert "render (test only)" in r.stdout and '"rendered": 4' in r.stdout
-    assert len(list((root / "render" / "heldout" / "wind-uniform1").glob("*/DONE"))) == 4
+    assert "render (test only)" in r.stdout and '"rendered": 2' in r.stdout      # the split's two test clips
+    done = sorted(p.parent.name for p in (root / "render" / "heldout" / "wind-uniform1").glob("*/DONE"))
+    assert done == part_clips(make_split(Run.open(root), "wind-uniform1"), "test") and len(done) == 2
+    assert not (root / "splits").exists()          # and not saved: a train setting may still change before training
     assert Run.open(root).config.render.variants == ("paper",)          # the config is not changed
     r = clothgap("render", str(root), "--test-variant", "no-such-look")
     assert r.returncode != 0 and "no-such-look" in r.stderr and "Traceback" not in r.stderr

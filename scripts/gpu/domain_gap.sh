@@ -19,10 +19,13 @@ ngpu=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true)
 N=${N:-$([ "${ngpu:-0}" -ge 2 ] && echo 24 || echo 12)}
 VARIANTS=${VARIANTS:-paper,grid,diffuse,fabric-table,lighting-random,room,filmic,camera-noise,motion-blur}
 TEST_VARIANTS=${TEST_VARIANTS-heldout}
+# COMBINED=NAME adds a variant of the user's ($CLOTHGAP_VARIANTS_DIR, e.g. scripts/combined_variant.py select's)
+# to the run: rendered, trained and tested beside the others, which are reused.
+[ -n "${COMBINED:-}" ] && VARIANTS="$VARIANTS,$COMBINED" && RUN_SETS="--set render.variants=$VARIANTS ${RUN_SETS:-}"
 nvariants=$(echo "$VARIANTS" | tr ',' '\n' | grep -c .)
 render_args="--executor process --gpus-per-worker 1"; [ "${ngpu:-0}" -ge 2 ] || render_args=""
 for v in ${TEST_VARIANTS//,/ }; do render_args+=" --test-variant $v"; done
 RUN=${RUN:-/tmp/gap} EXTRA="--set sim.sequences_per_class=$N --set sim.batch_size=$((N * 54))
   --set render.variants=$VARIANTS --set train.models=lrcn --set eval.sim_analysis= ${EXTRA:-}" SPP=${SPP:-16} \
-  TRAIN_ARGS=${TRAIN_ARGS:-"--parallel $nvariants"} RENDER_ARGS=${RENDER_ARGS:-$render_args} \
+  TRAIN_ARGS=${TRAIN_ARGS:-"--parallel $nvariants"} RENDER_ARGS=${RENDER_ARGS:-$render_args} RUN_SETS=${RUN_SETS:-} \
   exec bash scripts/gpu/paper_study.sh
