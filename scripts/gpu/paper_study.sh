@@ -35,7 +35,9 @@ for stage in $STAGES; do
   t0=$(date +%s.%N)
   [ -z "$fixed_limit" ] && [ -n "${BUDGET:-}" ] && LIMIT=$(( BUDGET - ($(date +%s) - started) - 10 ))
   [ -n "${LIMIT:-}" ] && [ "$LIMIT" -lt 20 ] && { echo "no time left for $stage: call again"; status=75; break; }
-  if [ -f "$RUN/config.json" ]; then args=("$RUN" ${RUN_SETS:-}); else args=(--preset paper --out "$RUN" "${SETS[@]}"); fi
+  # (report takes no settings: it shows the run as it is)
+  sets=${RUN_SETS:-}; [ "$stage" = report ] && sets=
+  if [ -f "$RUN/config.json" ]; then args=("$RUN" $sets); else args=(--preset paper --out "$RUN" "${SETS[@]}"); fi
   extra=(); [ "$stage" = sim ] && extra=(${SIM_ARGS:-})
   [ "$stage" = render ] && extra=(${RENDER_ARGS:-}); [ "$stage" = train ] && extra=(${TRAIN_ARGS:-})
   # GPU memory sampled while the stage runs (after it ends the process has freed it all): its peak.
