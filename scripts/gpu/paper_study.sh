@@ -40,17 +40,31 @@ for stage in $STAGES; do
   if [ -f "$RUN/config.json" ]; then args=("$RUN" $sets); else args=(--preset paper --out "$RUN" "${SETS[@]}"); fi
   extra=(); [ "$stage" = sim ] && extra=(${SIM_ARGS:-})
   [ "$stage" = render ] && extra=(${RENDER_ARGS:-}); [ "$stage" = train ] && extra=(${TRAIN_ARGS:-})
-  # GPU memory sampled while the stage runs (after it ends the process has freed it all): its peak.
-  # (beside the run, which the first stage creates)
-  nvidia-smi --query-gpu=memory.used --format=csv,noheader,nounits -lms 500 > "/tmp/gpu_memory_$(basename "$RUN")_$stage.txt" 2>/dev/null &
+  # GPU memory and utilisation sampled while the stage runs (after it ends the process has freed it all): the
+  # peak memory of any GPU, and the mean share of time a kernel ran (whether a stage keeps its GPUs busy).
+  samples="/tmp/gpu_samples_$(basename "$RUN")_$stage.txt"
+  nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv,noheader,nounits -lms 500 > "$samples" 2>/dev/null &
   sampler=$!
   # LIMIT (seconds, optional) stops the stage in time for the call's 10 minutes; it resumes next call.
   ${LIMIT:+timeout -k 10 "$LIMIT"} python3 -m clothgap $stage "${args[@]}" "${extra[@]}" 2>&1 | tr '\r' '\n' | grep -vE "it/s\]|clip/s\]|shard/s\]|s/it\]|clip-frame/s\]" | tail -8
   rc=${PIPESTATUS[0]}
   t1=$(date +%s.%N)
   kill $sampler 2>/dev/null; wait $sampler 2>/dev/null
-  peak=$(sort -n "/tmp/gpu_memory_$(basename "$RUN")_$stage.txt" 2>/dev/null | tail -1)
-  python3 -c "import json,sys; print(json.dumps({'stage': '$stage', 'rc': $rc, 'seconds': round($t1-$t0, 1), 'peak_gpu_mib': int('${peak:-0}' or 0)}))" >> "$RUN/gpu_timings.jsonl"
+  python3 - "$samples" "$stage" "$rc" "$t0" "$t1" >> "$RUN/gpu_timings.jsonl" <<'PY'
+import json, sys
+path, stage, rc, t0, t1 = sys.argv[1:]
+rows = []
+try:
+    for line in open(path):
+        parts = [x.strip() for x in line.split(",")]
+        if len(parts) == 2 and all(x.replace(".", "", 1).isdigit() for x in parts):
+            rows.append((float(parts[0]), float(parts[1])))
+except OSError:
+    pass
+print(json.dumps({"stage": stage, "rc": int(rc), "seconds": round(float(t1) - float(t0), 1),
+                  "peak_gpu_mib": int(max((m for m, _ in rows), default=0)),
+                  "mean_gpu_util_pct": round(sum(u for _, u in rows) / len(rows), 1) if rows else None}))
+PY
   case $rc in
     0) ;;
     124|137) status=75; break ;;
