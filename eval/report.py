@@ -88,6 +88,7 @@ WHY_EMPTY = {
     "drop": "the training variant was not tested on itself",
     "gap": "no model was trained on the test variant",
     "gain": "no model of the reference training variant (the run's first variant)",
+    "in_domain_gain": "not an in-domain row, or no in-domain row of the reference training variant",
     **{c: _CORRELATION_WHY for c in tables.CORRELATION_COLUMNS},
     "mean_share": "no gap to close: the in-domain model did no better",
     "mean_gain": "no pair of training variants tells this axis apart",
@@ -327,7 +328,9 @@ def _section_gap(run: Run) -> str:
            "accuracy on the test variant; <b>gap</b> = accuracy of a model trained on the test variant minus this "
            "one's; <b>gain</b> = this accuracy minus that of the model trained on the run's first variant "
            f"({_esc(run.config.render.variants[0])}) on the same test variant: what training on this variant "
-           "instead buys; all three with paired 95% sequence-bootstrap intervals. <b>p_spearman</b>, <b>k_spearman</b> "
+           "instead buys; <b>in_domain_gain</b> (in-domain rows) = this in-domain accuracy minus the first "
+           "variant's in its own look: which look is easier to read; all with paired 95% sequence-bootstrap "
+           "intervals. <b>p_spearman</b>, <b>k_spearman</b> "
            "(Spearman) and <b>p_pearson</b>, <b>k_pearson</b> (Pearson on log coefficients): correlation of the "
            "predicted class's stretching (p) and bending (k) factor with the true one over test sequences, with "
            f"95% sequence-bootstrap intervals. Source: {_link(run, path)}.</p>"]
@@ -345,9 +348,10 @@ def _section_gap(run: Run) -> str:
                    "<code>clothgap.api</code>.</p>")
     corr = [f"{c}{x}" for c in tables.CORRELATION_COLUMNS for x in ("", "_lo", "_hi")]
     cols = ["setting", "model", "train_variant", "test_variant", "sequences", "acc", "acc_lo", "acc_hi",
-            "drop", "drop_lo", "drop_hi", "gap", "gap_lo", "gap_hi", "gain", "gain_lo", "gain_hi", *corr,
+            "drop", "drop_lo", "drop_hi", "gap", "gap_lo", "gap_hi", "gain", "gain_lo", "gain_hi", "in_domain_gain",
+            "in_domain_gain_lo", "in_domain_gain_hi", *corr,
             "checkpoints"]
-    out.append(_table(gap[[c for c in cols if c in gap]], pct=("acc", "drop", "gap", "gain"),
+    out.append(_table(gap[[c for c in cols if c in gap]], pct=("acc", "drop", "gap", "gain", "in_domain_gain"),
                       est=tables.CORRELATION_COLUMNS, run=run))
     rank_path = run.eval_dir / "axis_ranking.csv"
     ranking = pd.read_csv(rank_path) if rank_path.is_file() else pd.DataFrame()

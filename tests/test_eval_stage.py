@@ -120,6 +120,11 @@ def test_run_eval_writes_tables_and_resumes(tmp_path):
     assert grid_on_paper["gain"] == pytest.approx(grid_on_paper["acc"] - on["acc"])
     assert grid_on_paper["gain"] < 0 and grid_on_paper["gain_lo"] <= grid_on_paper["gain"] <= grid_on_paper["gain_hi"]
     assert on["gain"] == 0 and off["gain"] == 0
+    # in_domain_gain: a variant read in its own look against paper read in its own; only on in-domain rows
+    grid_on_grid = gap[(gap.train_variant == "grid") & (gap.test_variant == "grid") & (gap.model == "lrcn")].iloc[0]
+    assert grid_on_grid["in_domain_gain"] == pytest.approx(grid_on_grid["acc"] - on["acc"])
+    assert grid_on_grid["in_domain_gain_lo"] <= grid_on_grid["in_domain_gain"] <= grid_on_grid["in_domain_gain_hi"]
+    assert on["in_domain_gain"] == 0 and np.isnan(off["in_domain_gain"]) and np.isnan(grid_on_paper["in_domain_gain"])
     # correlation of predicted with true stiffness coefficients, beside accuracy, per (train, test) pair
     for column in tables.CORRELATION_COLUMNS:
         assert {column, f"{column}_lo", f"{column}_hi"} <= set(gap.columns)
