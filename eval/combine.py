@@ -23,7 +23,6 @@ intervals resample whole test sequences (``eval.metrics``), seeded from the run'
 from __future__ import annotations
 
 import json
-import re
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,7 +32,7 @@ import pandas as pd
 
 from clothgap import seeding
 from clothgap.errors import ConfigError, InputError, MissingInputError
-from clothgap.runs import Run, atomic_write_json, atomic_write_text
+from clothgap.runs import Run, atomic_write_json, atomic_write_text, clip_index
 from eval import metrics
 from eval import predictions as preds
 from eval.stage import only_windows, prediction_path, record_path, test_windows, variant_settings
@@ -47,7 +46,6 @@ HALF_RULE = ("sequence number = clip index // number of classes (sim.config.SimC
              "half chooses the variants, the odd half reports them")
 # The first line of every file select writes: it alone may be overwritten by select.
 HEADER = "# Written by scripts/combined_variant.py select; run select again instead of editing this file.\n"
-CLIP_ID = re.compile(r"c(\d+)")
 
 
 @dataclass(frozen=True)
@@ -74,10 +72,11 @@ def report_path(run: Run, name: str, suffix: str) -> Path:
 
 def half_of(run: Run, clip: str) -> str:
     """``"even"`` or ``"odd"``: the parity of the clip's sequence number."""
-    found = CLIP_ID.fullmatch(clip)
-    if not found:
-        raise InputError(f"test clip id {clip!r} is not c<index>: cannot tell its sequence number")
-    return SELECTION if run.config.sim.sequence_of(int(found.group(1))) % 2 == 0 else REPORT
+    try:
+        index = clip_index(clip)
+    except ValueError:
+        raise InputError(f"test clip id {clip!r} is not c<index>: cannot tell its sequence number") from None
+    return SELECTION if run.config.sim.sequence_of(index) % 2 == 0 else REPORT
 
 
 # ------------------------------------------------------------------ what there is to compare
