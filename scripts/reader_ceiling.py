@@ -11,6 +11,12 @@ the run's seed, and prints top-1 and within-one-bin on the test windows. ``--noi
 
 ``--clip-len``/``--stride`` cut the windows as ``train.clip_len``/``train.clip_stride`` do (40: the whole clip);
 ``--centre frame`` measures each lattice from the median shape at its frame index, as ``train.geometry_centre``.
+
+``--measured N`` then simulates N clips of each of the Wang et al. fabrics with their own tables (what
+``clothgap eval measured`` simulates, into ``RUN/measured/sim``; finished clips are kept) and reads their true
+lattices with the same reader: each fabric's class (argmax of its clips' mean window probabilities) against
+its Table 2 class (exact, grid steps, within one step) and predicted bending ranked against measured bending.
+This is what the geometry alone tells of the measured set, with no pixels and no render look in the way.
 """
 
 from __future__ import annotations
@@ -26,7 +32,7 @@ import torch
 
 import clothgap.config  # noqa: F401  (registers the study config that Run.open reads)
 from clothgap.runs import Run
-from eval import metrics
+from eval import classes, metrics
 from learn.geometry import median_shape
 from learn.models import build_model, model_args
 from learn.split import split_sequences
@@ -42,6 +48,37 @@ def windows(lattices, labels, clips, centre, scale, clip_len, stride):
     return torch.tensor(np.array(x), dtype=torch.float32), torch.tensor(y)
 
 
+def read_measured(run, setting, model, sequences, centre, scale, clip_len, stride) -> dict:
+    """The reader's class for each measured fabric from its clips' true lattices, against Table 2."""
+    from scipy import stats
+
+    from sim.measured import basis_values, clip_name, measured_values, table2_class, table2_fabrics, wanted_clips
+    from sim.stage import simulate_measured
+
+    fabrics = table2_fabrics()
+    simulate_measured(run, fabrics, sequences, progress=False)
+    folder = run.measured_sim_dir(setting)
+    rows = []
+    for fabric in fabrics:
+        names = [clip_name(f, n) for f, n in wanted_clips([fabric], sequences)]
+        lattices = {c: clip_lattice(folder / c).reshape(-1, 192) for c in names}
+        probs = []
+        for c in names:         # a clip's mean window probabilities, as the real-video path reads a video
+            x, _ = windows(lattices, {c: 0}, [c], centre, scale, clip_len, stride)
+            with torch.no_grad():
+                probs.append(model.probs(model.read_lattice(x)).mean(0).numpy())
+        pred, truth = int(np.mean(probs, 0).argmax()), table2_class(fabric)
+        rows.append({"fabric": fabric, "pred": pred, "table2_class": truth,
+                     "grid_steps": int(metrics.class_distance([truth], [pred])[0]),
+                     "pred_bending_N_m": float(classes.k_value(pred)) * basis_values()["bending_N_m"],
+                     "bending_N_m": measured_values(fabric)["bending_N_m"]})
+    steps = np.array([r["grid_steps"] for r in rows])
+    rho = stats.spearmanr([r["pred_bending_N_m"] for r in rows], [r["bending_N_m"] for r in rows]).statistic
+    return {"sequences": sequences, "fabrics": len(rows), "exact": int((steps == 0).sum()),
+            "within_one_step": int((steps <= 1).sum()), "mean_grid_steps": round(float(steps.mean()), 2),
+            "bending_spearman": None if np.isnan(rho) else round(float(rho), 3), "rows": rows}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", help="a run folder with finished sim clips")
@@ -53,6 +90,8 @@ def main(argv=None):
     ap.add_argument("--centre", choices=("median", "frame"), default="median")
     ap.add_argument("--epochs", type=int, default=30)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--measured", type=int, default=0, metavar="N",
+                    help="also read N simulated clips of each measured fabric (their Table 2 classes)")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     run = Run.open(args.run)
@@ -89,12 +128,15 @@ def main(argv=None):
     with torch.no_grad():
         pred = model.probs(model.read_lattice(xte + args.noise * torch.randn_like(xte))).argmax(1).numpy()
     truth = yte.numpy()
+    measured = (read_measured(run, args.setting, model, args.measured, centre, scale, args.clip_len, args.stride)
+                if args.measured else None)
     print(json.dumps({"run": str(run.root), "setting": args.setting, "clips": len(ids),
                       "test_sequences": len(split["test"]), "test_windows": int(len(truth)),
                       "noise": args.noise, "per_coordinate": args.per_coordinate, "epochs": args.epochs,
                       "clip_len": args.clip_len, "stride": args.stride, "centre": args.centre,
                       "top1": round(float((pred == truth).mean()), 4),
                       "within_one": round(float(metrics.within_one_bin(truth, pred).mean()), 4),
+                      **({"measured": measured} if measured else {}),
                       "seconds": round(time.perf_counter() - t0, 1)}))
 
 

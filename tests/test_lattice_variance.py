@@ -64,3 +64,26 @@ def test_the_reader_reads_the_class_from_whole_clips_of_frame_centred_lattices(t
     assert (result["clip_len"], result["centre"]) == (12, "frame")
     assert result["test_windows"] == result["test_sequences"] > 0      # one whole-clip window a sequence
     assert result["top1"] >= 0.75                                       # the sag tells the class
+
+
+def test_the_reader_reads_each_measured_fabric_from_its_simulated_lattice(tmp_path, capsys):
+    # The measured fabrics are simulated for real (their own tables, this run's wind), a clip each, and the
+    # reader trained on the run's clips names a class for each, set against its Table 2 class.
+    spec = importlib.util.spec_from_file_location("reader_ceiling", SCRIPT.parent / "reader_ceiling.py")
+    reader_ceiling = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(reader_ceiling)
+    run = _run(tmp_path / "run", per_class=6)
+    reader_ceiling.main([str(tmp_path / "run"), "--setting", "wind-uniform1", "--clip-len", "12", "--epochs", "2",
+                         "--measured", "1"])
+    measured = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["measured"]
+    from sim.measured import table2_class, table2_fabrics
+
+    assert measured["fabrics"] == len(table2_fabrics()) == len(measured["rows"])
+    assert {r["fabric"] for r in measured["rows"]} == set(table2_fabrics())
+    for r in measured["rows"]:
+        assert r["table2_class"] == table2_class(r["fabric"]) and 0 <= r["pred"] < 54 and r["grid_steps"] >= 0
+        assert (r["grid_steps"] == 0) == (r["pred"] == r["table2_class"])
+    steps = [r["grid_steps"] for r in measured["rows"]]
+    assert measured["exact"] == steps.count(0) and measured["within_one_step"] == sum(s <= 1 for s in steps)
+    # simulated once into the run's measured folder, where `clothgap eval measured` would find them
+    assert len(run.done_clips(run.measured_sim_dir("wind-uniform1"))) == len(table2_fabrics())
