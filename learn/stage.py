@@ -3,6 +3,7 @@ process or under torchrun (``python -m learn``, ``torchrun --nproc-per-node N -m
 
 from __future__ import annotations
 
+import gc
 import os
 from pathlib import Path
 
@@ -119,6 +120,10 @@ def main(argv: list[str] | None = None) -> None:
         finished = True
     finally:
         if torch.distributed.is_initialized():
+            # What still holds the group (a DDP reducer in a reference cycle) goes first: one left for the
+            # interpreter's exit can find the group's C++ threads already gone (a rank once died with SIGABRT,
+            # "terminate called without an active exception", after its training had finished).
+            gc.collect()
             if finished:
                 # Both ranks leave together: gloo aborted a rank whose peer had already torn its group down.
                 torch.distributed.barrier()
