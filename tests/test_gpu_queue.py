@@ -1,0 +1,74 @@
+"""scripts/gpu/queue.sh: a session's plan run step after step across calls of the device's time limit, and
+scripts/gpu/together.sh, commands at once (both run on the GPU machine; their logic is bash, tested here)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import tarfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+QUEUE, TOGETHER = ROOT / "scripts" / "gpu" / "queue.sh", ROOT / "scripts" / "gpu" / "together.sh"
+
+
+def _queue(plan: Path, state: Path, out: Path, budget: int = 60) -> subprocess.CompletedProcess:
+    env = {**os.environ, "QUEUE_STATE": str(state), "OUT": str(out), "BUDGET": str(budget)}
+    return subprocess.run(["bash", str(QUEUE), str(plan)], capture_output=True, text=True, env=env, timeout=120)
+
+
+def test_a_plan_goes_on_where_the_last_call_stopped_and_passes_a_failed_step_over(tmp_path):
+    marker = tmp_path / "second-call"
+    plan = tmp_path / "session.plan"
+    plan.write_text(f"""# a comment, then steps
+first: echo made > $OUT/first.txt
+later: [ -f {marker} ] || exit 75; echo "budget $BUDGET" > $OUT/later.txt
+broken: exit 3
+
+last: echo last
+""")
+    state, out = tmp_path / "state", tmp_path / "out"
+    r = _queue(plan, state, out)
+    assert r.returncode == 0, r.stderr
+    assert "later goes on in the next call" in r.stdout and "== broken" not in r.stdout   # stopped there
+    assert (state / "first.done").is_file() and not (state / "later.done").exists()
+
+    marker.touch()
+    r = _queue(plan, state, out)
+    assert "== first: done before" in r.stdout                       # not run again
+    assert (state / "later.done").is_file() and (state / "broken.failed").read_text().strip() == "3"
+    assert "echo last" in r.stdout and (state / "last.done").is_file()   # a failed step does not stop the plan
+    assert "1 failed" in r.stdout
+    # every step's OUT comes back in one tarball, accumulated over the calls, and the log as it ran
+    with tarfile.open(out / "queue.tgz") as t:
+        names = {Path(n).as_posix().lstrip("./") for n in t.getnames()}
+    assert {"first/first.txt", "later/later.txt"} <= names
+    assert "== later" in (out / "queue.log").read_text()
+
+    r = _queue(plan, state, out)
+    assert "== broken: failed before, left" in r.stdout and "== last: done before" in r.stdout
+
+
+@pytest.mark.slow
+def test_a_step_cut_off_by_the_budget_goes_on_next_call_and_a_bad_plan_is_refused(tmp_path):
+    plan = tmp_path / "slow.plan"
+    plan.write_text("slow: sleep 120\n")
+    r = _queue(plan, tmp_path / "state", tmp_path / "out", budget=46)   # 31 s for the step, then it is cut
+    assert "== slow: exit 124" in r.stdout and "slow goes on in the next call" in r.stdout
+    assert not (tmp_path / "state" / "slow.done").exists() and not (tmp_path / "state" / "slow.failed").exists()
+
+    twice = tmp_path / "twice.plan"
+    twice.write_text("a: true\na: true\n")
+    r = _queue(twice, tmp_path / "s2", tmp_path / "o2")
+    assert r.returncode == 2 and "step a twice" in r.stdout
+
+
+def test_together_reports_the_worst_of_its_commands(tmp_path):
+    def together(*cmds: str) -> int:
+        return subprocess.run(["bash", str(TOGETHER), *cmds], capture_output=True, text=True, timeout=60).returncode
+
+    assert together("true", "true") == 0
+    assert together("true", "exit 75") == 75          # one stopped for time: call again
+    assert together("exit 75", "exit 3") == 1         # one failed
