@@ -2,9 +2,10 @@
 
 The `train.bottleneck` model reads classes only from the lattice its CNN predicts (learn.models). This
 trains the same model's reader (``ClipClassifier.read_lattice``: per-frame MLP on the shape and its change,
-LSTM, per-step heads; its loss and readout) on the simulator's own 8 x 8 lattices of a run's sim clips, split by sequence with
-the run's seed, and prints top-1 and within-one-bin on the test windows. ``--noise`` adds Gaussian noise
-(standardised units) to train and test lattices: what white regression error of that size alone costs.
+LSTM, per-step heads; its loss and readout) on the simulator's own 8 x 8 lattices of a run's sim clips, split
+by sequence with the run's seed, and prints top-1, within-one-bin, stretching and bending class accuracy on
+the test windows. ``--noise`` adds Gaussian noise (standardised units) to train and test lattices: what white
+regression error of that size alone costs.
 
     python scripts/reader_ceiling.py RUN_DIR --setting wind-uniform1 [--noise 0.18] [--per-coordinate]
                                      [--clip-len 10 --stride 5] [--centre median|frame]
@@ -136,6 +137,8 @@ def main(argv=None):
                       "clip_len": args.clip_len, "stride": args.stride, "centre": args.centre,
                       "top1": round(float((pred == truth).mean()), 4),
                       "within_one": round(float(metrics.within_one_bin(truth, pred).mean()), 4),
+                      "stretching": round(float(metrics.stretch_correct(truth, pred).mean()), 4),
+                      "bending": round(float(metrics.bend_correct(truth, pred).mean()), 4),
                       **({"measured": measured} if measured else {}),
                       "seconds": round(time.perf_counter() - t0, 1)}))
 
