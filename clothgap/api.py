@@ -187,23 +187,26 @@ def open(path: Path | str) -> "Study":  # noqa: A001 - api.open, as gzip.open
 
 def run_for_test_variants(run: Run, variants: Iterable[str]) -> Run:
     """The run seen with only ``variants`` as its render variants, for rendering looks no model trains on
-    (``clothgap eval`` tests every model on every rendered variant). Its config is never saved: the run's own
-    variants stay its training set. Render it in this process (``render.stage.run_render``): an executor's
-    workers reopen the run from its saved config."""
+    (``clothgap eval`` tests every model on every rendered variant); an unknown name is refused here. Its
+    config is never saved: the run's own variants stay its training set."""
     from clothgap.config import validate
 
-    cfg = replace(run.config, render=replace(run.config.render, variants=tuple(variants), variant_settings=()))
+    cfg = replace(run.config, render=replace(run.config.render, variants=tuple(dict.fromkeys(variants)),
+                                             variant_settings=()))
     return Run(run.root, validate(cfg))
 
 
-def tested_clip_indices(run: Run) -> list[int]:
-    """The clips a test-only variant needs: those some setting's split tests on (the split training makes,
-    when the run has none yet)."""
+def render_test_variants(test_run: Run, progress: bool = True) -> dict:
+    """Render ``run_for_test_variants``'s looks on the clips the split tests on (the split training makes, when
+    the run has none yet), in this process: an executor's workers reopen the run from its saved config.
+    Returns the render stage's summary."""
     from clothgap.runs import clip_index
     from learn.split import current_split, part_clips
+    from render.stage import run_render
 
-    return sorted({clip_index(c) for setting in run.config.sim.settings()
-                   for c in part_clips(current_split(run, setting), "test")})
+    tested = sorted({clip_index(c) for setting in test_run.config.sim.settings()
+                     for c in part_clips(current_split(test_run, setting), "test")})
+    return run_render(test_run, progress=progress, indices=tested)
 
 
 class Study:
@@ -321,18 +324,15 @@ class Study:
             StageFailures: some clips failed (after all others were rendered), unless ``allow_failures``.
         """
         from clothgap.executor import ExecutorOptions, run_stage
-        from render.stage import run_render
 
         run = self.run
         for setting in run.config.sim.settings():
             run.require(run.sim_dir(setting), "sim")
-        test_variants = tuple(dict.fromkeys(test_variants))
-        extra = run_for_test_variants(run, test_variants) if test_variants else None
+        test_run = run_for_test_variants(run, test_variants) if test_variants else None
         opts = replace(executor or ExecutorOptions(), progress=progress)
         summary = self._check("render", run_stage(run, "render", opts), allow_failures)
-        if extra is not None:
-            summary["test_variants"] = self._check(
-                "render", run_render(extra, progress=progress, indices=tested_clip_indices(run)), allow_failures)
+        if test_run is not None:
+            summary["test_variants"] = self._check("render", render_test_variants(test_run, progress), allow_failures)
         return summary
 
     def train(self, *, settings: Iterable[str] | None = None, variants: Iterable[str] | None = None,

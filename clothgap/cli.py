@@ -275,19 +275,17 @@ def render(run_dir, preset_name, out, overrides, config_file, list_variants, tes
     run = resolve_run(run_dir, preset_name, out, overrides, config_file)
     for setting in run.config.sim.settings():
         run.require(run.sim_dir(setting), "sim")
+    from clothgap.api import render_test_variants, run_for_test_variants
     from clothgap.executor import run_stage
 
+    test_run = run_for_test_variants(run, test_variants) if test_variants else None
     t0 = time.perf_counter()
     summary = run_stage(run, "render", opts)
     _echo_summary("render", summary, time.perf_counter() - t0)
     check_failures("render", summary, allow_failures)
-    if test_variants:
-        from clothgap.api import run_for_test_variants, tested_clip_indices
-        from render.stage import run_render
-
+    if test_run is not None:
         t0 = time.perf_counter()
-        summary = run_render(run_for_test_variants(run, dict.fromkeys(test_variants)), progress=opts.progress,
-                             indices=tested_clip_indices(run))
+        summary = render_test_variants(test_run, progress=opts.progress)
         _echo_summary("render (test only)", summary, time.perf_counter() - t0)
         check_failures("render", summary, allow_failures)
 

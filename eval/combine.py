@@ -15,8 +15,9 @@ class's sequences fall in both halves, and a clip id is the same simulation unde
   differences combined - reference and combined - best single (the single with the largest gain on the
   even half, so that it too is chosen without looking at the odd half).
 
-Accuracy is per test sub-sequence (train.clip_len frames: the whole clip in the paper preset) with the seeds' predictions pooled, as in ``eval/results.csv``;
-intervals resample whole test sequences (``eval.metrics``), seeded from the run's seed.
+Accuracy is per test sub-sequence (``train.clip_len`` frames: the whole clip in the paper preset) with the
+seeds' predictions pooled, as in ``eval/results.csv``; intervals resample whole test sequences
+(``eval.metrics``), seeded from the run's seed.
 ``scripts/combined_variant.py`` is the command.
 """
 
@@ -35,13 +36,14 @@ from clothgap.errors import ConfigError, InputError, MissingInputError
 from clothgap.runs import Run, atomic_write_json, atomic_write_text, clip_index
 from eval import metrics
 from eval import predictions as preds
-from eval.stage import only_windows, prediction_path, record_path, test_windows, variant_settings
+from eval.stage import only_windows, prediction_path, read_record, record_path, test_windows, variant_settings
 from eval.trained import TrainedModel, checkpoint_sha256, finished_models
 from render.variants import VARIANT_NAME, VARIANTS_DIR, RenderVariant
 
 SELECTION, REPORT = "even", "odd"
-UNIT = ("accuracy over 54 classes per test sub-sequence (train.clip_len frames: the whole clip in the paper preset) (as eval/results.csv), the seeds' predictions "
-        "pooled; intervals resample whole test sequences; differences are paired by clip id")
+UNIT = ("accuracy over 54 classes per test sub-sequence of train.clip_len frames (the whole clip in the paper "
+        "preset), as eval/results.csv, the seeds' predictions pooled; intervals resample whole test sequences; "
+        "differences are paired by clip id")
 HALF_RULE = ("sequence number = clip index // number of classes (sim.config.SimConfig.sequence_of); the even "
              "half chooses the variants, the odd half reports them")
 # The first line of every file select writes: it alone may be overwritten by select.
@@ -139,11 +141,8 @@ def model_rows(run: Run, m: TrainedModel, test: str) -> pd.DataFrame:
     path = prediction_path(run, m, test)
     if not path.is_file():
         raise MissingInputError(f"no predictions {path}: run `clothgap eval {run.root}` first")
-    try:
-        record = json.loads(record_path(path).read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        record = None
-    if not isinstance(record, dict) or record.get("checkpoint_sha256") != checkpoint_sha256(m):
+    record = read_record(path)
+    if record is None or record.get("checkpoint_sha256") != checkpoint_sha256(m):
         raise MissingInputError(f"{path} is not known to come from {m.checkpoint} as it is now (its record "
                                 f"{record_path(path).name} is missing or names another checkpoint): run "
                                 f"`clothgap eval {run.root}` again")
@@ -421,9 +420,10 @@ def check_combined(run: Run, q: Question, record: dict) -> None:
     if unevaluated:
         raise MissingInputError(f"the combined variant {name!r} is not evaluated yet (no {unevaluated[0]}): run "
                                 f"`clothgap eval {run.root}`")
-    if changes_from_paper(run, name) != record["settings"]:
+    rendered = changes_from_paper(run, name)
+    if rendered != record["settings"]:
         raise ConfigError(f"variant {name!r} in {run.root} was rendered with other settings than the selection "
-                          f"{selection_path(run, name)} wrote: {changes_from_paper(run, name)}")
+                          f"{selection_path(run, name)} wrote: {rendered}")
 
 
 def report(run: Run, record: dict, q: Question) -> dict:

@@ -179,7 +179,8 @@ def record_path(prediction: Path) -> Path:
     return prediction.with_suffix(".json")
 
 
-def _read_record(path: Path) -> dict | None:
+def read_record(path: Path) -> dict | None:
+    """The record beside prediction file ``path`` (which checkpoint made it), or None when missing or unreadable."""
     try:
         record = json.loads(record_path(path).read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
@@ -247,7 +248,7 @@ def _model_predictions(run: Run, m: TrainedModel, test_variant: str, test_ids: l
     folder = run.render_dir(test_variant, m.setting)
     clip_dirs = [folder / c for c in test_ids if is_done(folder / c)]
     wanted = [d.name for d in clip_dirs]
-    record = _read_record(path)
+    record = read_record(path)
     if (path.is_file() and record is not None and record.get("checkpoint_sha256") == sha
             and record.get("clips") == wanted and not record.get("left_out")):
         counts["reused"] += 1

@@ -172,20 +172,19 @@ def domain_gap(cells: dict[tuple, Cell], results: pd.DataFrame, *, resamples: in
     for _, r in results.iterrows():
         s, a, m, b = r["setting"], r["train_variant"], r["model"], r["test_variant"]
         cell = cells[(s, a, m, b)]
-        own = cells.get((s, a, m, a))
-        target = cells.get((s, b, m, b))
+        own, target = cells.get((s, a, m, a)), cells.get((s, b, m, b))
         baseline = cells.get((s, reference, m, b)) if reference is not None else None
-        # in its own domain against the reference in its own: which look is easier to read (e.g. framing)
+        # in its own domain against the reference in its own: which look is easier to read
         own_baseline = cells.get((s, reference, m, reference)) if reference is not None and a == b else None
+        # name: (minuend, subtrahend, the reference cell of the two, which may be missing)
+        differences = {"drop": (own, cell, own), "gap": (target, cell, target), "gain": (cell, baseline, baseline),
+                       "in_domain_gain": (cell, own_baseline, own_baseline)}
         row = {k: r[k] for k in ("setting", "model", "train_variant", "test_variant", "in_domain", "seeds",
                                  "sequences", "acc", "acc_lo", "acc_hi")}
-        # drop and gap: a reference minus this cell; gain, in_domain_gain: this cell minus the reference's
-        for name, ref, sign in (("drop", own, 1), ("gap", target, 1), ("gain", baseline, -1),
-                                ("in_domain_gain", own_baseline, -1)):
+        for name, (first, second, ref) in differences.items():
             if ref is None:
                 est = metrics.Estimate(float("nan"), float("nan"), float("nan"))
             else:
-                first, second = (ref, cell) if sign > 0 else (cell, ref)
                 est = metrics.bootstrap_mean_difference(
                     metrics.correct(first.frame["class_index"], first.frame["pred"]), first.frame["clip_id"],
                     metrics.correct(second.frame["class_index"], second.frame["pred"]), second.frame["clip_id"],

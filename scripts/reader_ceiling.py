@@ -23,26 +23,26 @@ This is what the geometry alone tells of the measured set, with no pixels and no
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
-
-import dataclasses
 
 import numpy as np
 import torch
 
 import clothgap.config  # noqa: F401  (registers the study config that Run.open reads)
-from clothgap.runs import Run
+from clothgap.runs import Run, read_meta
 from eval import classes, metrics
-from learn.geometry import median_shape
+from learn.geometry import TARGET_LIMIT, clip_lattices, median_shape
 from learn.models import build_model, model_args
 from learn.split import split_sequences
 from sim.lattice import clip_lattice
 
+
 def windows(lattices, labels, clips, centre, scale, clip_len, stride):
     x, y = [], []
     for c in clips:
-        lat = np.clip((lattices[c] - centre[:len(lattices[c])]) / scale, -10, 10)
+        lat = np.clip((lattices[c] - centre[:len(lattices[c])]) / scale, -TARGET_LIMIT, TARGET_LIMIT)
         for s in range(0, len(lat) - clip_len + 1, stride):
             x.append(lat[s:s + clip_len])
             y.append(labels[c])
@@ -59,6 +59,7 @@ def read_measured(run, setting, model, sequences, centre, scale, clip_len, strid
     fabrics = table2_fabrics()
     simulate_measured(run, fabrics, sequences, progress=False)
     folder = run.measured_sim_dir(setting)
+    basis_bending = basis_values()["bending_N_m"]
     rows = []
     for fabric in fabrics:
         names = [clip_name(f, n) for f, n in wanted_clips([fabric], sequences)]
@@ -71,7 +72,7 @@ def read_measured(run, setting, model, sequences, centre, scale, clip_len, strid
         pred, truth = int(np.mean(probs, 0).argmax()), table2_class(fabric)
         rows.append({"fabric": fabric, "pred": pred, "table2_class": truth,
                      "grid_steps": int(metrics.class_distance([truth], [pred])[0]),
-                     "pred_bending_N_m": float(classes.k_value(pred)) * basis_values()["bending_N_m"],
+                     "pred_bending_N_m": float(classes.k_value(pred)) * basis_bending,
                      "bending_N_m": measured_values(fabric)["bending_N_m"]})
     steps = np.array([r["grid_steps"] for r in rows])
     rho = stats.spearmanr([r["pred_bending_N_m"] for r in rows], [r["bending_N_m"] for r in rows]).statistic
@@ -98,8 +99,8 @@ def main(argv=None):
     run = Run.open(args.run)
     folder = run.sim_dir(args.setting)
     ids = run.done_clips(folder)
-    lattices = {c: clip_lattice(folder / c).reshape(-1, 192) for c in ids}
-    labels = {c: int(json.loads((folder / c / "meta.json").read_text())["class_index"]) for c in ids}
+    lattices = {c: lat.reshape(-1, 192) for c, lat in clip_lattices(run, args.setting, ids, progress=False).items()}
+    labels = {c: int(read_meta(folder / c)["class_index"]) for c in ids}
     split = split_sequences(labels, run.config.train.val_fraction, run.config.train.test_fraction, run.config.seed)
     # Scaled as learn.geometry does (median centre, the median clip's RMS spread), or per coordinate.
     train = [lattices[c] for c in split["train"]]
