@@ -14,8 +14,8 @@ ROOT = Path(__file__).resolve().parent.parent
 QUEUE, TOGETHER = ROOT / "scripts" / "gpu" / "queue.sh", ROOT / "scripts" / "gpu" / "together.sh"
 
 
-def _queue(plan: Path, state: Path, out: Path, budget: int = 60) -> subprocess.CompletedProcess:
-    env = {**os.environ, "QUEUE_STATE": str(state), "OUT": str(out), "BUDGET": str(budget)}
+def _queue(plan: Path, state: Path, out: Path, budget: int = 60, **env_extra: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "QUEUE_STATE": str(state), "OUT": str(out), "BUDGET": str(budget), **env_extra}
     return subprocess.run(["bash", str(QUEUE), str(plan)], capture_output=True, text=True, env=env, timeout=120)
 
 
@@ -49,6 +49,24 @@ last: echo last
 
     r = _queue(plan, state, out)
     assert "== broken: failed before, left" in r.stdout and "== last: done before" in r.stdout
+
+
+def test_files_too_large_to_bring_back_are_left_out_of_the_tarball_by_name_and_the_rest_comes_back(tmp_path):
+    # random bytes do not compress: a 300 kB file cannot fit a 100 kB tarball, the results beside it can
+    plan = tmp_path / "big.plan"
+    plan.write_text("study: head -c 300000 /dev/urandom > $OUT/report.tgz; echo 0.767 > $OUT/results.csv\n"
+                    "later: echo done > $OUT/later.txt\n")
+    state, out = tmp_path / "state", tmp_path / "out"
+    r = _queue(plan, state, out, QUEUE_TGZ_BYTES="100000")
+    assert r.returncode == 0, r.stderr
+    assert (out / "queue.tgz").stat().st_size <= 100000
+    with tarfile.open(out / "queue.tgz") as t:
+        names = {Path(n).as_posix().lstrip("./") for n in t.getnames()}
+        left_out = t.extractfile("./LEFT_OUT.txt").read().decode()
+    assert {"study/results.csv", "later/later.txt"} <= names and "study/report.tgz" not in names
+    assert "study/report.tgz" in left_out
+    log = (out / "queue.log").read_text()
+    assert log.count("report.tgz: left out of queue.tgz") == 1      # said once, not after every step
 
 
 @pytest.mark.slow

@@ -2,8 +2,8 @@
 # GPU: the domain-gap study (issue 15) on one setting at the paper preset: one simulation rendered under
 # `paper` and variants that each change one render axis, one lrcn per variant (the preset's recipe), every
 # model tested on every variant (paired test clips), the measured fabrics. paper_study.sh runs the stages
-# (resumable, LIMIT or BUDGET seconds, $OUT/paper_study.tgz; exit 0 done, 75 call again, 1 failed); this only
-# names the study's settings:
+# (resumable, LIMIT or BUDGET seconds, $OUT/paper_study.tgz and paper_study-report.tgz; exit 0 done, 75 call
+# again, 1 failed); this only names the study's settings:
 #   STAGES="sim render" bash scripts/gpu/domain_gap.sh          then STAGES=train, then STAGES="eval report"
 # or the whole study through scripts/gpu/queue.sh scripts/gpu/plans/domain-gap-wind.plan. STAGES=check first
 # renders two tiny clips under each variant and keeps those that rendered (below).
@@ -28,13 +28,14 @@ if [ "${STAGES:-}" = check ]; then
   # here (a plugin, a driver) costs seconds and is left out, not the study; the ones that rendered go to
   # RUN.variants-ok, which the stages below read when VARIANTS is not given.
   check=$RUN.variant-check
+  check_sets=${CHECK_SETS:---set sim.device=cuda --set render.backend=cuda_ad_rgb}   # word-split on purpose
   rm -rf "$check"
   # one tiny run a variant, all at once: a variant that fails while the renderer is set up stops its own run only
   for v in ${VARIANTS//,/ } ${TEST_VARIANTS//,/ }; do
     ( python3 -m clothgap sim --preset smoke --out "$check/$v" --set sim.classes=0,53 --set sim.sequences_per_class=1 \
         --set sim.frames=6 --set train.clip_len=6 --set sim.motions=wind --set sim.remeshing=uniform1 \
         --set render.variants="$v" --set render.resolution=${RES:-112} --set render.spp=${SPP:-16} \
-        ${CHECK_SETS:-"--set sim.device=cuda --set render.backend=cuda_ad_rgb"} > "$check.$v.log" 2>&1 &&
+        $check_sets > "$check.$v.log" 2>&1 &&
       timeout 300 python3 -m clothgap render "$check/$v" >> "$check.$v.log" 2>&1 ) &
   done
   wait

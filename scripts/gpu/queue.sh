@@ -24,7 +24,29 @@ mkdir -p "$state/out" "$out"
 t0=$(date +%s)
 left() { echo $(( BUDGET - ($(date +%s) - t0) )); }
 log=$out/queue.log
-pack() { tar czf "$out/queue.tgz" -C "$state/out" . 2>/dev/null; }
+# The device brings back files of at most 16 MiB: above QUEUE_TGZ_BYTES the largest files are left out of the
+# tarball, one by one, and named in its LEFT_OUT.txt and the log, so results are never lost to a large report.
+limit=${QUEUE_TGZ_BYTES:-15728640}
+pack() {
+  local left="$state/left_out.txt" f
+  : > "$left.new"; rm -f "$state/out/LEFT_OUT.txt"
+  tar czf "$out/queue.tgz" -C "$state/out" . 2>/dev/null
+  while [ "$(stat -c %s "$out/queue.tgz")" -gt "$limit" ]; do
+    f=$(cd "$state/out" && find . -type f -printf '%s %p\n' | sort -rn |
+          awk -v skipfile="$left.new" 'BEGIN { while ((getline l < skipfile) > 0) skip[l] = 1 }
+                                       { p = substr($0, index($0, " ") + 1); if (!(p in skip)) { print p; exit } }')
+    [ -n "$f" ] || break
+    echo "$f" >> "$left.new"
+    tar czf "$out/queue.tgz" -C "$state/out" -X "$left.new" . 2>/dev/null
+  done
+  if [ -s "$left.new" ]; then
+    sed "s/\$/: left out of queue.tgz (the device brings back files of at most 16 MiB; limit $limit bytes)/" \
+      "$left.new" > "$state/out/LEFT_OUT.txt"
+    cmp -s "$left.new" "$left" || tee -a "$log" < "$state/out/LEFT_OUT.txt"
+    tar czf "$out/queue.tgz" -C "$state/out" -X "$left.new" . 2>/dev/null
+  fi
+  mv "$left.new" "$left"
+}
 trap pack EXIT
 names=()
 while IFS= read -r line || [ -n "$line" ]; do
