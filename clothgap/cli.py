@@ -439,8 +439,12 @@ def eval_learnability(run_dir: Path, settings: tuple[str, ...], clip_len: int, s
 @click.option("--name", metavar="NAME", help="Write RUN_DIR/eval/NAME.{json,md} (default: ablation-<setting>-<variant>).")
 @click.option("--parallel", type=click.IntRange(min=1), default=1, show_default=True,
               help="Models trained at a time, each in its own process, spread over the visible GPUs.")
+@click.option("--test-variant", "test_variants", multiple=True, metavar="VARIANT",
+              help="Also score every recipe on the same test clips rendered in this look (e.g. heldout, "
+                   "rendered with `clothgap render RUN --test-variant heldout`; repeatable).")
 def eval_ablation(run_dir: Path, recipes: tuple[str, ...], setting: str | None, variant: str | None,
-                  models: tuple[str, ...], seeds: tuple[int, ...], name: str | None, parallel: int) -> None:
+                  models: tuple[str, ...], seeds: tuple[int, ...], name: str | None, parallel: int,
+                  test_variants: tuple[str, ...]) -> None:
     """Train several recipes on the same data and score them on the same test clips, with intervals and
     paired differences (trains into RUN_DIR/ablation/<recipe>/, writes RUN_DIR/eval/ablation-*.{json,md})."""
     run = Run.open(run_dir)
@@ -465,7 +469,8 @@ def eval_ablation(run_dir: Path, recipes: tuple[str, ...], setting: str | None, 
         run_train_parallel(run, ablation_grid(run, setting, variant, list(recipes), list(models) or None,
                                               list(seeds) or None), parallel)
     _echo_summary("eval ablation", run_ablation(run, setting, variant, list(recipes), list(models) or None,
-                                                list(seeds) or None, name=name), time.perf_counter() - t0)
+                                                list(seeds) or None, name=name, test_variants=list(test_variants)),
+                  time.perf_counter() - t0)
 
 
 # ---- clone

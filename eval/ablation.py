@@ -11,7 +11,9 @@ and compared with the first recipe by a paired bootstrap over test sequences.
 Writes ``RUN/eval/ablation-<setting>-<variant>.{json,md}`` (or another name): per recipe and
 model, top-1, within one bin, stretching, bending, top-3 with intervals, the
 paired difference in top-1 to the first recipe, training time and windows/s,
-the kept epoch, and the learning curves (``metrics.csv`` rows).
+the kept epoch, and the learning curves (``metrics.csv`` rows). With test variants
+(e.g. ``heldout``, rendered for testing only), each recipe is also scored on the same
+test clips under each of those looks: what a training lever buys where the look changes.
 """
 
 from __future__ import annotations
@@ -104,7 +106,8 @@ def training_speed(folder: Path) -> dict:
 
 
 def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], models: list[str] | None = None,
-                 seeds: list[int] | None = None, progress: bool = True, name: str | None = None) -> dict:
+                 seeds: list[int] | None = None, progress: bool = True, name: str | None = None,
+                 test_variants: list[str] | None = None) -> dict:
     """Train and score every recipe x model x seed; write and return the comparison.
 
     Args:
@@ -114,6 +117,7 @@ def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], model
         seeds: default to each recipe's ``train.seeds`` (the run's, unless the recipe sets ``seeds=...``).
         progress: print a line per trained model.
         name: the file stem under ``RUN/eval/`` (default ``ablation-<setting>-<variant>``).
+        test_variants: other looks of the same test clips to score every recipe on too (``row["on"]``).
 
     Returns:
         ``{"json": path of the written report, "top1": {"<recipe>/<model>": accuracy}}``.
@@ -122,21 +126,30 @@ def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], model
 
     if not recipes:
         raise ConfigError("no recipes given")
+    test_variants = [v for v in dict.fromkeys(test_variants or []) if v != variant]
+    for look in test_variants:
+        if not run.done_clips(run.render_dir(look, setting)):
+            raise ConfigError(f"test variant {look!r} has no rendered clips of {setting}: render it first "
+                              f"(`clothgap render {run.root} --test-variant {look}`)")
     base = run.config.train
     configs = {r: recipe_config(run.config, r) for r in recipes}
     models = models or list(base.models)
     test = part_windows(get_or_make_split(run, setting), "test")
-    rows, reference, caches = [], {}, {}
+    rows, caches = [], {}
+    references: dict[str, dict] = {look: {} for look in [variant, *test_variants]}
     out_dir = run.eval_dir
     for recipe in recipes:
         cfg = configs[recipe]
         recipe_seeds = _recipe_seeds(cfg, seeds)
         for model in models:
-            frame, folders = _train_and_predict(run, setting, variant, recipe, cfg, model, recipe_seeds, test,
-                                                caches, progress)
+            frames, folders = _train_and_predict(run, setting, variant, recipe, cfg, model, recipe_seeds, test,
+                                                 caches, progress, test_variants)
             row = {"recipe": recipe, "model": model, "seeds": recipe_seeds,
                    "changes": {k: v for k, v in dataclasses.asdict(cfg).items() if getattr(base, k) != v},
-                   **_scores(run, frame, model, reference, len(rows))}
+                   **_scores(run, frames[variant], model, references[variant], len(rows))}
+            if test_variants:
+                row["on"] = {look: _scores(run, frames[look], model, references[look], len(rows), stream=k + 1)
+                             for k, look in enumerate(test_variants)}
             row["speed"] = [training_speed(f) for f in folders]
             row["curves"] = {f"s{s}": _curves(f) for s, f in zip(recipe_seeds, folders)}
             rows.append(row)
@@ -144,6 +157,8 @@ def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], model
     report = {"run": str(run.root), "setting": setting, "variant": variant, "split_by": base.split_by,
               "test_sequences_in_split": len(test), "test_sequences": scored,
               "base_train": dataclasses.asdict(base), "recipes": rows}
+    if test_variants:
+        report["test_variants"] = test_variants
     stem = name or f"ablation-{setting}-{variant}"
     atomic_write_json(out_dir / f"{stem}.json", report)
     atomic_write_text(out_dir / f"{stem}.md", markdown(report))
@@ -152,37 +167,45 @@ def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], model
 
 
 def _train_and_predict(run: Run, setting: str, variant: str, recipe: str, cfg, model: str, seeds: list[int],
-                       test, caches: dict, progress: bool) -> tuple[pd.DataFrame, list[Path]]:
+                       test, caches: dict, progress: bool, test_variants: list[str] = ()
+                       ) -> tuple[dict[str, pd.DataFrame], list[Path]]:
     """``model`` trained with ``recipe`` for every seed (resumable) and its predictions on the ``test`` windows
-    (kept in each folder's ``test_predictions.csv``): all seeds' predictions, and the training folders.
-    ``caches`` holds the frame cache per image size, built once."""
+    of ``variant`` and of each test variant (kept in each folder's ``test_predictions[-<variant>].csv``): per
+    look, all seeds' predictions; and the training folders. ``caches`` holds the frame cache per (look, image
+    size), built once."""
     from learn.dataset import build_cache
     from learn.predict import predict_windows
     from learn.train import resolve_device, train_one
 
-    frames, folders = [], []
+    looks = [variant, *test_variants]
+    frames: dict[str, list[pd.DataFrame]] = {look: [] for look in looks}
+    folders = []
     for seed in seeds:
         t0 = time.perf_counter()
         folder = train_one(run, setting, variant, model, seed, progress, config=cfg, root=recipe_root(run, recipe))
-        path = folder / "test_predictions.csv"
-        if not path.is_file():
-            if cfg.image_size not in caches:
-                caches[cfg.image_size] = build_cache(run, variant, setting, cfg.image_size, progress=False)
-            preds.save(predict_windows(folder, caches[cfg.image_size], test, resolve_device(cfg.device)), path)
-        frames.append(preds.load(path).assign(seed=seed))
+        for look in looks:
+            path = folder / ("test_predictions.csv" if look == variant else f"test_predictions-{look}.csv")
+            if not path.is_file():
+                if (look, cfg.image_size) not in caches:
+                    caches[look, cfg.image_size] = build_cache(run, look, setting, cfg.image_size, progress=False)
+                preds.save(predict_windows(folder, caches[look, cfg.image_size], test, resolve_device(cfg.device)),
+                           path)
+            frames[look].append(preds.load(path).assign(seed=seed))
         folders.append(folder)
         if progress:
             print(f"[ablation] {recipe} {model} s{seed}: {time.perf_counter() - t0:.1f} s", flush=True)
-    return pd.concat(frames, ignore_index=True), folders
+    return {look: pd.concat(f, ignore_index=True) for look, f in frames.items()}, folders
 
 
-def _scores(run: Run, frame: pd.DataFrame, model: str, reference: dict, row_index: int) -> dict:
+def _scores(run: Run, frame: pd.DataFrame, model: str, reference: dict, row_index: int, stream: int = 0) -> dict:
     """Accuracy and its interval of one recipe's ``model`` on the test windows, and for every recipe after the
-    first its difference from the first's (``reference``: model -> the first recipe's correct flags and clips)."""
+    first its difference from the first's (``reference``: model -> the first recipe's correct flags and clips).
+    ``stream`` > 0: the scores of a test variant, on bootstrap draws of their own."""
     bootstrap = dict(resamples=run.config.eval.bootstrap, confidence=run.config.eval.confidence)
     truth, pred = frame["class_index"].to_numpy(), frame["pred"].to_numpy()
     groups = frame["clip_id"].to_numpy()
-    rng = np.random.default_rng([run.config.seed, row_index])   # bootstrap keyed by the row's place
+    # bootstrap keyed by the row's place (and the test variant's)
+    rng = np.random.default_rng([run.config.seed, row_index, stream] if stream else [run.config.seed, row_index])
     scores = metrics.summarize(truth, pred, preds.probs_of(frame), groups, rng=rng, **bootstrap)
     correct = metrics.correct(truth, pred)
     if model in reference:
@@ -219,4 +242,12 @@ def markdown(report: dict) -> str:
                      f"{_pct(r, 'stretch_acc')} | {_pct(r, 'bend_acc')} | {_pct(r, 'top3')} | "
                      f"{_pct(r, 'acc_minus_first')} | {speed.get('windows_per_s', '-')} | "
                      f"{speed.get('kept_epoch', '-')} |")
+    for look in report.get("test_variants", []):
+        lines += ["", f"On the same test clips rendered as `{look}` (a look the recipes did not train on):", "",
+                  "| recipe | model | top-1 % | within one bin % | stretching % | bending % | top-1 minus first (points) |",
+                  "| --- | --- | --- | --- | --- | --- | --- |"]
+        for r in report["recipes"]:
+            o = r["on"][look]
+            lines.append(f"| {r['recipe']} | {r['model']} | {_pct(o, 'acc')} | {_pct(o, 'within1')} | "
+                         f"{_pct(o, 'stretch_acc')} | {_pct(o, 'bend_acc')} | {_pct(o, 'acc_minus_first')} |")
     return "\n".join(lines) + "\n"

@@ -10,7 +10,8 @@ from clothgap.config import ConfigError, StudyConfig
 from eval import predictions as preds
 from eval.ablation import recipe_config, run_ablation
 from learn.split import get_or_make_split, part_windows
-from learn.synthetic import synthetic_run
+from clothgap.runs import clip_index
+from learn.synthetic import synthetic_run, write_synthetic_clip
 from tests.conftest import tiny_train_config
 from tests.test_cli import assert_user_error, clothgap
 
@@ -60,6 +61,42 @@ def test_ablation_scores_every_recipe_on_the_same_test_windows(tmp_path):
     assert (folder / "DONE").stat().st_mtime_ns == stamp
     md = (run.eval_dir / f"ablation-{SETTING}-{VARIANT}.md").read_text()
     assert "| augment+best+seeds=1 | lrcn |" in md and "| per sequence % |" in md
+
+
+def test_ablation_scores_recipes_on_a_test_only_look_of_the_same_clips_too(tmp_path):
+    cfg = tiny()
+    run = synthetic_run(tmp_path / "run", cfg)
+    recipes = ["baseline", "augment"]
+    with pytest.raises(ConfigError, match="test variant 'heldout' has no rendered clips"):
+        run_ablation(run, SETTING, VARIANT, recipes, progress=False, test_variants=["heldout"])
+    assert not (run.root / "ablation").exists()                 # refused before anything was trained
+    run_ablation(run, SETTING, VARIANT, recipes, progress=False)
+    alone = json.loads((run.eval_dir / f"ablation-{SETTING}-{VARIANT}.json").read_text())
+    # the split's test clips in another look (other pixels, the same labels), as `render --test-variant` makes
+    test = part_windows(get_or_make_split(run, SETTING), "test")
+    labels = [c for c in cfg.sim.class_indices() for _ in range(cfg.sim.sequences_per_class)]
+    for cid in test:
+        write_synthetic_clip(run.render_dir("heldout", SETTING) / cid, clip_index(cid), labels[clip_index(cid)],
+                             cfg.sim.frames, cfg.render.resolution, cfg.seed, "heldout", SETTING)
+    run_ablation(run, SETTING, VARIANT, recipes, progress=False, test_variants=["heldout", VARIANT])
+    report = json.loads((run.eval_dir / f"ablation-{SETTING}-{VARIANT}.json").read_text())
+    assert report["test_variants"] == ["heldout"]               # the training look is not a test variant
+    for own, row in zip(alone["recipes"], report["recipes"]):
+        # the training look's scores are those of an ablation without test variants, to the bit
+        assert {k: v for k, v in row.items() if k not in ("on", "speed")} == \
+               {k: v for k, v in own.items() if k != "speed"}
+        on = row["on"]["heldout"]
+        assert on["sequences"] == len(test) and on["rows"] == row["rows"]
+        assert on["acc_lo"] <= on["acc"] <= on["acc_hi"] and on["within1"] >= on["acc"]
+    assert "acc_minus_first" not in report["recipes"][0]["on"]["heldout"]
+    diff = report["recipes"][1]["on"]["heldout"]
+    assert diff["acc_minus_first_lo"] <= diff["acc_minus_first"] <= diff["acc_minus_first_hi"]
+    assert diff["acc_minus_first"] == pytest.approx(diff["acc"] - report["recipes"][0]["on"]["heldout"]["acc"])
+    folder = run.root / "ablation" / "augment" / SETTING / VARIANT / "lrcn" / "s0"
+    kept = preds.load(folder / "test_predictions-heldout.csv")
+    assert sorted(set(kept["clip_id"])) == sorted(test)
+    md = (run.eval_dir / f"ablation-{SETTING}-{VARIANT}.md").read_text()
+    assert "rendered as `heldout`" in md and md.count("| augment | lrcn |") == 2
 
 
 def test_ablation_cli_checks_recipes_and_pairs_first(tmp_path):

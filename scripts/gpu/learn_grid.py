@@ -93,7 +93,8 @@ def _tables(args, run) -> None:
         if missing:
             print(f"table {name}: {len(missing)} model(s) not finished yet, e.g. {missing[0][4]}/{missing[0][2]}")
             continue
-        run_ablation(run, args.setting, args.variant, recipes, models, name=name, progress=False)
+        run_ablation(run, args.setting, args.variant, recipes, models, name=name, progress=False,
+                     test_variants=args.test_variant)
         md = run.eval_dir / f"{name}.md"
         print(md.read_text(), flush=True)
         if args.out:
@@ -108,6 +109,8 @@ def main() -> None:
     ap.add_argument("--variant", default="paper")
     ap.add_argument("--job", action="append", default=[], metavar="RECIPES:MODELS")
     ap.add_argument("--table", action="append", default=[], metavar="NAME=RECIPES:MODELS")
+    ap.add_argument("--test-variant", action="append", default=[], metavar="VARIANT",
+                    help="also score the tables' recipes on the test clips rendered in this look (e.g. heldout)")
     ap.add_argument("--parallel", type=int, default=4)
     ap.add_argument("--deadline", type=float, default=540.0, help="seconds of training in this call")
     ap.add_argument("--out", default=os.environ.get("OUT"), help="copy the tables here (default: $OUT)")
