@@ -43,6 +43,7 @@ class TrainConfig:
     augment: bool = False
     augment_crop: bool = True               # with augment: its random resized crop and flip (false: only the
                                             # temporal shift and colour jitter, which keep the lattice target aligned)
+    augment_camera: bool = False            # camera errors per clip, with or without augment (camera_augment_batch)
     device: str = "auto"
     num_threads: int = 0                    # torch CPU threads, 0 = torch's default
     schedule: str = "cosine"                # learning-rate schedule over epochs: "cosine" or "step"

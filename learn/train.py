@@ -473,9 +473,11 @@ def train_epoch(t: Training, epoch: int, progress: bool = False) -> tuple[float,
     torch_seed = t.resolved["torch_seed"]
     order = t.train_set.order(torch_seed, epoch, _rank(), _world_size())
     augment = t.train_set.augment_table(torch_seed, epoch) if cfg.augment else None
+    camera = t.train_set.camera_table(torch_seed, epoch) if cfg.augment_camera else None
     steps = len(order) // cfg.batch_size if len(order) >= cfg.batch_size else 1
     batches = t.train_set.batches(cfg.batch_size, order=order, augment=augment, drop_last=True,
-                                  crop=cfg.augment_crop)
+                                  crop=cfg.augment_crop, camera=camera,
+                                  camera_noise_seed=t.train_set.camera_noise_seed(torch_seed, epoch, _rank()))
     sums = run_epoch(t.net, t.model, batches, t.device, t.optimizer, t.amp, progress, f"epoch {epoch}", steps,
                      cfg.geometry_weight, cfg.label_smoothing, cfg.reader_truth)
     scores = _epoch_scores(sums, all_ranks=True)

@@ -10,7 +10,9 @@ batched affine resample and a colour transform on the device.
 Reproducible and resumable: the order of an epoch is a permutation drawn from
 (seed, epoch), and the augmentation parameters of every window from (seed,
 epoch) as one table, so a batch's content does not depend on the batch size,
-the number of DDP ranks, or whether the run was resumed.
+the number of DDP ranks, or whether the run was resumed. The camera
+augmentation's per-pixel sensor noise is the exception: it is drawn per batch
+from (seed, epoch, rank, batch number), so it follows the batching too.
 """
 
 from __future__ import annotations
@@ -26,6 +28,14 @@ from clothgap import seeding
 from learn.dataset import FrameCache, subsequence_starts
 
 AUG_PARAMS = 8        # shift, crop side, crop x, crop y, flip, brightness, contrast, saturation
+CAMERA_PARAMS = 7     # exposure, white-balance gains r, g, b, tone gamma, vignetting, noise std
+# The camera augmentation's ranges (train.augment_camera), each as wide as or wider than the heldout look's camera
+# (assets/render_variants/heldout.toml: +-0.5 stop, +-8 % white balance, vignetting 0.3), so that look lies inside.
+CAMERA_EXPOSURE_STOPS = 1.0     # linear radiance x 2^u, u uniform in +-1 stop
+CAMERA_WHITE_BALANCE = 0.1      # per-channel linear gains uniform in 1 +- 0.1
+CAMERA_TONE_GAMMA = 1.25        # encoded values ^ g, g log-uniform in [1 / 1.25, 1.25]: as likely darker as lighter
+CAMERA_VIGNETTING = 0.3         # strength uniform in [0, 0.3]: the light lost at the corners (render.camera.vignette)
+CAMERA_NOISE_STD = 0.02         # per-clip std uniform in [0, 0.02] of Gaussian noise on the encoded values
 # Keep at least this share of free device memory for the model's activations.
 _DEVICE_SHARE = 0.5
 
@@ -114,6 +124,17 @@ class WindowSet:
         gen = torch.Generator().manual_seed(seeding.derive_int(seed, 0, seeding.TRAIN, "augment", epoch))
         return torch.rand(len(self), AUG_PARAMS, generator=gen)
 
+    def camera_table(self, seed: int, epoch: int) -> torch.Tensor:
+        """(windows, 7) uniform draws in [0, 1) of one epoch for ``camera_augment_batch``; a stream of its own, so
+        that the ``augment_table`` of a run is the same with or without the camera augmentation."""
+        gen = torch.Generator().manual_seed(seeding.derive_int(seed, 0, seeding.TRAIN, "augment_camera", epoch))
+        return torch.rand(len(self), CAMERA_PARAMS, generator=gen)
+
+    @staticmethod
+    def camera_noise_seed(seed: int, epoch: int, rank: int = 0) -> int:
+        """The seed that the sensor noise of each batch of this rank's epoch is derived from (``batches``)."""
+        return seeding.derive_int(seed, rank, seeding.TRAIN, "augment_camera_noise", epoch)
+
     def order(self, seed: int, epoch: int, rank: int = 0, world: int = 1) -> torch.Tensor:
         """This rank's share of the epoch's shuffled window order (padded so every rank gets as many)."""
         gen = torch.Generator().manual_seed(seeding.derive_int(seed, 0, seeding.TRAIN, "order", epoch))
@@ -125,21 +146,27 @@ class WindowSet:
         return perm
 
     def batches(self, batch_size: int, *, order: torch.Tensor | None = None, augment: torch.Tensor | None = None,
-                drop_last: bool = False, crop: bool = True
-                ) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]]:
+                drop_last: bool = False, crop: bool = True, camera: torch.Tensor | None = None,
+                camera_noise_seed: int = 0) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]]:
         """(frames float (B, T, 3, H, W) in [0, 1], labels (B,), targets (B, T, ...) or None) on the device.
 
         ``order``: window indices in the order to visit (default: as listed);
         ``augment``: ``augment_table(seed, epoch)`` to augment, else None;
-        ``crop``: the augmentation's random resized crop and flip (``augment_batch``).
+        ``crop``: the augmentation's random resized crop and flip (``augment_batch``);
+        ``camera``: ``camera_table(seed, epoch)`` to pass the frames through an imperfect camera
+        (``camera_augment_batch``, after ``augment``'s transforms), else None; ``camera_noise_seed``
+        (``camera_noise_seed(seed, epoch, rank)``) and the batch's number seed its sensor noise.
         """
-        # One copy an epoch of the order and the augmentation table, none a step; from pinned memory, so that
+        # One copy an epoch of the order and the augmentation tables, none a step; from pinned memory, so that
         # the host does not wait for the GPU even then.
         order = torch.arange(len(self), device=self._ix) if order is None else self._to_index_device(order)
         augment = self._to_index_device(augment) if augment is not None else None
+        camera = self._to_index_device(camera) if camera is not None else None
+        # Seeding a generator on the device is host-side bookkeeping (CUDA's Philox seed and offset): no copy.
+        noise = torch.Generator(device=self.device) if camera is not None else None
         stop = len(order) - (len(order) % batch_size if drop_last and len(order) >= batch_size else 0)
         steps = torch.arange(self.clip_len, device=self._ix)
-        for lo in range(0, stop, batch_size):
+        for number, lo in enumerate(range(0, stop, batch_size)):
             idx = order[lo:lo + batch_size]
             starts = self._starts_ix[idx]
             params = augment[idx] if augment is not None else None
@@ -153,6 +180,9 @@ class WindowSet:
             x = raw.permute(0, 1, 4, 2, 3).float().div_(255)                                # (B, T, 3, H, W)
             if params is not None:
                 x = augment_batch(x, self._on(params), crop=crop)
+            if camera is not None:
+                noise.manual_seed(seeding.derive_int(camera_noise_seed, number, seeding.TRAIN, "camera_noise"))
+                x = camera_augment_batch(x, self._on(camera[idx]), noise)
             target = self.targets[self._on(rows)] if self.targets is not None else None
             yield x, self._on(self._labels_ix[idx]), target
 
@@ -191,3 +221,48 @@ def _crop_and_flip(x: torch.Tensor, params: torch.Tensor) -> torch.Tensor:
     grid = F.affine_grid(theta, list(flat.shape), align_corners=False)
     flat = F.grid_sample(flat, grid, mode="bilinear", padding_mode="border", align_corners=False)
     return flat.reshape(b, t, c, h, w)
+
+
+def camera_augment_batch(x: torch.Tensor, params: torch.Tensor, noise: torch.Generator | None = None) -> torch.Tensor:
+    """The frames as an imperfect camera would have recorded them, of float (B, T, 3, H, W) sRGB-encoded in [0, 1].
+
+    Per clip, the same for all its frames: an exposure error and white-balance gains on the linear values, the
+    lens's vignetting (``render.camera.vignette``'s falloff), then a gamma on the encoded values (a tone curve that
+    is not the one trained on); last, Gaussian sensor noise fresh per pixel and frame, drawn from ``noise`` (none
+    without it), so that it is not smoothed by any resample. The ranges are the ``CAMERA_*`` constants.
+
+    ``params``: (B, 7) uniform draws in [0, 1]: exposure, white balance r, g, b, tone gamma, vignetting, noise std;
+    0.5 is no change for the first five, 0 no vignetting and no noise.
+    """
+    b, t, c, h, w = x.shape
+    params = params.to(x.dtype)
+    per_clip = lambda column: params[:, column].view(b, 1, 1, 1, 1)   # noqa: E731
+    gain = torch.exp2(CAMERA_EXPOSURE_STOPS * (2 * per_clip(0) - 1))
+    white_balance = (1 + CAMERA_WHITE_BALANCE * (2 * params[:, 1:4] - 1)).view(b, 1, c, 1, 1)
+    falloff = 1 - CAMERA_VIGNETTING * per_clip(5) * _corner_distance2(h, w, x.device, x.dtype)
+    linear = srgb_to_linear(x) * (gain * white_balance) * falloff
+    x = linear_to_srgb(linear.clamp_(0, 1))
+    x = x.pow(CAMERA_TONE_GAMMA ** (2 * per_clip(4) - 1))
+    if noise is not None:
+        std = CAMERA_NOISE_STD * per_clip(6)
+        x = x + torch.randn(x.shape, generator=noise, device=x.device, dtype=x.dtype) * std
+    return x.clamp_(0, 1)
+
+
+def srgb_to_linear(x: torch.Tensor) -> torch.Tensor:
+    """The sRGB transfer function's inverse (IEC 61966-2-1), of encoded values in [0, 1]."""
+    return torch.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(x: torch.Tensor) -> torch.Tensor:
+    """The sRGB transfer function (IEC 61966-2-1), of linear values in [0, 1]."""
+    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
+
+
+def _corner_distance2(h: int, w: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    """(h, w): each pixel centre's squared distance from the image centre over the corners' (0.5), in image-relative
+    coordinates: 0 at the centre, 1 at the corners, as ``render.camera.vignette`` measures it. Built on the device,
+    so that no step copies it there."""
+    y = (torch.arange(h, device=device, dtype=dtype) + 0.5) / h - 0.5
+    x = (torch.arange(w, device=device, dtype=dtype) + 0.5) / w - 0.5
+    return (y[:, None] ** 2 + x[None, :] ** 2) / 0.5

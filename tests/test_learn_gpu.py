@@ -58,7 +58,26 @@ def test_a_training_step_does_not_wait_for_the_gpu(cache):
         finally:
             torch.cuda.set_sync_debug_mode("default")
 
-    order, table = data.order(0, 1), data.augment_table(0, 1)
+    order, table, camera = data.order(0, 1), data.augment_table(0, 1), data.camera_table(0, 1)
     sums = run_epoch(model, model, guarded(data.batches(4, order=order, augment=table, drop_last=True)),
                      torch.device("cuda"), optimizer, amp=True)
     assert sums[2] == 4 * (len(data) // 4)
+    # The camera augmentation too: its table copied once an epoch, its noise generator seeded on the host.
+    sums = run_epoch(model, model, guarded(data.batches(4, order=order, augment=table, drop_last=True, camera=camera,
+                                                        camera_noise_seed=data.camera_noise_seed(0, 1))),
+                     torch.device("cuda"), optimizer, amp=True)
+    assert sums[2] == 4 * (len(data) // 4)
+
+
+def test_the_camera_augmentation_on_the_device_is_the_host_s_and_reproducible(cache):
+    host = WindowSet(cache, sorted(cache.clips), clip_len=4, clip_stride=3)
+    gpu = WindowSet(cache, sorted(cache.clips), clip_len=4, clip_stride=3, device="cuda")
+    order, table, camera = host.order(2, 0), host.augment_table(2, 0), host.camera_table(2, 0)
+    quiet = camera.clone()
+    quiet[:, 6] = 0                                     # no sensor noise: the rest is the same arithmetic
+    for (xh, _, _), (xg, _, _) in zip(host.batches(5, order=order, augment=table, camera=quiet),
+                                      gpu.batches(5, order=order, augment=table, camera=quiet), strict=True):
+        assert torch.allclose(xh, xg.cpu(), atol=1e-4)
+    noisy = [[x for x, _, _ in gpu.batches(5, order=order, camera=camera, camera_noise_seed=9)] for _ in range(2)]
+    assert all(torch.equal(a, b) for a, b in zip(*noisy, strict=True))
+    assert all(0 <= float(x.min()) and float(x.max()) <= 1 for x in noisy[0])
