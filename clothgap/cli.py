@@ -429,7 +429,7 @@ def eval_learnability(run_dir: Path, settings: tuple[str, ...], clip_len: int, s
 @eval.command("ablation")
 @click.argument("run_dir", type=click.Path(path_type=Path))
 @click.option("--recipe", "recipes", multiple=True, required=True, metavar="LEVER[+LEVER...]",
-              help="A training recipe: levers joined by '+', each a named lever (baseline, augment, best, "
+              help="A training recipe: levers joined by '+', each a named lever (baseline, augment, camera, best, "
                    "motion, geometry, factored, smooth, last, narrow, decay) or a train setting key=value, "
                    "e.g. augment+geometry+aux_geometry=0.3 (repeatable; the first is the reference).")
 @click.option("--setting", help="The simulated setting (default: the run's first).")

@@ -39,6 +39,7 @@ from learn.config import TrainConfig
 LEVERS: dict[str, dict] = {
     "baseline": {},
     "augment": {"augment": True},              # temporal shift, resized crop, flip, colour jitter (on the GPU)
+    "camera": {"augment_camera": True},        # a camera's errors per clip: exposure, white balance, vignetting, noise
     "best": {"keep": "best"},                  # early stopping: the epoch of best validation accuracy
     "motion": {"motion": True},                # frame differences beside the frames
     "geometry": {"aux_geometry": 1.0},         # regress the simulated 8 x 8 lattice per frame (training only)
