@@ -205,6 +205,7 @@ def test_report_is_self_contained(tmp_path):
     refs = re.findall(r'(?:src|href)\s*=\s*"([^"]*)"', doc)
     assert refs and any(r.startswith("data:image/png;base64,") for r in refs)
     for ref in refs:
-        assert ref.startswith(("data:image/png;base64,", "#")) or (path.parent / ref).exists(), ref
+        assert ref.startswith(("data:image/png;base64,", "data:image/jpeg;base64,", "#")) or \
+            (path.parent / ref).exists(), ref
     assert all(r.startswith("data:") for r in re.findall(r'src\s*=\s*"([^"]*)"', doc))
     assert "<link" not in doc and "@import" not in doc and "url(" not in doc
