@@ -125,8 +125,8 @@ def group_codes(groups) -> np.ndarray:
 def resample_weights(num_groups: int, resamples: int, rng: np.random.Generator) -> np.ndarray:
     """(resamples, groups): how often each group is drawn in each resample."""
     draws = rng.integers(0, num_groups, size=(resamples, num_groups))
-    offsets = np.arange(resamples)[:, None] * num_groups
-    return np.bincount((draws + offsets).ravel(), minlength=resamples * num_groups).reshape(resamples, num_groups)
+    draws += np.arange(resamples)[:, None] * num_groups     # in place: one big array fewer to allocate
+    return np.bincount(draws.ravel(), minlength=resamples * num_groups).reshape(resamples, num_groups)
 
 
 def _interval(samples: np.ndarray, confidence: float) -> tuple[float, float]:
@@ -150,7 +150,8 @@ def bootstrap_mean(values, groups, *, resamples: int = 1000, confidence: float =
     rng = rng or np.random.default_rng(0)
     sums = np.bincount(codes, weights=values)
     counts = np.bincount(codes).astype(float)
-    weights = resample_weights(len(sums), resamples, rng)
+    # As floats once, not once per product (the same products: the counts are exact in float64).
+    weights = resample_weights(len(sums), resamples, rng).astype(float)
     samples = (weights @ sums) / (weights @ counts)
     return Estimate(float(values.mean()), *_interval(samples, confidence))
 
@@ -173,7 +174,7 @@ def bootstrap_mean_difference(values_a, groups_a, values_b, groups_b, *, resampl
     sa, na = np.bincount(ca, values_a, n), np.bincount(ca, minlength=n).astype(float)
     sb, nb = np.bincount(cb, values_b, n), np.bincount(cb, minlength=n).astype(float)
     rng = rng or np.random.default_rng(0)
-    weights = resample_weights(n, resamples, rng)
+    weights = resample_weights(n, resamples, rng).astype(float)
     with np.errstate(invalid="ignore", divide="ignore"):
         samples = (weights @ sa) / (weights @ na) - (weights @ sb) / (weights @ nb)
     return Estimate(float(values_a.mean() - values_b.mean()), *_interval(samples, confidence))
@@ -196,12 +197,43 @@ def spearman(x, y) -> float:
 
 
 def _pearson_rows(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Pearson r of each row pair of (R, n) arrays; nan where a row is constant."""
-    xc = x - x.mean(axis=1, keepdims=True)
-    yc = y - y.mean(axis=1, keepdims=True)
-    den = np.sqrt((xc * xc).sum(axis=1) * (yc * yc).sum(axis=1))
+    """Pearson r of each row pair of (R, n) float arrays, which it overwrites; nan where a row is constant."""
+    # In place, one scratch array: a bootstrap's (1000, n) temporaries cost more to allocate than to fill.
+    xc = np.subtract(x, x.mean(axis=1, keepdims=True), out=x)
+    yc = np.subtract(y, y.mean(axis=1, keepdims=True), out=y)
+    product = np.multiply(xc, xc)
+    sum_xx = product.sum(axis=1)
+    sum_yy = np.multiply(yc, yc, out=product).sum(axis=1)
+    sum_xy = np.multiply(xc, yc, out=product).sum(axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return (xc * yc).sum(axis=1) / den
+        return sum_xy / np.sqrt(sum_xx * sum_yy)
+
+
+def resampled_ranks(values: np.ndarray, picks: np.ndarray) -> np.ndarray:
+    """``scipy.stats.rankdata(values[picks], axis=1)`` (ties averaged) for (resamples, n) ``picks``: the same floats.
+
+    Counts each resample's rows per distinct value instead of sorting every resample: a coefficient
+    of the class grid takes a few distinct values, so that is a small table.
+    """
+    levels, level_of = np.unique(values, return_inverse=True)
+    resamples = picks.shape[0]
+    if not np.isfinite(levels).all() or resamples * len(levels) > 2 ** 24:   # NaN ranks, or a table too large
+        return stats.rankdata(values[picks], axis=1)
+    codes = level_of.reshape(-1)[picks]
+    codes += np.arange(resamples)[:, None] * len(levels)     # (resample, value) -> one code
+    counts = np.bincount(codes.ravel(), minlength=resamples * len(levels)).reshape(resamples, len(levels))
+    at_most = np.cumsum(counts, axis=1)                 # rows <= each value, per resample
+    # The mean of the tied positions (at_most - count + 1) .. at_most: integers halved, exact in float64.
+    rank_of = 0.5 * (2 * at_most - counts + 1)
+    return rank_of.ravel()[codes]
+
+
+def _correlation_rows(x: np.ndarray, y: np.ndarray, picks: np.ndarray, method: str) -> np.ndarray:
+    """The correlation of ``x[picks[r]]`` with ``y[picks[r]]`` for every row r of (resamples, n) ``picks``
+    (fresh arrays: ``_pearson_rows`` overwrites them)."""
+    if method == "spearman":
+        return _pearson_rows(resampled_ranks(x, picks), resampled_ranks(y, picks))
+    return _pearson_rows(x[picks], y[picks])
 
 
 def bootstrap_correlation(x, y, *, method: str = "pearson", groups=None, resamples: int = 1000,
@@ -223,23 +255,24 @@ def bootstrap_correlation(x, y, *, method: str = "pearson", groups=None, resampl
         return Estimate(point, float("nan"), float("nan"))
     rng = rng or np.random.default_rng(0)
     codes = group_codes(groups if groups is not None else np.arange(len(x)))
-    members = [np.flatnonzero(codes == g) for g in range(codes.max() + 1)]
+    sizes = np.bincount(codes)
+    if (sizes == 1).all():
+        picks = rng.integers(0, len(x), size=(resamples, len(x)))
+        return Estimate(point, *_interval(_correlation_rows(x, y, picks, method), confidence))
+    # Whole groups: one draw of group ids per resample, in that order (the intervals depend on the
+    # stream). Groups may differ in size, so resamples of one length are correlated together.
+    draws = np.stack([rng.integers(0, len(sizes), len(sizes)) for _ in range(resamples)])
+    members = np.argsort(codes, kind="stable")          # the rows of group 0, then of group 1, ...
+    if (sizes == sizes[0]).all():
+        samples = _correlation_rows(x, y, members.reshape(len(sizes), -1)[draws].reshape(resamples, -1), method)
+        return Estimate(point, *_interval(samples, confidence))
+    rows_of = np.split(members, np.cumsum(sizes)[:-1])
+    lengths = sizes[draws].sum(axis=1)
     samples = np.empty(resamples)
-    # Groups may differ in size, so resampled sets differ in length: do them one by one
-    # when grouped, vectorised when every unit is its own group.
-    if all(len(m) == 1 for m in members):
-        idx = rng.integers(0, len(x), size=(resamples, len(x)))
-        xs, ys = x[idx], y[idx]
-        if method == "spearman":
-            xs, ys = stats.rankdata(xs, axis=1), stats.rankdata(ys, axis=1)
-        samples = _pearson_rows(xs, ys)
-    else:
-        for r in range(resamples):
-            pick = np.concatenate([members[g] for g in rng.integers(0, len(members), len(members))])
-            xs, ys = x[pick], y[pick]
-            if method == "spearman":
-                xs, ys = stats.rankdata(xs), stats.rankdata(ys)
-            samples[r] = _pearson_rows(xs[None], ys[None])[0]
+    for length in np.unique(lengths):
+        which = np.flatnonzero(lengths == length)
+        picks = np.stack([np.concatenate([rows_of[g] for g in draws[r]]) for r in which])
+        samples[which] = _correlation_rows(x, y, picks, method)
     return Estimate(point, *_interval(samples, confidence))
 
 

@@ -68,8 +68,17 @@ def per_sequence(frame: pd.DataFrame) -> pd.DataFrame:
     return pd.concat([out, mean_probs.reset_index(drop=True)], axis=1)
 
 
+def seed_sequences(frame: pd.DataFrame) -> pd.DataFrame:
+    """``per_sequence`` of each seed's rows of a frame of one or several seeds' predictions, stacked."""
+    return pd.concat([per_sequence(f) for _, f in frame.groupby("seed")], ignore_index=True)
+
+
 def sequence_correct(frame: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
     """Whether each (seed, clip)'s video-level decision (``per_sequence``) is right, and the clip ids to
     resample them by: the per-sequence accuracy of a frame of one or several seeds' predictions."""
-    seq = pd.concat([per_sequence(f) for _, f in frame.groupby("seed")], ignore_index=True)
-    return (seq["class_index"] == seq["pred"]).to_numpy(float), seq["clip_id"].to_numpy()
+    return decisions_correct(seed_sequences(frame))
+
+
+def decisions_correct(sequences: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """``sequence_correct`` from the frame's ``seed_sequences``."""
+    return (sequences["class_index"] == sequences["pred"]).to_numpy(float), sequences["clip_id"].to_numpy()

@@ -1,7 +1,10 @@
 """One self-contained HTML report of a run: ``report/report.html``.
 
-Everything is inside the file (figures as base64 PNG, styles inline), so it can
-be mailed or attached to an issue. Sections appear only when their inputs exist:
+Everything is inside the file (figures as base64 PNG, or JPEG where that is smaller for a figure
+of rendered frames; styles inline), so it can be mailed or attached to an issue. Of the
+confusion matrices it holds the in-domain and test-only cells only: a study's cross-variant
+cells number in the dozens, and their numbers are in eval/results.csv and eval/domain_gap.csv.
+Sections appear only when their inputs exist:
 the eval tables (``clothgap eval``), learning curves (train folders), sample
 frames (render folders), the sim stage's sensitivity analysis (``sim_analysis/``),
 the measured-fabric set (``eval/measured.csv``, ``clothgap eval measured``) and
@@ -15,6 +18,7 @@ from __future__ import annotations
 
 import base64
 import html
+import io
 import json
 import os
 import time
@@ -52,15 +56,36 @@ def _esc(x) -> str:
     return html.escape(str(x))
 
 
-def _img(png: bytes, caption: str = "", width: int | None = None) -> str:
-    data = base64.b64encode(png).decode("ascii")
+def _img(image: bytes, caption: str = "", width: int | None = None, mime: str = "image/png") -> str:
+    data = base64.b64encode(image).decode("ascii")
     style = f' style="max-width:{width}px"' if width else ""
     cap = f"<figcaption>{_esc(caption)}</figcaption>" if caption else ""
-    return f'<figure><img alt="{_esc(caption)}"{style} src="data:image/png;base64,{data}">{cap}</figure>'
+    return f'<figure><img alt="{_esc(caption)}"{style} src="data:{mime};base64,{data}">{cap}</figure>'
 
 
 def _img_file(path: Path, caption: str, width: int | None = None) -> str:
     return _img(path.read_bytes(), caption, width)
+
+
+# A figure of rendered frames at 112 px is a photograph: at this quality JPEG holds it in a sixth of the PNG's
+# bytes (10 variants' sample frames 1.1 MB -> 0.16 MB, their conv5 overlays 2.6 MB -> 0.43 MB). Frames of a
+# few dozen pixels, drawn as flat blocks, stay smaller as PNG.
+PHOTO_JPEG_QUALITY = 85
+# Learning curves show at most 560 px wide: a 7.5 in figure at this dpi is that wide, at 110 dpi 825 px.
+CURVES_DPI = 80
+
+
+def _photo(png: bytes, caption: str = "", width: int | None = None) -> str:
+    """A figure of rendered frames (sample frames, conv5 overlays): as JPEG when that is smaller than the PNG."""
+    from PIL import Image
+
+    with Image.open(io.BytesIO(png)) as image:
+        rgb = image.convert("RGB")          # matplotlib's PNGs are opaque: nothing is lost with the alpha channel
+    jpeg = io.BytesIO()
+    rgb.save(jpeg, "JPEG", quality=PHOTO_JPEG_QUALITY, optimize=True)
+    if len(jpeg.getvalue()) < len(png):
+        return _img(jpeg.getvalue(), caption, width, "image/jpeg")
+    return _img(png, caption, width)
 
 
 LINK_COLUMNS = ("checkpoints", "checkpoint", "folder")
@@ -206,21 +231,34 @@ def _section_table3(run: Run) -> str:
 
 
 def _section_confusion(run: Run) -> str:
+    """The confusion matrices of the in-domain cells and of the test-only variants' cells (no model trains on
+    them, e.g. heldout); the cross-variant cells are eval's files and tables, not embedded."""
     root = run.eval_dir / "figures" / "confusion"
     pngs = sorted(root.rglob("*.png")) if root.is_dir() else []
     if not pngs:
         return ""
-    inside, outside = [], []
+    # Training variants: the config's and any with a model here (a test variant that is neither is test-only).
+    trained = set(run.config.render.variants) | {p.relative_to(root).parts[1] for p in pngs}
+    inside, test_only, others = [], [], 0
     for p in pngs:
         setting, train_v, model = p.relative_to(root).parts[:3]
         caption = f"{setting}, {model}: trained on {train_v}, tested on {p.stem}"
-        (inside if p.stem == train_v else outside).append(_img_file(p, caption, 460))
+        if p.stem == train_v:
+            inside.append(_img_file(p, caption, 460))
+        elif p.stem not in trained:
+            test_only.append(_img_file(p, caption, 460))
+        else:
+            others += 1
     out = ['<h2 id="confusion">Confusion matrices</h2><p>Rows: true class (p, k), columns: predicted class; '
            'colour = fraction of the true class, numbers = sub-sequence counts. '
            f"Files: <code>{_esc(root)}</code>.</p>", f'<div class="figs">{"".join(inside)}</div>']
-    if outside:
-        out.append(f'<details><summary>Cross-variant confusion matrices ({len(outside)})</summary>'
-                   f'<div class="figs">{"".join(outside)}</div></details>')
+    if test_only:
+        out.append(f"<h3>On variants no model trains on ({_esc(', '.join(sorted({p.stem for p in pngs} - trained)))})"
+                   f'</h3><div class="figs">{"".join(test_only)}</div>')
+    if others:
+        out.append(f"<p>The other {others} cells (a model tested on another training variant) are not shown here: "
+                   f"their numbers are in {_link(run, run.eval_dir / 'results.csv')} and "
+                   f"{_link(run, run.eval_dir / 'domain_gap.csv')}, their figures in {_link(run, root)}.</p>")
     return "".join(out)
 
 
@@ -239,7 +277,7 @@ def _section_learning(run: Run) -> str:
         rel = m.folder.relative_to(run.root)
         state = "" if is_done(m.folder) else " (unfinished)"
         fig = figures.learning_curves(frame, f"{rel}{state}")
-        figs.append(_img(figures.png_bytes(fig), f"{rel}/metrics.csv", 560))
+        figs.append(_img(figures.png_bytes(fig, dpi=CURVES_DPI), f"{rel}/metrics.csv", 560))
     if not figs:
         return ""
     return ('<h2 id="learning">Learning curves</h2><p>Per epoch, from each train folder\'s <code>metrics.csv</code>.</p>'
@@ -271,7 +309,7 @@ def _section_frames(run: Run) -> str:
             labels = [f"frame {i}" for i in picks]
         if images:
             fig = figures.frame_grid(images, labels)
-            out.append(_img(figures.png_bytes(fig), f"{setting}, clip {clip} (render/<variant>/{setting}/{clip})"))
+            out.append(_photo(figures.png_bytes(fig), f"{setting}, clip {clip} (render/<variant>/{setting}/{clip})"))
     if not out:
         return ""
     return ('<h2 id="frames">Sample frames per render variant</h2><p>One clip (same simulation) under every '
@@ -305,7 +343,7 @@ def _section_activations(run: Run) -> str:
             if rows:
                 fig = overlay_figure(rows, model)
                 rel = chosen.checkpoint.relative_to(run.root)
-                out.append(_img(figures.png_bytes(fig), f"{setting}: conv5 of {rel}")
+                out.append(_photo(figures.png_bytes(fig), f"{setting}: conv5 of {rel}")
                            + f"<p>Model: {_link(run, chosen.checkpoint)}</p>")
         except Exception as err:  # a report must not fail on one figure; say why it is missing
             out.append(f'<p class="note">conv5 overlays for {_esc(setting)} skipped: {_esc(type(err).__name__)}: '
@@ -456,9 +494,11 @@ def _measured_model(run: Run, key: tuple, g: pd.DataFrame, info: dict, corr: pd.
                    "resample whole fabrics; <b>fabric</b>: one point per fabric):</p>"
                    + _table(sub[[c for c in cols if c in sub]], est=("pearson", "spearman")))
     folder = run.root / g["folder"].iloc[0]
-    out.append('<div class="figs">' + "".join(_img_file(p, str(p.relative_to(run.root)), 520)
-                                              for p in (folder / "scatter.png", folder / "activations.png")
-                                              if p.is_file()) + "</div>")
+    scatter, overlays = folder / "scatter.png", folder / "activations.png"     # a plot; rendered frames
+    out.append('<div class="figs">'
+               + (_img_file(scatter, str(scatter.relative_to(run.root)), 520) if scatter.is_file() else "")
+               + (_photo(overlays.read_bytes(), str(overlays.relative_to(run.root)), 520) if overlays.is_file()
+                  else "") + "</div>")
     return out
 
 
@@ -491,7 +531,8 @@ def _section_extra_tables(run: Run) -> str:
                 continue
             for p in sorted(folder.glob("*.csv")):
                 parts.append(f"<h3>{_esc(title)}: {_link(run, p)}</h3>{_csv_table(p, run)}")
-            parts += [_img_file(p, str(p.relative_to(run.root)), 520) for p in sorted(folder.glob("*.png"))]
+            parts += [_photo(p.read_bytes(), str(p.relative_to(run.root)), 520) if p.name == "activations.png"
+                      else _img_file(p, str(p.relative_to(run.root)), 520) for p in sorted(folder.glob("*.png"))]
     return '<h2 id="real">Real and measured data</h2>' + "".join(parts) if parts else ""
 
 

@@ -37,6 +37,7 @@ import pandas as pd
 
 from clothgap import seeding
 from clothgap.errors import ConfigError, InputError, UserError
+from clothgap.parallel import chunk_size, pool_size, spawn_pool
 from clothgap.runs import Run, atomic_write_json, atomic_write_text, file_sha256, is_done, read_meta
 from clothgap.settings import to_dict
 from eval import figures, metrics, tables
@@ -277,17 +278,55 @@ def _model_predictions(run: Run, m: TrainedModel, test_variant: str, test_ids: l
     return frame, dropped
 
 
-def _confusion_figures(run: Run, cells: dict[tuple, tables.Cell]) -> list[str]:
-    true_classes = list(run.config.sim.class_indices())
-    written = []
-    for (setting, train_v, model, test_v), cell in sorted(cells.items()):
-        counts = metrics.confusion_matrix(cell.frame["class_index"], cell.frame["pred"])
-        acc = metrics.accuracy(cell.frame["class_index"], cell.frame["pred"])
-        title = f"{setting}: {model} trained on {train_v}, tested on {test_v} (acc {100 * acc:.1f}%)"
-        path = run.eval_dir / "figures" / "confusion" / setting / train_v / model / f"{test_v}.png"
-        figures.save(figures.confusion(counts, title, true_classes), path)
-        written.append(_rel(run, path))
-    return written
+# A confusion figure takes 0.2-0.4 s of matplotlib: a study's 90-odd of them are drawn in a process pool (while
+# the tables are computed) when the host has the CPUs; a few stay in this process (spawning costs seconds).
+CONFUSION_POOL_MIN_FIGURES = 16
+CONFUSION_POOL_MIN_CPUS = 2
+
+
+def _draw_confusion(counts: np.ndarray, title: str, true_classes: list[int], path: Path) -> None:
+    figures.save(figures.confusion(counts, title, true_classes), path)
+
+
+class _ConfusionFigures:
+    """One confusion-matrix PNG per cell, drawn in a pool of spawned processes or here, as ``pool_size`` says.
+
+    ``with _ConfusionFigures(run, cells) as confusion:`` starts them; leaving the block waits for every figure
+    (and raises a worker's error); ``confusion.written`` holds their paths relative to the run.
+    """
+
+    def __init__(self, run: Run, cells: dict[tuple, tables.Cell]):
+        true_classes = list(run.config.sim.class_indices())
+        self.jobs, self.written = [], []
+        for (setting, train_v, model, test_v), cell in sorted(cells.items()):
+            counts = metrics.confusion_matrix(cell.frame["class_index"], cell.frame["pred"])
+            acc = metrics.accuracy(cell.frame["class_index"], cell.frame["pred"])
+            title = f"{setting}: {model} trained on {train_v}, tested on {test_v} (acc {100 * acc:.1f}%)"
+            path = run.eval_dir / "figures" / "confusion" / setting / train_v / model / f"{test_v}.png"
+            self.jobs.append((counts, title, true_classes, path))
+            self.written.append(_rel(run, path))
+        self.processes = min(len(self.jobs), pool_size(len(self.jobs), CONFUSION_POOL_MIN_FIGURES,
+                                                       CONFUSION_POOL_MIN_CPUS))
+        self.pool = self.drawn = None
+
+    def __enter__(self) -> _ConfusionFigures:
+        if self.processes > 1:
+            self.pool = spawn_pool(self.processes)
+            self.drawn = self.pool.map(_draw_confusion, *zip(*self.jobs),
+                                       chunksize=chunk_size(len(self.jobs), self.processes))
+        return self
+
+    def __exit__(self, kind, error, trace) -> None:
+        if self.pool is None:
+            if kind is None:
+                for job in self.jobs:
+                    _draw_confusion(*job)
+            return
+        try:
+            if kind is None:
+                list(self.drawn)
+        finally:
+            self.pool.shutdown(cancel_futures=True)
 
 
 def _gap_figures(run: Run, gap: pd.DataFrame) -> list[str]:
@@ -321,8 +360,9 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
     cells, counts, left_out = predict_all(run, models, predictor or _default_predictor, progress)
     if not cells:
         raise _no_test_clips_error(run, models)
-    written = _write_tables(run, cells)
-    figs = {"confusion": _confusion_figures(run, cells), "gap": _gap_figures(run, written.gap)}
+    with _ConfusionFigures(run, cells) as confusion:
+        written = _write_tables(run, cells)
+    figs = {"confusion": confusion.written, "gap": _gap_figures(run, written.gap)}
     in_domain = written.results[written.results["in_domain"]]
     headline = {f"{r.setting}/{r.train_variant}/{r.model}": round(float(r.acc), 4) for r in in_domain.itertuples()}
     summary = _summary(run, models, written, figs, headline, counts, left_out)

@@ -35,10 +35,18 @@ class Cell:
     test_variant: str
     frame: pd.DataFrame                      # flat predictions, plus a ``seed`` column
     sources: list[str] = field(default_factory=list)   # checkpoint paths that made the rows
+    # (frame, its seed_sequences): made once for the scores and the correlations, again if the frame is replaced
+    _sequences: tuple[pd.DataFrame, pd.DataFrame] | None = field(default=None, repr=False, compare=False)
 
     @property
     def key(self) -> tuple[str, str, str, str]:
         return (self.setting, self.train_variant, self.model, self.test_variant)
+
+    def sequences(self) -> pd.DataFrame:
+        """One row per (seed, test clip): the clip's video-level decision (``preds.seed_sequences``)."""
+        if self._sequences is None or self._sequences[0] is not self.frame:
+            self._sequences = (self.frame, preds.seed_sequences(self.frame))
+        return self._sequences[1]
 
 
 def split_setting(setting: str) -> tuple[str, str]:
@@ -59,8 +67,8 @@ def score_cell(cell: Cell, *, resamples: int, confidence: float, rng: np.random.
     out = metrics.summarize(frame["class_index"].to_numpy(), frame["pred"].to_numpy(), probs, groups,
                             resamples=resamples, confidence=confidence, rng=rng)
     # One decision per (seed, clip): mean probabilities over that clip's sub-sequences.
-    out.update(metrics.bootstrap_mean(*preds.sequence_correct(frame), resamples=resamples, confidence=confidence,
-                                      rng=rng).as_dict("seq_acc"))
+    out.update(metrics.bootstrap_mean(*preds.decisions_correct(cell.sequences()), resamples=resamples,
+                                      confidence=confidence, rng=rng).as_dict("seq_acc"))
     return out
 
 
@@ -211,7 +219,7 @@ def coefficient_correlations(cell: Cell, *, resamples: int, confidence: float, r
     grid is geometric, 0.5 .. 20). Intervals resample sequences (all seeds of a
     sequence together). NaN where either side is constant.
     """
-    seq = pd.concat([preds.per_sequence(f) for _, f in cell.frame.groupby("seed")], ignore_index=True)
+    seq = cell.sequences()
     groups = seq["clip_id"].to_numpy()
     out: dict[str, float] = {}
     for coef, value in (("p", classes.p_value), ("k", classes.k_value)):

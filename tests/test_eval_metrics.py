@@ -99,6 +99,44 @@ def test_grouped_correlation_and_degenerate_input():
     assert np.isnan(metrics.pearson([1, 1, 1, 1], [1, 2, 3, 4]))
 
 
+def _correlation_one_by_one(x, y, groups, method, resamples, rng):
+    """The grouped bootstrap the plain way: per resample, draw the groups, gather their rows, correlate."""
+    codes = metrics.group_codes(groups)
+    members = [np.flatnonzero(codes == g) for g in range(codes.max() + 1)]
+    samples = []
+    for _ in range(resamples):
+        pick = np.concatenate([members[g] for g in rng.integers(0, len(members), len(members))])
+        xs, ys = x[pick], y[pick]
+        samples.append((stats.spearmanr if method == "spearman" else stats.pearsonr)(xs, ys).statistic
+                       if np.ptp(xs) and np.ptp(ys) else np.nan)
+    return np.array(samples)
+
+
+@pytest.mark.parametrize("sizes", [(3,) * 8, (1, 2, 3, 4, 2, 1, 3)])
+@pytest.mark.parametrize("method", ["pearson", "spearman"])
+def test_grouped_correlation_is_each_resample_correlated_one_by_one(sizes, method):
+    # groups of one size (gathered as one array) and of several (resamples gathered by length)
+    rng = np.random.default_rng(7)
+    groups = np.repeat(np.arange(len(sizes)), sizes)
+    rng.shuffle(groups)
+    x = np.log(rng.choice(classes.P_VALUES, len(groups)))      # few distinct values: ties
+    y = x + rng.integers(0, 2, len(groups))
+    est = metrics.bootstrap_correlation(x, y, method=method, groups=groups, resamples=300,
+                                        rng=np.random.default_rng(3))
+    samples = _correlation_one_by_one(x, y, groups, method, 300, np.random.default_rng(3))
+    low, high = np.quantile(samples[np.isfinite(samples)], [0.025, 0.975])
+    assert (est.low, est.high) == pytest.approx((low, high), abs=1e-12)
+
+
+def test_resampled_ranks_are_scipys():
+    rng = np.random.default_rng(2)
+    for values in (np.log(rng.choice([0.5, 1.0, 2.0, 20.0], 30)), rng.normal(size=30),
+                   np.r_[rng.integers(0, 3, 29), np.inf].astype(float)):
+        picks = rng.integers(0, len(values), (50, len(values)))
+        np.testing.assert_array_equal(metrics.resampled_ranks(values, picks),
+                                      stats.rankdata(values[picks], axis=1))
+
+
 def test_summarize_keys():
     truth = np.array([0, 0, 1, 1])
     probs = np.eye(54)[[0, 1, 1, 1]]

@@ -145,6 +145,25 @@ def test_run_eval_writes_tables_and_resumes(tmp_path):
     assert again["predicted"] == 0 and again["reused"] == 16
 
 
+@pytest.mark.slow
+def test_confusion_figures_drawn_in_the_pool_are_the_bytes_drawn_here(tmp_path, monkeypatch):
+    from eval import stage
+
+    run = make_fake_run(tmp_path / "run", variants=("paper", "grid", "reinhard"))
+    run_eval(run, progress=False, predictor=stub_predictor)         # 9 figures: too few for a pool
+    folder = run.eval_dir / "figures" / "confusion"
+    here = {p: p.read_bytes() for p in folder.rglob("*.png")}
+    assert len(here) == 9
+    for p in here:
+        p.unlink()
+    pools = []
+    monkeypatch.setattr(stage, "pool_size", lambda items, min_items, min_cpus: 2)
+    monkeypatch.setattr(stage, "spawn_pool", lambda n, spawn=stage.spawn_pool: pools.append(n) or spawn(n))
+    run_eval(run, progress=False, predictor=stub_predictor)
+    assert pools == [2]
+    assert {p: p.read_bytes() for p in folder.rglob("*.png")} == here
+
+
 def test_axis_ranking_prefers_the_axis_that_closes_the_gap():
     settings = VARIANT_SETTINGS
     # Tested on "grid": training on grid itself 0.9; changing texture (paper->grid) closes a lot,
@@ -186,6 +205,7 @@ def test_report_is_self_contained(tmp_path):
     refs = re.findall(r'(?:src|href)\s*=\s*"([^"]*)"', doc)
     assert refs and any(r.startswith("data:image/png;base64,") for r in refs)
     for ref in refs:
-        assert ref.startswith(("data:image/png;base64,", "#")) or (path.parent / ref).exists(), ref
+        assert ref.startswith(("data:image/png;base64,", "data:image/jpeg;base64,", "#")) or \
+            (path.parent / ref).exists(), ref
     assert all(r.startswith("data:") for r in re.findall(r'src\s*=\s*"([^"]*)"', doc))
     assert "<link" not in doc and "@import" not in doc and "url(" not in doc

@@ -14,8 +14,8 @@ import pytest
 
 from clothgap.config import save_config
 from clothgap.runs import Run
-from eval import tables
-from eval.report import write_report
+from eval import figures, tables
+from eval.report import _photo, write_report
 from eval.stage import run_eval
 from tests.test_eval_stage import VARIANT_SETTINGS, make_fake_run, stub_predictor
 
@@ -74,3 +74,25 @@ def test_axis_ranking_interval_brackets_the_gain(evaluated):
     again = tables.rank_axes(gap, VARIANT_SETTINGS)
     assert again.iloc[0]["mean_gain"] == pytest.approx(r.mean_gain, rel=1e-5)       # the CSV keeps 6 digits
     assert np.isnan(again.iloc[0]["mean_gain_lo"])       # no cells given: no interval, not a made-up one
+
+
+def test_report_embeds_the_in_domain_and_test_only_confusion_matrices_only(evaluated):
+    doc = write_report(Run.open(evaluated)).read_text()
+    start = doc.index('<h2 id="confusion">')
+    section = doc[start:doc.index("<h2", start + 5)]
+    shown = re.findall(r'<img alt="wind-uniform1, lrcn: trained on ([\w-]+), tested on ([\w-]+)"', section)
+    # paper and grid trained and tested on themselves; reinhard is tested only; paper<->grid are left to the tables
+    assert sorted(shown) == [("grid", "grid"), ("grid", "reinhard"), ("paper", "paper"), ("paper", "reinhard")]
+    assert len(list((evaluated / "eval" / "figures" / "confusion").rglob("*.png"))) == 6    # eval draws every cell
+    assert "The other 2 cells" in section
+    assert {"../eval/results.csv", "../eval/domain_gap.csv"} <= set(hrefs(section))
+
+
+def test_rendered_frames_embed_as_jpeg_where_that_is_smaller():
+    rng = np.random.default_rng(0)
+    ramp = np.linspace(0, 200, 112)[None, :, None] + np.linspace(0, 50, 112)[:, None, None]
+    photo = [np.clip(ramp + rng.normal(0, 12, (112, 112, 3)), 0, 255).astype(np.uint8) for _ in range(3)]
+    flat = [np.full((16, 16, 3), 90 * i, np.uint8) for i in range(3)]
+    for frames, mime in ((photo, "image/jpeg"), (flat, "image/png")):
+        png = figures.png_bytes(figures.frame_grid({"clip": frames}, ["a", "b", "c"]))
+        assert f'src="data:{mime};base64,' in _photo(png, "frames")
