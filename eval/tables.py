@@ -246,9 +246,23 @@ def differing_axes(variant_settings: dict[str, dict]) -> list[str]:
     return [k for k in keys if len({repr(s.get(k)) for s in variant_settings.values()}) > 1]
 
 
+def axis_groups(variant_settings: dict[str, dict]) -> dict[str, list[str]]:
+    """The differing settings as axes: settings that split the variants the same way (every variant that changes
+    one changes the others, e.g. a camera variant's exposure, noise and vignetting) are one axis, named by its
+    settings joined with ``+``, since no pair of these variants can tell them apart."""
+    names = sorted(variant_settings)
+    groups: dict[tuple, list[str]] = {}
+    for key in differing_axes(variant_settings):
+        values = [repr(variant_settings[v].get(key)) for v in names]
+        partition = tuple(values.index(x) for x in values)     # which variants share a value, not the values
+        groups.setdefault(partition, []).append(key)
+    return {"+".join(keys): keys for keys in groups.values()}
+
+
 def rank_axes(gap: pd.DataFrame, variant_settings: dict[str, dict], cells: dict[tuple, Cell] | None = None, *,
               resamples: int = 1000, confidence: float = 0.95, rng: np.random.Generator | None = None) -> pd.DataFrame:
-    """Which render axis closes most of the gap to a test variant.
+    """Which render axis closes most of the gap to a test variant. An axis is a setting, or settings that the
+    variants only ever change together (``axis_groups``).
 
     For a test variant T and two training variants A, B where B agrees with T on
     axis x and A does not, ``acc(B on T) - acc(A on T)`` is what moving x to T's
@@ -260,7 +274,10 @@ def rank_axes(gap: pd.DataFrame, variant_settings: dict[str, dict], cells: dict[
     resampling test clips, one draw of (setting, clip) for every pair at once: the
     same clip has the same simulation under every variant.
     """
-    axes = differing_axes(variant_settings)
+    groups = axis_groups(variant_settings)
+    # a group's settings split the variants alike, so its first setting says where every one of them differs
+    axes = list(groups)
+    first = {axis: keys[0] for axis, keys in groups.items()}
     cols = ["axis", "mean_gain", "mean_gain_lo", "mean_gain_hi", "mean_share", "pairs", "clean", "examples"]
     if len(variant_settings) < 2 or not axes or gap.empty:
         return pd.DataFrame(columns=cols)
@@ -275,9 +292,10 @@ def rank_axes(gap: pd.DataFrame, variant_settings: dict[str, dict], cells: dict[
             if b == a or acc_b is None:
                 continue
             va, vb, vt = variant_settings[a], variant_settings[b], variant_settings[t]
-            diff = [k for k in axes if repr(va.get(k)) != repr(vb.get(k))]
+            diff = [x for x in axes if repr(va.get(first[x])) != repr(vb.get(first[x]))]
             for x in diff:
-                if repr(vb.get(x)) == repr(vt.get(x)) != repr(va.get(x)):
+                k = first[x]
+                if repr(vb.get(k)) == repr(vt.get(k)) != repr(va.get(k)):
                     gain = acc_b - acc_a
                     share = gain / gap_a if np.isfinite(gap_a) and gap_a > 0 else np.nan
                     evidence[x][diff == [x]].append((gain, share, f"{s}/{m}: {a}->{b} on {t}",

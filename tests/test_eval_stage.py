@@ -177,6 +177,21 @@ def test_axis_ranking_prefers_the_axis_that_closes_the_gap():
     assert top["clean"] and top["mean_gain"] == pytest.approx(0.4) and top["mean_share"] == pytest.approx(1.0)
 
 
+def test_settings_that_the_variants_only_change_together_are_one_axis():
+    # a camera variant changes noise and vignetting at once: no pair of variants can tell them apart
+    settings = {"paper": {"texture": "random", "noise": 0.0, "vignetting": 0.0},
+                "grid": {"texture": "grid", "noise": 0.0, "vignetting": 0.0},
+                "camera": {"texture": "random", "noise": 0.01, "vignetting": 0.3}}
+    assert tables.axis_groups(settings) == {"noise+vignetting": ["noise", "vignetting"], "texture": ["texture"]}
+    acc = {("paper", "camera"): 0.2, ("camera", "camera"): 0.5, ("grid", "camera"): 0.1}
+    rows = [{"setting": "s", "model": "lrcn", "train_variant": a, "test_variant": t, "acc": v}
+            for (a, t), v in acc.items()]
+    ranking = tables.rank_axes(pd.DataFrame(rows), settings)
+    camera = ranking.set_index("axis").loc["noise+vignetting"]
+    assert camera["clean"] and camera["pairs"] == 1 and camera["mean_gain"] == pytest.approx(0.3)   # paper->camera
+    assert "noise" not in set(ranking["axis"]) and "vignetting" not in set(ranking["axis"])
+
+
 def test_missing_split_is_named(tmp_path):
     run = make_fake_run(tmp_path / "run")
     run.split_path("wind-uniform1").unlink()
