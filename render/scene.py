@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import threading
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -149,12 +150,16 @@ class ScenePool:
         self._scenes.clear()
 
 
-_POOLS: dict[str, ScenePool] = {}
+# One pool per thread: a pooled scene is retargeted in place to the clip being rendered, so two threads that
+# render at once (each on its own Dr.Jit stream) must never share one.
+_POOLS = threading.local()
 
 
 def scene_pool(mi: ModuleType) -> ScenePool:
-    """This process's pool for Mitsuba's current variant."""
-    return _POOLS.setdefault(mi.variant(), ScenePool())
+    """This thread's pool for Mitsuba's current variant."""
+    if not hasattr(_POOLS, "by_variant"):
+        _POOLS.by_variant = {}
+    return _POOLS.by_variant.setdefault(mi.variant(), ScenePool())
 
 
 def _copy_params(src, dst, prefix: str) -> None:
