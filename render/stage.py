@@ -223,6 +223,8 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
     Shared by ``run_render`` and the measured-fabric set (``render_measured``): the
     same renderer, seeds (the sim meta's clip index), meta, FAILED and DONE markers.
     ``config`` replaces the run's render settings (the measured set forces PNGs).
+    With ``render.threads`` > 1, that many clips render at once in this process, each thread with scenes
+    (``render.scene.scene_pool``) and so a Dr.Jit stream of its own; a clip's frames do not depend on which.
     """
     config = config or run.config.render
     mi = load_mitsuba(config.backend)
@@ -232,11 +234,13 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
     summary: dict = {"backend": mi.variant(), "rendered": 0, "skipped": 0, "failed": [], "frames": 0}
     start = time.perf_counter()
     render_seconds = 0.0
+    todo = [job for job in jobs if not is_done(job[3])]
+    summary["skipped"] = len(jobs) - len(todo)
     writer = ThreadPoolExecutor(max(1, config.writer_threads), thread_name_prefix="render-writer")
-    for variant, setting, clip_dir, out_dir in tqdm(jobs, desc=label, unit="clip", disable=not progress):
-        if is_done(out_dir):
-            summary["skipped"] += 1
-            continue
+
+    def render_one(job):
+        """(job, meta or None, seconds, (error, traceback) or None): one clip, its failure caught."""
+        variant, setting, clip_dir, out_dir = job
         fresh_dir(out_dir)
         clip_start = time.perf_counter()
         try:
@@ -245,27 +249,43 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
                                clip_index=clip_index_of(clip, clip_dir), backgrounds=backgrounds[variant.name],
                                writer=writer)
         except Exception as e:  # one bad clip must not stop the run; it is recorded and reported
-            storage = storage_error(e, out_dir) if isinstance(e, OSError) else None
-            if storage is not None:
-                # A full or read-only disk fails every clip alike: stop, leaving no half-written frames.
-                writer.shutdown(wait=True)
-                shutil.rmtree(out_dir, ignore_errors=True)
-                raise storage from None
-            reason = f"{type(e).__name__}: {e}"
-            try:
-                atomic_write_json(out_dir / FAILED, {"error": reason, "traceback": traceback.format_exc()})
-            except OSError as marker:
-                # The clip has no DONE either way, so it is redone on the next run; say why there is no marker.
-                reason += f" (its FAILED marker could not be written: {marker.strerror or marker})"
-            summary["failed"].append({"variant": variant.name, "setting": setting, "clip_id": clip_dir.name,
-                                      "error": reason})
-            warnings.warn(f"{label} {variant.name}/{setting}/{clip_dir.name} failed: {reason}", stacklevel=2)
-            continue
-        render_seconds += time.perf_counter() - clip_start
-        mark_done(out_dir, {"frames": meta["num_frames"]})
-        summary["rendered"] += 1
-        summary["frames"] += meta["num_frames"]
-    writer.shutdown(wait=True)
+            return job, None, 0.0, (e, traceback.format_exc())
+        return job, meta, time.perf_counter() - clip_start, None
+
+    threads = min(max(1, config.threads), max(1, len(todo)))
+    pool = ThreadPoolExecutor(threads, thread_name_prefix="render-clip") if threads > 1 else None
+    results = (pool.map(render_one, todo) if pool is not None else map(render_one, todo))
+    bar = tqdm(total=len(jobs), initial=summary["skipped"], desc=label, unit="clip", disable=not progress)
+    try:
+        for (variant, setting, clip_dir, out_dir), meta, seconds, failure in results:
+            bar.update(1)
+            if failure is not None:
+                error, trace = failure
+                storage = storage_error(error, out_dir) if isinstance(error, OSError) else None
+                if storage is not None:
+                    # A full or read-only disk fails every clip alike: stop, leaving no half-written frames.
+                    shutil.rmtree(out_dir, ignore_errors=True)
+                    raise storage from None
+                reason = f"{type(error).__name__}: {error}"
+                try:
+                    atomic_write_json(out_dir / FAILED, {"error": reason, "traceback": trace})
+                except OSError as marker:
+                    # The clip has no DONE either way, so it is redone on the next run; say why there is no marker.
+                    reason += f" (its FAILED marker could not be written: {marker.strerror or marker})"
+                summary["failed"].append({"variant": variant.name, "setting": setting, "clip_id": clip_dir.name,
+                                          "error": reason})
+                warnings.warn(f"{label} {variant.name}/{setting}/{clip_dir.name} failed: {reason}", stacklevel=2)
+                continue
+            render_seconds += seconds
+            mark_done(out_dir, {"frames": meta["num_frames"]})
+            summary["rendered"] += 1
+            summary["frames"] += meta["num_frames"]
+    finally:
+        bar.close()
+        if pool is not None:
+            # clips not started yet are dropped (no DONE: the next run renders them); those started finish
+            pool.shutdown(wait=True, cancel_futures=True)
+        writer.shutdown(wait=True)
     summary["skipped_backgrounds"] = {f: r for b in backgrounds.values() for f, r in b.skipped.items()}
     summary["seconds"] = round(time.perf_counter() - start, 3)
     if summary["rendered"]:
