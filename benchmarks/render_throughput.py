@@ -47,7 +47,8 @@ frames/s over that row's. ``--write-procs`` runs the same in N processes at once
 (``<outputs>_threads_<N>``), each with scenes of its own and so its own Dr.Jit stream, so that one thread's
 path tracing can run on the device while another waits on its geometry update (an acceleration-structure
 rebuild that synchronises its stream) or its read-back, without the context switches of processes sharing a
-GPU; ``max_code_difference_vs_one_thread`` compares every frame with the one-thread loop's. Host RSS and (with nvidia-smi) GPU
+GPU; ``max_code_difference_vs_one_thread`` and ``share_moved_vs_one_thread`` (pixels off by more than one
+code) compare every frame with the one-thread loop's. Host RSS and (with nvidia-smi) GPU
 memory are sampled over each single-process loop, so a leak shows as a slope
 (``memory``: first, last, max). Writes a JSON under benchmarks/results/ with the
 command line.
@@ -287,8 +288,9 @@ def threads_loop(args, spp: int, n: int, outputs: str, reference: dict[int, np.n
            "frames_per_s": round(frames / seconds, 2), "ms_per_frame": round(1000 * seconds / frames, 3),
            "gpu_used_mib_after": gpu_memory_mib()}
     if reference:
-        row["max_code_difference_vs_one_thread"] = max(
-            int(np.abs(reference[i].astype(np.int16) - frames_out[i]).max()) for i in reference)
+        diffs = [np.abs(reference[i].astype(np.int16) - frames_out[i]).max(axis=-1) for i in reference]
+        row["max_code_difference_vs_one_thread"] = int(max(d.max() for d in diffs))
+        row["share_moved_vs_one_thread"] = float(np.mean(np.concatenate([(d > 1).ravel() for d in diffs])))
     return row
 
 

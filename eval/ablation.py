@@ -22,6 +22,7 @@ import dataclasses
 import json
 import math
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -128,14 +129,18 @@ def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], model
     if not recipes:
         raise ConfigError("no recipes given")
     test_variants = [v for v in dict.fromkeys(test_variants or []) if v != variant]
-    for look in test_variants:
-        if not run.done_clips(run.render_dir(look, setting)):
-            raise ConfigError(f"test variant {look!r} has no rendered clips of {setting}: render it first "
-                              f"(`clothgap render {run.root} --test-variant {look}`)")
     base = run.config.train
     configs = {r: recipe_config(run.config, r) for r in recipes}
     models = models or list(base.models)
     test = part_windows(get_or_make_split(run, setting), "test")
+    for look in test_variants:
+        # every test clip, or the look's scores would be of other clips than the training look's
+        rendered = set(run.done_clips(run.render_dir(look, setting)))
+        missing = sorted(c for c in test if c not in rendered)
+        if missing:
+            raise ConfigError(f"test variant {look!r} has {len(test) - len(missing)} of the {len(test)} test clips "
+                              f"of {setting} rendered ({missing[0]} is missing): render them first "
+                              f"(`clothgap render {run.root} --test-variant {look}`)")
     rows, caches = [], {}
     references: dict[str, dict] = {look: {} for look in [variant, *test_variants]}
     out_dir = run.eval_dir
@@ -168,7 +173,7 @@ def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], model
 
 
 def _train_and_predict(run: Run, setting: str, variant: str, recipe: str, cfg, model: str, seeds: list[int],
-                       test, caches: dict, progress: bool, test_variants: list[str] = ()
+                       test, caches: dict, progress: bool, test_variants: Sequence[str] = ()
                        ) -> tuple[dict[str, pd.DataFrame], list[Path]]:
     """``model`` trained with ``recipe`` for every seed (resumable) and its predictions on the ``test`` windows
     of ``variant`` and of each test variant (kept in each folder's ``test_predictions[-<variant>].csv``): per

@@ -282,6 +282,7 @@ def _model_predictions(run: Run, m: TrainedModel, test_variant: str, test_ids: l
 # the tables are computed) when the host has the CPUs; a few stay in this process (spawning costs seconds).
 CONFUSION_POOL_MIN_FIGURES = 16
 CONFUSION_POOL_MIN_CPUS = 2
+CONFUSION_POOL_MAX = 8          # each worker imports matplotlib and pandas (~1 s): more would not pay on 90 figures
 
 
 def _draw_confusion(counts: np.ndarray, title: str, true_classes: list[int], path: Path) -> None:
@@ -305,8 +306,8 @@ class _ConfusionFigures:
             path = run.eval_dir / "figures" / "confusion" / setting / train_v / model / f"{test_v}.png"
             self.jobs.append((counts, title, true_classes, path))
             self.written.append(_rel(run, path))
-        self.processes = min(len(self.jobs), pool_size(len(self.jobs), CONFUSION_POOL_MIN_FIGURES,
-                                                       CONFUSION_POOL_MIN_CPUS))
+        self.processes = min(len(self.jobs), CONFUSION_POOL_MAX,
+                             pool_size(len(self.jobs), CONFUSION_POOL_MIN_FIGURES, CONFUSION_POOL_MIN_CPUS))
         self.pool = self.drawn = None
 
     def __enter__(self) -> _ConfusionFigures:
@@ -450,6 +451,7 @@ def _summary(run: Run, models: list[TrainedModel], written: _Tables, figs: dict,
                    for m in models],
         "test_variants": written.variants, "texture_of": written.texture_of,
         "variant_axes": tables.differing_axes(written.settings_of),
+        "axis_groups": tables.axis_groups(written.settings_of),
         "in_domain_accuracy": headline,
         "results": json.loads(written.results.to_json(orient="records")),
         "axis_ranking": json.loads(written.ranking.to_json(orient="records")),

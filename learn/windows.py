@@ -236,7 +236,10 @@ def camera_augment_batch(x: torch.Tensor, params: torch.Tensor, noise: torch.Gen
     """
     b, t, c, h, w = x.shape
     params = params.to(x.dtype)
-    per_clip = lambda column: params[:, column].view(b, 1, 1, 1, 1)   # noqa: E731
+
+    def per_clip(column: int) -> torch.Tensor:
+        return params[:, column].view(b, 1, 1, 1, 1)
+
     gain = torch.exp2(CAMERA_EXPOSURE_STOPS * (2 * per_clip(0) - 1))
     white_balance = (1 + CAMERA_WHITE_BALANCE * (2 * params[:, 1:4] - 1)).view(b, 1, c, 1, 1)
     falloff = 1 - CAMERA_VIGNETTING * per_clip(5) * _corner_distance2(h, w, x.device, x.dtype)

@@ -31,7 +31,8 @@ class RenderConfig:
                                             # one frame per render call; 0 = auto (AUTO_FRAMES_PER_LAUNCH)
     writer_threads: int = 4                 # threads that tone-map (and write EXR/PNG) while the next frames render
     threads: int = 1                        # clips rendered at once in one process, each thread on scenes and a
-                                            # Dr.Jit stream of its own (the frames are the same either way)
+                                            # Dr.Jit stream of its own (the same frames up to acceleration-
+                                            # structure ties, which move a rare sample)
     frames_in_flight: int = 1               # frames finished on the device: how many are launched before the
                                             # oldest is read back (2: frame t+1's geometry and launch overlap
                                             # frame t's path tracing); the frames are the same either way

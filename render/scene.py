@@ -103,10 +103,12 @@ def zoomed(framing: Framing, zoom: float) -> Framing:
 
 # ---------------------------------------------------------------- pooled scenes
 
-MAX_POOLED_SCENES = 8  # distinct scene structures kept alive per process (least recently used dropped)
+MAX_POOLED_SCENES = 8  # distinct scene structures kept alive per thread (least recently used dropped): with
+                       # render.threads the device holds up to this many scenes per thread
 
 
-# One thread: draws stay in clip order (a folder of backgrounds remembers unreadable files).
+# One thread: a folder of backgrounds' record of unreadable files is only touched here (each draw has its clip's
+# own generator, so the order of draws across render threads changes no background).
 _BACKGROUND_DRAWS = ThreadPoolExecutor(1, thread_name_prefix="background-draw")
 
 

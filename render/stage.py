@@ -36,7 +36,7 @@ import warnings
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import replace
-from concurrent.futures import Executor, ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
@@ -224,7 +224,10 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
     same renderer, seeds (the sim meta's clip index), meta, FAILED and DONE markers.
     ``config`` replaces the run's render settings (the measured set forces PNGs).
     With ``render.threads`` > 1, that many clips render at once in this process, each thread with scenes
-    (``render.scene.scene_pool``) and so a Dr.Jit stream of its own; a clip's frames do not depend on which.
+    (``render.scene.scene_pool``) and so a Dr.Jit stream of its own; a clip's frames do not depend on which
+    (up to a tie in an acceleration-structure build, which may move a rare sample). Each clip's DONE is written
+    as soon as it is finished, whatever the order. ``seconds_per_clip`` and ``seconds_per_frame`` are the clips'
+    own times, which overlap with threads: the stage's rate is ``frames / seconds``.
     """
     config = config or run.config.render
     mi = load_mitsuba(config.backend)
@@ -238,9 +241,13 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
     summary["skipped"] = len(jobs) - len(todo)
     writer = ThreadPoolExecutor(max(1, config.writer_threads), thread_name_prefix="render-writer")
 
+    started: list[Path] = []
+
     def render_one(job):
-        """(job, meta or None, seconds, (error, traceback) or None): one clip, its failure caught."""
+        """(job, meta or None, seconds, (error, traceback) or None): one clip, DONE when it is finished, its
+        failure caught."""
         variant, setting, clip_dir, out_dir = job
+        started.append(out_dir)
         fresh_dir(out_dir)
         clip_start = time.perf_counter()
         try:
@@ -248,13 +255,16 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
             meta = render_clip(clip, variant, out_dir, config=config, run_seed=run.config.seed,
                                clip_index=clip_index_of(clip, clip_dir), backgrounds=backgrounds[variant.name],
                                writer=writer)
+            mark_done(out_dir, {"frames": meta["num_frames"]})
         except Exception as e:  # one bad clip must not stop the run; it is recorded and reported
             return job, None, 0.0, (e, traceback.format_exc())
         return job, meta, time.perf_counter() - clip_start, None
 
     threads = min(max(1, config.threads), max(1, len(todo)))
     pool = ThreadPoolExecutor(threads, thread_name_prefix="render-clip") if threads > 1 else None
-    results = (pool.map(render_one, todo) if pool is not None else map(render_one, todo))
+    # in the order clips finish, so that the progress bar and the summary keep up with the threads
+    results = (map(render_one, todo) if pool is None else
+               (done.result() for done in as_completed([pool.submit(render_one, job) for job in todo])))
     bar = tqdm(total=len(jobs), initial=summary["skipped"], desc=label, unit="clip", disable=not progress)
     try:
         for (variant, setting, clip_dir, out_dir), meta, seconds, failure in results:
@@ -263,8 +273,14 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
                 error, trace = failure
                 storage = storage_error(error, out_dir) if isinstance(error, OSError) else None
                 if storage is not None:
-                    # A full or read-only disk fails every clip alike: stop, leaving no half-written frames.
-                    shutil.rmtree(out_dir, ignore_errors=True)
+                    # A full or read-only disk fails every clip alike: stop, leaving no half-written frames. The
+                    # clips and writes still running finish first, so that none writes into a folder removed here.
+                    if pool is not None:
+                        pool.shutdown(wait=True, cancel_futures=True)
+                    writer.shutdown(wait=True)
+                    for folder in started:
+                        if not is_done(folder):
+                            shutil.rmtree(folder, ignore_errors=True)
                     raise storage from None
                 reason = f"{type(error).__name__}: {error}"
                 try:
@@ -277,7 +293,6 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
                 warnings.warn(f"{label} {variant.name}/{setting}/{clip_dir.name} failed: {reason}", stacklevel=2)
                 continue
             render_seconds += seconds
-            mark_done(out_dir, {"frames": meta["num_frames"]})
             summary["rendered"] += 1
             summary["frames"] += meta["num_frames"]
     finally:

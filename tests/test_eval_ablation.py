@@ -67,7 +67,7 @@ def test_ablation_scores_recipes_on_a_test_only_look_of_the_same_clips_too(tmp_p
     cfg = tiny()
     run = synthetic_run(tmp_path / "run", cfg)
     recipes = ["baseline", "augment"]
-    with pytest.raises(ConfigError, match="test variant 'heldout' has no rendered clips"):
+    with pytest.raises(ConfigError, match="test variant 'heldout' has 0 of the 4 test clips"):
         run_ablation(run, SETTING, VARIANT, recipes, progress=False, test_variants=["heldout"])
     assert not (run.root / "ablation").exists()                 # refused before anything was trained
     run_ablation(run, SETTING, VARIANT, recipes, progress=False)
@@ -75,7 +75,12 @@ def test_ablation_scores_recipes_on_a_test_only_look_of_the_same_clips_too(tmp_p
     # the split's test clips in another look (other pixels, the same labels), as `render --test-variant` makes
     test = part_windows(get_or_make_split(run, SETTING), "test")
     labels = [c for c in cfg.sim.class_indices() for _ in range(cfg.sim.sequences_per_class)]
-    for cid in test:
+    first, *rest = sorted(test)
+    write_synthetic_clip(run.render_dir("heldout", SETTING) / first, clip_index(first), labels[clip_index(first)],
+                         cfg.sim.frames, cfg.render.resolution, cfg.seed, "heldout", SETTING)
+    with pytest.raises(ConfigError, match="has 1 of the 4 test clips"):         # scored on every test clip or none
+        run_ablation(run, SETTING, VARIANT, recipes, progress=False, test_variants=["heldout"])
+    for cid in rest:
         write_synthetic_clip(run.render_dir("heldout", SETTING) / cid, clip_index(cid), labels[clip_index(cid)],
                              cfg.sim.frames, cfg.render.resolution, cfg.seed, "heldout", SETTING)
     run_ablation(run, SETTING, VARIANT, recipes, progress=False, test_variants=["heldout", VARIANT])

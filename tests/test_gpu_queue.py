@@ -54,8 +54,9 @@ last: echo last
 def test_files_too_large_to_bring_back_are_left_out_of_the_tarball_by_name_and_the_rest_comes_back(tmp_path):
     # random bytes do not compress: a 300 kB file cannot fit a 100 kB tarball, the results beside it can
     plan = tmp_path / "big.plan"
-    plan.write_text("study: head -c 300000 /dev/urandom > $OUT/report.tgz; echo 0.767 > $OUT/results.csv\n"
-                    "later: echo done > $OUT/later.txt\n")
+    # (a name tar would read as a pattern, and one with a space)
+    plan.write_text("study: head -c 300000 /dev/urandom > \"$OUT/report [1].tgz\"; echo 0.767 > $OUT/results.csv\n"
+                    "later: echo done > \"$OUT/later step.txt\"\n")
     state, out = tmp_path / "state", tmp_path / "out"
     r = _queue(plan, state, out, QUEUE_TGZ_BYTES="100000")
     assert r.returncode == 0, r.stderr
@@ -63,10 +64,11 @@ def test_files_too_large_to_bring_back_are_left_out_of_the_tarball_by_name_and_t
     with tarfile.open(out / "queue.tgz") as t:
         names = {Path(n).as_posix().lstrip("./") for n in t.getnames()}
         left_out = t.extractfile("./LEFT_OUT.txt").read().decode()
-    assert {"study/results.csv", "later/later.txt"} <= names and "study/report.tgz" not in names
-    assert "study/report.tgz" in left_out
+    assert {"study/results.csv", "later/later step.txt"} <= names and "study/report [1].tgz" not in names
+    assert "study/report [1].tgz" in left_out and "results.csv" not in left_out
     log = (out / "queue.log").read_text()
-    assert log.count("report.tgz: left out of queue.tgz") == 1      # said once, not after every step
+    assert log.count("report [1].tgz: left out of queue.tgz") == 1      # said once, not after every step
+    assert not (out / "queue.tgz.tmp").exists()
 
 
 @pytest.mark.slow

@@ -24,28 +24,35 @@ mkdir -p "$state/out" "$out"
 t0=$(date +%s)
 left() { echo $(( BUDGET - ($(date +%s) - t0) )); }
 log=$out/queue.log
-# The device brings back files of at most 16 MiB: above QUEUE_TGZ_BYTES the largest files are left out of the
-# tarball, one by one, and named in its LEFT_OUT.txt and the log, so results are never lost to a large report.
+# The device brings back files of at most 16 MiB: above QUEUE_TGZ_BYTES the largest files (by their gzipped
+# size) are left out of the tarball, and named in its LEFT_OUT.txt and the log, so that a large report does
+# not cost the results beside it. Written to a temporary name and moved, so a call cut off while packing still
+# brings back the previous tarball.
 limit=${QUEUE_TGZ_BYTES:-15728640}
 pack() {
-  local left="$state/left_out.txt" f
-  : > "$left.new"; rm -f "$state/out/LEFT_OUT.txt"
-  tar czf "$out/queue.tgz" -C "$state/out" . 2>/dev/null
-  while [ "$(stat -c %s "$out/queue.tgz")" -gt "$limit" ]; do
-    f=$(cd "$state/out" && find . -type f -printf '%s %p\n' | sort -rn |
-          awk -v skipfile="$left.new" 'BEGIN { while ((getline l < skipfile) > 0) skip[l] = 1 }
-                                       { p = substr($0, index($0, " ") + 1); if (!(p in skip)) { print p; exit } }')
-    [ -n "$f" ] || break
+  local left="$state/left_out.txt" tmp="$out/queue.tgz.tmp" sizes="$state/gz_sizes.txt" f
+  rm -f "$state/out/LEFT_OUT.txt"
+  # each file's gzipped size, largest first; leave out the largest until the rest fits
+  ( cd "$state/out" && find . -type f -exec sh -c 'printf "%s %s\n" "$(gzip -c "$1" | wc -c)" "$1"' _ {} \; ) |
+    sort -rn > "$sizes"
+  awk -v limit="$((limit - 65536))" '{ n++; size[n] = $1; path[n] = substr($0, index($0, " ") + 1); total += $1 }
+    END { for (i = 1; i <= n && total > limit; i++) { print path[i]; total -= size[i] } }' "$sizes" > "$left.new"
+  while :; do
+    if [ -s "$left.new" ]; then
+      sed "s/\$/: left out of queue.tgz (the device brings back files of at most 16 MiB; limit $limit bytes)/" \
+        "$left.new" > "$state/out/LEFT_OUT.txt"
+    fi
+    tar czf "$tmp" -C "$state/out" --no-wildcards -X "$left.new" . 2>/dev/null
+    [ "$(stat -c %s "$tmp")" -le "$limit" ] && break
+    # the estimate was short (tar's own overhead): leave out the next largest as well
+    f=$(awk -v skipfile="$left.new" 'BEGIN { while ((getline l < skipfile) > 0) skip[l] = 1 }
+             { p = substr($0, index($0, " ") + 1) } !(p in skip) { print p; exit }' "$sizes")
+    [ -n "$f" ] || { echo "queue: queue.tgz is over $limit bytes with every file left out" | tee -a "$log"; break; }
     echo "$f" >> "$left.new"
-    tar czf "$out/queue.tgz" -C "$state/out" -X "$left.new" . 2>/dev/null
   done
-  if [ -s "$left.new" ]; then
-    sed "s/\$/: left out of queue.tgz (the device brings back files of at most 16 MiB; limit $limit bytes)/" \
-      "$left.new" > "$state/out/LEFT_OUT.txt"
-    cmp -s "$left.new" "$left" || tee -a "$log" < "$state/out/LEFT_OUT.txt"
-    tar czf "$out/queue.tgz" -C "$state/out" -X "$left.new" . 2>/dev/null
-  fi
-  mv "$left.new" "$left"
+  mv -f "$tmp" "$out/queue.tgz"
+  [ -s "$left.new" ] && ! cmp -s "$left.new" "$left" && tee -a "$log" < "$state/out/LEFT_OUT.txt"
+  mv -f "$left.new" "$left"
 }
 trap pack EXIT
 names=()
