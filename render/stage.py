@@ -273,24 +273,9 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
                 error, trace = failure
                 storage = storage_error(error, out_dir) if isinstance(error, OSError) else None
                 if storage is not None:
-                    # A full or read-only disk fails every clip alike: stop, leaving no half-written frames. The
-                    # clips and writes still running finish first, so that none writes into a folder removed here.
-                    if pool is not None:
-                        pool.shutdown(wait=True, cancel_futures=True)
-                    writer.shutdown(wait=True)
-                    for folder in started:
-                        if not is_done(folder):
-                            shutil.rmtree(folder, ignore_errors=True)
-                    raise storage from None
-                reason = f"{type(error).__name__}: {error}"
-                try:
-                    atomic_write_json(out_dir / FAILED, {"error": reason, "traceback": trace})
-                except OSError as marker:
-                    # The clip has no DONE either way, so it is redone on the next run; say why there is no marker.
-                    reason += f" (its FAILED marker could not be written: {marker.strerror or marker})"
-                summary["failed"].append({"variant": variant.name, "setting": setting, "clip_id": clip_dir.name,
-                                          "error": reason})
-                warnings.warn(f"{label} {variant.name}/{setting}/{clip_dir.name} failed: {reason}", stacklevel=2)
+                    _stop_on_storage_error(storage, [p for p in (pool, writer) if p is not None], started)
+                summary["failed"].append(_record_failure(label, variant.name, setting, clip_dir.name, out_dir,
+                                                         error, trace))
                 continue
             render_seconds += seconds
             summary["rendered"] += 1
@@ -307,6 +292,30 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
         summary["seconds_per_clip"] = round(render_seconds / summary["rendered"], 4)
         summary["seconds_per_frame"] = round(render_seconds / summary["frames"], 5)
     return summary
+
+
+def _stop_on_storage_error(storage: Exception, pools: list[Executor], started: list[Path]) -> None:
+    """A full or read-only disk fails every clip alike: stop, leaving no half-written frames. The clips and
+    writes still running finish first, so that none writes into a folder removed here."""
+    for pool in pools:
+        pool.shutdown(wait=True, cancel_futures=True)
+    for folder in started:
+        if not is_done(folder):
+            shutil.rmtree(folder, ignore_errors=True)
+    raise storage from None
+
+
+def _record_failure(label: str, variant: str, setting: str, clip_id: str, out_dir: Path, error: Exception,
+                    trace: str) -> dict:
+    """A clip that failed to render: its FAILED marker, a warning, and the summary's entry."""
+    reason = f"{type(error).__name__}: {error}"
+    try:
+        atomic_write_json(out_dir / FAILED, {"error": reason, "traceback": trace})
+    except OSError as marker:
+        # The clip has no DONE either way, so it is redone on the next run; say why there is no marker.
+        reason += f" (its FAILED marker could not be written: {marker.strerror or marker})"
+    warnings.warn(f"{label} {variant}/{setting}/{clip_id} failed: {reason}", stacklevel=3)
+    return {"variant": variant, "setting": setting, "clip_id": clip_id, "error": reason}
 
 
 def render_measured(run: Run, variant: str, names: Sequence[str] | None = None, progress: bool = True) -> dict:
