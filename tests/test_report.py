@@ -96,3 +96,15 @@ def test_rendered_frames_embed_as_jpeg_where_that_is_smaller():
     for frames, mime in ((photo, "image/jpeg"), (flat, "image/png")):
         png = figures.png_bytes(figures.frame_grid({"clip": frames}, ["a", "b", "c"]))
         assert f'src="data:{mime};base64,' in _photo(png, "frames")
+
+
+def test_the_gap_section_answers_which_training_variant_carries_to_a_test_only_look(evaluated):
+    doc = write_report(Run.open(evaluated)).read_text()
+    start = doc.index("<h3>On reinhard, a look no model trained on</h3>")
+    table = doc[start:doc.index("</table>", start)]
+    rows = re.findall(r"<tr>(.*?)</tr>", table)[1:]
+    assert len(rows) == 2                                       # the models trained on paper and on grid
+    gap = pd.read_csv(evaluated / "eval" / "domain_gap.csv")
+    on = gap[gap["test_variant"] == "reinhard"].sort_values("gain", ascending=False)
+    assert [re.findall(r"<td>([\w-]+)</td>", r)[2] for r in rows] == list(on["train_variant"])
+    assert "within1" in table and "bend_acc" in table
