@@ -43,12 +43,7 @@ row records the files it wrote. ``<outputs>_host_finish`` is the same loop with
 frames finished on the host (``render_clip(device_finish=False)``, the stage
 before device finishing), and the device row's ``over_host_finish`` is its
 frames/s over that row's. ``--write-procs`` runs the same in N processes at once, as
-``clothgap render --executor process`` does; ``--write-threads`` runs it in N threads of one process
-(``<outputs>_threads_<N>``), each with scenes of its own and so its own Dr.Jit stream, so that one thread's
-path tracing can run on the device while another waits on its geometry update (an acceleration-structure
-rebuild that synchronises its stream) or its read-back, without the context switches of processes sharing a
-GPU; ``max_code_difference_vs_one_thread`` and ``share_moved_vs_one_thread`` (pixels off by more than one
-code) compare every frame with the one-thread loop's. Host RSS and (with nvidia-smi) GPU
+``clothgap render --executor process`` does. Host RSS and (with nvidia-smi) GPU
 memory are sampled over each single-process loop, so a leak shows as a slope
 (``memory``: first, last, max). Writes a JSON under benchmarks/results/ with the
 command line.
@@ -108,8 +103,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--outputs", default="npy,png+exr", help="comma-separated output sets for --write: npy, png, "
                    "png+exr (frames.npy is always written)")
     p.add_argument("--write-procs", default="", help="comma-separated process counts for the --write loops")
-    p.add_argument("--write-threads", default="", help="comma-separated thread counts of one process for the "
-                   "--write loops")
     p.add_argument("--ceiling-frames", type=int, default=8, help="frames whose kernel time gives the ceiling")
     p.add_argument("--writer-threads", type=int, default=4)
     p.add_argument("--reference-spp", type=int, default=0, help="spp of the noise reference (default 16 x spp)")
@@ -124,7 +117,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     args.k = [int(k) for k in str(args.k).split(",") if k]
     args.procs = [int(n) for n in str(args.procs).split(",") if n]
     args.write_procs = [int(n) for n in str(args.write_procs).split(",") if n]
-    args.write_threads = [int(n) for n in str(args.write_threads).split(",") if n]
     args.outputs = [o for o in str(args.outputs).split(",") if o]
     bad = [o for o in args.outputs if o not in OUTPUTS]
     if bad:
@@ -257,41 +249,6 @@ def processes_loop(args, spp: int, n: int, outputs: str = "") -> dict:
             "frames": frames, "seconds": round(seconds, 3),
             "frames_per_s": round(frames / seconds, 2), "ms_per_frame": round(1000 * seconds / frames, 3),
             "gpu_used_mib_after": gpu_memory_mib()}
-
-
-def threads_loop(args, spp: int, n: int, outputs: str, reference: dict[int, np.ndarray] | None = None) -> dict:
-    """N threads of this process, each running the stage's render_clip (``stage_loop``) on every N-th clip with
-    its own scenes; aggregate rate from a barrier after every thread has compiled. With ``reference`` (clip
-    index -> the one-thread loop's frames.npy), the largest code difference from it over every frame."""
-    clips = [waving_sheet(frames=args.frames, n=args.vertices, index=i) for i in range(args.clips)]
-    shares = [s for s in (list(range(args.clips))[i::n] for i in range(n)) if s]
-    barrier = threading.Barrier(len(shares))
-    results: list = [None] * len(shares)
-    frames_out: dict[int, np.ndarray] = {}
-
-    def work(slot: int, share: list[int]) -> None:
-        try:
-            stage_loop(args, [waving_sheet(frames=args.frames, n=args.vertices, index=10_000 + share[0])], spp, 1,
-                       outputs)                                  # untimed: this thread's scenes and kernels
-        finally:
-            barrier.wait()
-        start = time.perf_counter()
-        frames = stage_loop(args, [clips[i] for i in share], spp, 1, outputs, share, frames_out=frames_out)
-        results[slot] = (frames, start, time.perf_counter())
-
-    with ThreadPoolExecutor(len(shares), thread_name_prefix="render-bench") as pool:
-        for future in [pool.submit(work, slot, share) for slot, share in enumerate(shares)]:
-            future.result()
-    frames = sum(r[0] for r in results)
-    seconds = max(r[2] for r in results) - min(r[1] for r in results)
-    row = {"threads": len(shares), "frames": frames, "seconds": round(seconds, 3),
-           "frames_per_s": round(frames / seconds, 2), "ms_per_frame": round(1000 * seconds / frames, 3),
-           "gpu_used_mib_after": gpu_memory_mib()}
-    if reference:
-        diffs = [np.abs(reference[i].astype(np.int16) - frames_out[i]).max(axis=-1) for i in reference]
-        row["max_code_difference_vs_one_thread"] = int(max(d.max() for d in diffs))
-        row["share_moved_vs_one_thread"] = float(np.mean(np.concatenate([(d > 1).ravel() for d in diffs])))
-    return row
 
 
 def stage_loop(args, clips, spp: int, k: int, outputs: str = "png+exr", indices: list[int] | None = None,
@@ -512,15 +469,6 @@ def main(argv: list[str] | None = None) -> dict:
                                                       3)
                     result["with_output"]["npy_two_in_flight"] = row
                     print("with_output npy_two_in_flight", json.dumps(row), flush=True)
-                if args.write_threads:
-                    one: dict = {}
-                    stage_loop(args, clips, spp, 1, outputs, None, None, True, 1, one)
-                    for n in args.write_threads:
-                        row = threads_loop(args, spp, n, outputs, one)
-                        row["over_one_thread"] = round(row["frames_per_s"]
-                                                       / result["with_output"][outputs]["frames_per_s"], 3)
-                        result["with_output"][f"{outputs}_threads_{n}"] = row
-                        print(f"with_output {outputs}_threads_{n}", json.dumps(row), flush=True)
                 for n in args.write_procs:
                     row = processes_loop(args, spp, n, outputs)
                     result["with_output"][f"{outputs}_processes_{n}"] = row

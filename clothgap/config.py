@@ -225,9 +225,9 @@ def read_config_file(path: Path | str) -> tuple[str | None, dict]:
 # Settings that say where or how fast work runs, not what it computes (within float rounding across devices),
 # and the run's name: a resumed run may change them at any time.
 # (render.write_png / write_hdr only add inspection files; clips rendered before keep what they wrote.)
-EXECUTION_SETTINGS = frozenset({"name", "sim.device", "sim.batch_size", "render.writer_threads", "render.threads",
-                                "render.write_png", "render.write_hdr", "render.frames_in_flight", "train.device",
-                                "train.num_threads", "train.num_workers"})
+EXECUTION_SETTINGS = frozenset({"name", "sim.device", "sim.batch_size", "render.writer_threads", "render.write_png",
+                                "render.write_hdr", "render.frames_in_flight", "train.device", "train.num_threads",
+                                "train.num_workers"})
 # Settings added after runs existed whose default is what the code did before they existed: a run's
 # config.json without one was made by an older clothgap and gets the default (recorded), not an error.
 # Adding a setting whose default changes results means leaving it out of this set.
@@ -235,8 +235,7 @@ DEFAULT_KEEPS_OLD_BEHAVIOUR = frozenset({"sim.self_collision", "sim.collision_th
                                          "train.bottleneck_noise", "train.reader_truth", "train.conv5_pool",
                                          "train.geometry_window", "train.augment_crop", "train.aux_geometry",
                                          "train.label_smoothing", "sim.arm_nuisance",
-                                         "render.frames_in_flight", "train.compile_mode", "train.augment_camera",
-                                         "render.threads"})
+                                         "render.frames_in_flight", "train.compile_mode", "train.augment_camera"})
 # Lists a resumed run may extend: an item more is more work downstream, nothing finished changes.
 GROWING_SETTINGS = frozenset({"sim.motions", "sim.remeshing", "render.variants", "train.models", "train.seeds"})
 

@@ -30,9 +30,6 @@ class RenderConfig:
     frames_per_launch: int = 0              # frames of a clip per Mitsuba launch (render.batch); 1 = one scene,
                                             # one frame per render call; 0 = auto (AUTO_FRAMES_PER_LAUNCH)
     writer_threads: int = 4                 # threads that tone-map (and write EXR/PNG) while the next frames render
-    threads: int = 1                        # clips rendered at once in one process, each thread on scenes and a
-                                            # Dr.Jit stream of its own (the same frames up to acceleration-
-                                            # structure ties, which move a rare sample)
     frames_in_flight: int = 1               # frames finished on the device: how many are launched before the
                                             # oldest is read back (2: frame t+1's geometry and launch overlap
                                             # frame t's path tracing); the frames are the same either way
@@ -79,7 +76,6 @@ class RenderConfig:
         out += checks.choice("render.backend", self.backend, BACKENDS)
         out += checks.number("render.frames_per_launch", self.frames_per_launch, 0)
         out += checks.number("render.writer_threads", self.writer_threads, 1)
-        out += checks.number("render.threads", self.threads, 1)
         out += checks.number("render.frames_in_flight", self.frames_in_flight, 1)
         return out
 

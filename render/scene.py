@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import threading
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -103,12 +102,10 @@ def zoomed(framing: Framing, zoom: float) -> Framing:
 
 # ---------------------------------------------------------------- pooled scenes
 
-MAX_POOLED_SCENES = 8  # distinct scene structures kept alive per thread (least recently used dropped): with
-                       # render.threads the device holds up to this many scenes per thread
+MAX_POOLED_SCENES = 8  # distinct scene structures kept alive per process (least recently used dropped)
 
 
-# One thread: a folder of backgrounds' record of unreadable files is only touched here (each draw has its clip's
-# own generator, so the order of draws across render threads changes no background).
+# One thread: draws stay in clip order (a folder of backgrounds remembers unreadable files).
 _BACKGROUND_DRAWS = ThreadPoolExecutor(1, thread_name_prefix="background-draw")
 
 
@@ -152,16 +149,12 @@ class ScenePool:
         self._scenes.clear()
 
 
-# One pool per thread: a pooled scene is retargeted in place to the clip being rendered, so two threads that
-# render at once (each on its own Dr.Jit stream) must never share one.
-_POOLS = threading.local()
+_POOLS: dict[str, ScenePool] = {}
 
 
 def scene_pool(mi: ModuleType) -> ScenePool:
-    """This thread's pool for Mitsuba's current variant."""
-    if not hasattr(_POOLS, "by_variant"):
-        _POOLS.by_variant = {}
-    return _POOLS.by_variant.setdefault(mi.variant(), ScenePool())
+    """This process's pool for Mitsuba's current variant."""
+    return _POOLS.setdefault(mi.variant(), ScenePool())
 
 
 def _copy_params(src, dst, prefix: str) -> None:

@@ -36,7 +36,7 @@ import warnings
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import replace
-from concurrent.futures import Executor, ThreadPoolExecutor, as_completed
+from concurrent.futures import Executor, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -223,11 +223,8 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
     Shared by ``run_render`` and the measured-fabric set (``render_measured``): the
     same renderer, seeds (the sim meta's clip index), meta, FAILED and DONE markers.
     ``config`` replaces the run's render settings (the measured set forces PNGs).
-    With ``render.threads`` > 1, that many clips render at once in this process, each thread with scenes
-    (``render.scene.scene_pool``) and so a Dr.Jit stream of its own; a clip's frames do not depend on which
-    (up to a tie in an acceleration-structure build, which may move a rare sample). Each clip's DONE is written
-    as soon as it is finished, whatever the order. ``seconds_per_clip`` and ``seconds_per_frame`` are the clips'
-    own times, which overlap with threads: the stage's rate is ``frames / seconds``.
+    Clips render one after another: Mitsuba's symbolic virtual calls trace every shape of the process, so a
+    second thread updating its own scene breaks (and on llvm_ad_rgb deadlocks) the first one's render.
     """
     config = config or run.config.render
     mi = load_mitsuba(config.backend)
@@ -260,20 +257,15 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
             return job, None, 0.0, (e, traceback.format_exc())
         return job, meta, time.perf_counter() - clip_start, None
 
-    threads = min(max(1, config.threads), max(1, len(todo)))
-    pool = ThreadPoolExecutor(threads, thread_name_prefix="render-clip") if threads > 1 else None
-    # in the order clips finish, so that the progress bar and the summary keep up with the threads
-    results = (map(render_one, todo) if pool is None else
-               (done.result() for done in as_completed([pool.submit(render_one, job) for job in todo])))
     bar = tqdm(total=len(jobs), initial=summary["skipped"], desc=label, unit="clip", disable=not progress)
     try:
-        for (variant, setting, clip_dir, out_dir), meta, seconds, failure in results:
+        for (variant, setting, clip_dir, out_dir), meta, seconds, failure in map(render_one, todo):
             bar.update(1)
             if failure is not None:
                 error, trace = failure
                 storage = storage_error(error, out_dir) if isinstance(error, OSError) else None
                 if storage is not None:
-                    _stop_on_storage_error(storage, [p for p in (pool, writer) if p is not None], started)
+                    _stop_on_storage_error(storage, writer, started)
                 summary["failed"].append(_record_failure(label, variant.name, setting, clip_dir.name, out_dir,
                                                          error, trace))
                 continue
@@ -282,9 +274,6 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
             summary["frames"] += meta["num_frames"]
     finally:
         bar.close()
-        if pool is not None:
-            # clips not started yet are dropped (no DONE: the next run renders them); those started finish
-            pool.shutdown(wait=True, cancel_futures=True)
         writer.shutdown(wait=True)
     summary["skipped_backgrounds"] = {f: r for b in backgrounds.values() for f, r in b.skipped.items()}
     summary["seconds"] = round(time.perf_counter() - start, 3)
@@ -294,11 +283,10 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
     return summary
 
 
-def _stop_on_storage_error(storage: Exception, pools: list[Executor], started: list[Path]) -> None:
-    """A full or read-only disk fails every clip alike: stop, leaving no half-written frames. The clips and
-    writes still running finish first, so that none writes into a folder removed here."""
-    for pool in pools:
-        pool.shutdown(wait=True, cancel_futures=True)
+def _stop_on_storage_error(storage: Exception, writer: Executor, started: list[Path]) -> None:
+    """A full or read-only disk fails every clip alike: stop, leaving no half-written frames. The writes still
+    running finish first, so that none writes into a folder removed here."""
+    writer.shutdown(wait=True)
     for folder in started:
         if not is_done(folder):
             shutil.rmtree(folder, ignore_errors=True)

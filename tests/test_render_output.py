@@ -106,34 +106,6 @@ def test_pooled_scenes_render_exactly_what_a_scene_per_clip_renders(backend):
     assert pool.builds < pool.retargets + pool.builds
 
 
-def test_threads_render_with_scenes_of_their_own_and_the_frames_of_one_thread():
-    """Two threads rendering at once (each its own Dr.Jit stream) never retarget each other's scene."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    from render.scene import scene_pool
-
-    mi = load_mitsuba(BACKEND)
-    clips = [waving_sheet(frames=3, n=8, index=i) for i in range(4)]
-
-    def frames(indices):
-        out = {}
-        for i in indices:
-            r = ClipRenderer(clips[i], get_variant("paper"), resolution=16, spp=2, run_seed=3, clip_index=i,
-                             backend=BACKEND)
-            out[i] = [r.render_hdr(t) for t in range(clips[i].num_frames)]
-        return out, scene_pool(mi)
-
-    alone, main_pool = frames(range(4))
-    with ThreadPoolExecutor(2) as pool:
-        (even, even_pool), (odd, odd_pool) = pool.map(frames, (range(0, 4, 2), range(1, 4, 2)))
-    assert len({id(main_pool), id(even_pool), id(odd_pool)}) == 3          # a pool per thread
-    for i, got in {**even, **odd}.items():
-        for t, (a, b) in enumerate(zip(got, alone[i])):
-            # as in the pooled test above: a tie broken differently by a BVH build may move one sample
-            off = np.abs(a - b).max(axis=-1) > 1e-5
-            assert off.mean() <= 0.01, f"clip {i} frame {t}: {off.sum()} pixels differ"
-
-
 @pytest.mark.xfail(strict=False, reason="known: with random lighting (environment map + area lights), some scene "
                    "builds render differently from others with identical parameters, a scene per clip included "
                    "(about 1 build in 20 on scalar_rgb and llvm_ad_rgb); not caused by pooling")
@@ -191,8 +163,8 @@ def test_corrupt_background_is_reported_by_name_and_the_run_goes_on(tmp_path, mo
     assert named == set(summary["skipped_backgrounds"])  # every skipped file was reported by name
 
 
-def make_run(root, variants=("paper",), clips=2, frames=3, remeshing=("uniform1",), variant_settings=(), **render):
-    return synthetic_sim_run(root, variants, clips, frames, remeshing, variant_settings=variant_settings, **render)
+def make_run(root, variants=("paper",), clips=2, frames=3, remeshing=("uniform1",), variant_settings=()):
+    return synthetic_sim_run(root, variants, clips, frames, remeshing, variant_settings=variant_settings)
 
 
 def test_stage_writes_frames_meta_and_done_and_skips_done_clips(tmp_path):
@@ -213,25 +185,6 @@ def test_stage_writes_frames_meta_and_done_and_skips_done_clips(tmp_path):
     assert meta["render"]["sampler_seed"] > 0 and meta["render"]["spp"] == 1
     again = run_render(run, progress=False)
     assert again["rendered"] == 0 and again["skipped"] == 4
-
-
-def test_clips_rendered_in_threads_are_the_clips_rendered_one_after_another(tmp_path):
-    from render.stage import run_render
-
-    one = make_run(tmp_path / "one", variants=("paper", "grid"), clips=3)
-    two = make_run(tmp_path / "two", variants=("paper", "grid"), clips=3, threads=2)
-    assert run_render(one, progress=False)["rendered"] == 6
-    summary = run_render(two, progress=False)
-    assert summary["rendered"] == 6 and summary["failed"] == []
-    for variant in ("paper", "grid"):
-        for i in range(3):
-            a = np.load(one.render_dir(variant, "wind-uniform1") / clip_id(i) / "frames.npy")
-            b = np.load(two.render_dir(variant, "wind-uniform1") / clip_id(i) / "frames.npy")
-            assert is_done(two.render_dir(variant, "wind-uniform1") / clip_id(i))
-            # a clip's frames come from its own seeds, whichever thread rendered it (a BVH build may break a
-            # tie between coincident edges differently and move one sample of a pixel: see the pooled test)
-            assert (np.abs(a.astype(int) - b).max(axis=-1) > 1).mean() <= 0.01
-    assert run_render(two, progress=False)["skipped"] == 6
 
 
 def test_variant_settings_render_and_train_only_the_listed_pairs(tmp_path):
