@@ -25,9 +25,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from clothgap.config import (ConfigError, StudyConfig, apply_overrides, apply_settings, pairs, preset as preset_config,
-                             read_config_file, shown, with_name)
+                             read_config_file, shown, validate, with_name)
 from clothgap.errors import MissingInputError
-from clothgap.runs import Run
+from clothgap.runs import Run, clip_index
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -189,8 +189,6 @@ def run_for_test_variants(run: Run, variants: Iterable[str]) -> Run:
     """The run seen with only ``variants`` as its render variants, for rendering looks no model trains on
     (``clothgap eval`` tests every model on every rendered variant); an unknown name is refused here. Its
     config is never saved: the run's own variants stay its training set."""
-    from clothgap.config import validate
-
     cfg = replace(run.config, render=replace(run.config.render, variants=tuple(dict.fromkeys(variants)),
                                              variant_settings=()))
     return Run(run.root, validate(cfg))
@@ -200,7 +198,6 @@ def render_test_variants(test_run: Run, progress: bool = True) -> dict:
     """Render ``run_for_test_variants``'s looks on the clips the split tests on (the split training makes, when
     the run has none yet), in this process: an executor's workers reopen the run from its saved config.
     Returns the render stage's summary."""
-    from clothgap.runs import clip_index
     from learn.split import current_split, part_clips
     from render.stage import run_render
 

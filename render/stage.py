@@ -234,17 +234,11 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
     summary: dict = {"backend": mi.variant(), "rendered": 0, "skipped": 0, "failed": [], "frames": 0}
     start = time.perf_counter()
     render_seconds = 0.0
-    todo = [job for job in jobs if not is_done(job[3])]
-    summary["skipped"] = len(jobs) - len(todo)
     writer = ThreadPoolExecutor(max(1, config.writer_threads), thread_name_prefix="render-writer")
-
-    started: list[Path] = []
-
-    def render_one(job):
-        """(job, meta or None, seconds, (error, traceback) or None): one clip, DONE when it is finished, its
-        failure caught."""
-        variant, setting, clip_dir, out_dir = job
-        started.append(out_dir)
+    for variant, setting, clip_dir, out_dir in tqdm(jobs, desc=label, unit="clip", disable=not progress):
+        if is_done(out_dir):
+            summary["skipped"] += 1
+            continue
         fresh_dir(out_dir)
         clip_start = time.perf_counter()
         try:
@@ -252,58 +246,34 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
             meta = render_clip(clip, variant, out_dir, config=config, run_seed=run.config.seed,
                                clip_index=clip_index_of(clip, clip_dir), backgrounds=backgrounds[variant.name],
                                writer=writer)
-            mark_done(out_dir, {"frames": meta["num_frames"]})
         except Exception as e:  # one bad clip must not stop the run; it is recorded and reported
-            return job, None, 0.0, (e, traceback.format_exc())
-        return job, meta, time.perf_counter() - clip_start, None
-
-    bar = tqdm(total=len(jobs), initial=summary["skipped"], desc=label, unit="clip", disable=not progress)
-    try:
-        for (variant, setting, clip_dir, out_dir), meta, seconds, failure in map(render_one, todo):
-            bar.update(1)
-            if failure is not None:
-                error, trace = failure
-                storage = storage_error(error, out_dir) if isinstance(error, OSError) else None
-                if storage is not None:
-                    _stop_on_storage_error(storage, writer, started)
-                summary["failed"].append(_record_failure(label, variant.name, setting, clip_dir.name, out_dir,
-                                                         error, trace))
-                continue
-            render_seconds += seconds
-            summary["rendered"] += 1
-            summary["frames"] += meta["num_frames"]
-    finally:
-        bar.close()
-        writer.shutdown(wait=True)
+            storage = storage_error(e, out_dir) if isinstance(e, OSError) else None
+            if storage is not None:
+                # A full or read-only disk fails every clip alike: stop, leaving no half-written frames.
+                writer.shutdown(wait=True)
+                shutil.rmtree(out_dir, ignore_errors=True)
+                raise storage from None
+            reason = f"{type(e).__name__}: {e}"
+            try:
+                atomic_write_json(out_dir / FAILED, {"error": reason, "traceback": traceback.format_exc()})
+            except OSError as marker:
+                # The clip has no DONE either way, so it is redone on the next run; say why there is no marker.
+                reason += f" (its FAILED marker could not be written: {marker.strerror or marker})"
+            summary["failed"].append({"variant": variant.name, "setting": setting, "clip_id": clip_dir.name,
+                                      "error": reason})
+            warnings.warn(f"{label} {variant.name}/{setting}/{clip_dir.name} failed: {reason}", stacklevel=2)
+            continue
+        render_seconds += time.perf_counter() - clip_start
+        mark_done(out_dir, {"frames": meta["num_frames"]})
+        summary["rendered"] += 1
+        summary["frames"] += meta["num_frames"]
+    writer.shutdown(wait=True)
     summary["skipped_backgrounds"] = {f: r for b in backgrounds.values() for f, r in b.skipped.items()}
     summary["seconds"] = round(time.perf_counter() - start, 3)
     if summary["rendered"]:
         summary["seconds_per_clip"] = round(render_seconds / summary["rendered"], 4)
         summary["seconds_per_frame"] = round(render_seconds / summary["frames"], 5)
     return summary
-
-
-def _stop_on_storage_error(storage: Exception, writer: Executor, started: list[Path]) -> None:
-    """A full or read-only disk fails every clip alike: stop, leaving no half-written frames. The writes still
-    running finish first, so that none writes into a folder removed here."""
-    writer.shutdown(wait=True)
-    for folder in started:
-        if not is_done(folder):
-            shutil.rmtree(folder, ignore_errors=True)
-    raise storage from None
-
-
-def _record_failure(label: str, variant: str, setting: str, clip_id: str, out_dir: Path, error: Exception,
-                    trace: str) -> dict:
-    """A clip that failed to render: its FAILED marker, a warning, and the summary's entry."""
-    reason = f"{type(error).__name__}: {error}"
-    try:
-        atomic_write_json(out_dir / FAILED, {"error": reason, "traceback": trace})
-    except OSError as marker:
-        # The clip has no DONE either way, so it is redone on the next run; say why there is no marker.
-        reason += f" (its FAILED marker could not be written: {marker.strerror or marker})"
-    warnings.warn(f"{label} {variant}/{setting}/{clip_id} failed: {reason}", stacklevel=3)
-    return {"variant": variant, "setting": setting, "clip_id": clip_id, "error": reason}
 
 
 def render_measured(run: Run, variant: str, names: Sequence[str] | None = None, progress: bool = True) -> dict:

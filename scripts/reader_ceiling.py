@@ -28,13 +28,14 @@ import json
 import time
 
 import numpy as np
+import pandas as pd
 import torch
 
 import clothgap.config  # noqa: F401  (registers the study config that Run.open reads)
 from clothgap.runs import Run, read_meta
-from eval import classes, metrics
+from eval import metrics
 from learn.geometry import TARGET_LIMIT, clip_lattices, median_shape
-from learn.models import build_model, model_args
+from learn.models import GEOMETRY_DIM, build_model, model_args
 from learn.split import split_sequences
 from sim.lattice import clip_lattice
 
@@ -53,27 +54,29 @@ def read_measured(run, setting, model, sequences, centre, scale, clip_len, strid
     """The reader's class for each measured fabric from its clips' true lattices, against Table 2."""
     from scipy import stats
 
-    from sim.measured import basis_values, clip_name, measured_values, table2_class, table2_fabrics, wanted_clips
+    from eval.measured import with_predicted_values
+    from sim.measured import clip_name, measured_values, table2_class, table2_fabrics, wanted_clips
     from sim.stage import simulate_measured
 
     fabrics = table2_fabrics()
     simulate_measured(run, fabrics, sequences, progress=False)
     folder = run.measured_sim_dir(setting)
-    basis_bending = basis_values()["bending_N_m"]
-    rows = []
+    preds = []
     for fabric in fabrics:
         names = [clip_name(f, n) for f, n in wanted_clips([fabric], sequences)]
-        lattices = {c: clip_lattice(folder / c).reshape(-1, 192) for c in names}
+        lattices = {c: clip_lattice(folder / c).reshape(-1, GEOMETRY_DIM) for c in names}
         probs = []
         for c in names:         # a clip's mean window probabilities, as the real-video path reads a video
             x, _ = windows(lattices, {c: 0}, [c], centre, scale, clip_len, stride)
             with torch.no_grad():
                 probs.append(model.probs(model.read_lattice(x)).mean(0).numpy())
-        pred, truth = int(np.mean(probs, 0).argmax()), table2_class(fabric)
-        rows.append({"fabric": fabric, "pred": pred, "table2_class": truth,
-                     "grid_steps": int(metrics.class_distance([truth], [pred])[0]),
-                     "pred_bending_N_m": float(classes.k_value(pred)) * basis_bending,
-                     "bending_N_m": measured_values(fabric)["bending_N_m"]})
+        preds.append(int(np.mean(probs, 0).argmax()))
+    # the stiffness a class stands for, as `clothgap eval measured` reads it
+    pred_bending = with_predicted_values(pd.DataFrame({"pred": preds}))["pred_bending_N_m"]
+    rows = [{"fabric": fabric, "pred": pred, "table2_class": table2_class(fabric),
+             "grid_steps": int(metrics.class_distance([table2_class(fabric)], [pred])[0]),
+             "pred_bending_N_m": float(bending), "bending_N_m": measured_values(fabric)["bending_N_m"]}
+            for fabric, pred, bending in zip(fabrics, preds, pred_bending)]
     steps = np.array([r["grid_steps"] for r in rows])
     rho = stats.spearmanr([r["pred_bending_N_m"] for r in rows], [r["bending_N_m"] for r in rows]).statistic
     return {"sequences": sequences, "fabrics": len(rows), "exact": int((steps == 0).sum()),
@@ -99,7 +102,8 @@ def main(argv=None):
     run = Run.open(args.run)
     folder = run.sim_dir(args.setting)
     ids = run.done_clips(folder)
-    lattices = {c: lat.reshape(-1, 192) for c, lat in clip_lattices(run, args.setting, ids, progress=False).items()}
+    lattices = {c: lat.reshape(-1, GEOMETRY_DIM)
+                for c, lat in clip_lattices(run, args.setting, ids, progress=False).items()}
     labels = {c: int(read_meta(folder / c)["class_index"]) for c in ids}
     split = split_sequences(labels, run.config.train.val_fraction, run.config.train.test_fraction, run.config.seed)
     # Scaled as learn.geometry does (median centre, the median clip's RMS spread), or per coordinate.

@@ -47,16 +47,24 @@ def grey(b: int = 2, t: int = 3, size: int = 16, value: float = 0.5) -> torch.Te
     return torch.full((b, t, 3, size, size), value)
 
 
-def test_without_the_camera_the_augment_table_and_batches_are_what_they_were(data):
+def test_without_the_camera_the_augment_table_and_batches_are_what_they_were(data, monkeypatch):
     # The augment table keeps its own stream: a run without augment_camera draws exactly what it drew before.
     gen = torch.Generator().manual_seed(seeding.derive_int(5, 0, seeding.TRAIN, "augment", 2))
     assert torch.equal(data.augment_table(5, 2), torch.rand(len(data), AUG_PARAMS, generator=gen))
     assert not torch.equal(data.camera_table(5, 2)[:, :7], data.augment_table(5, 2)[:, :7])
     order, table = data.order(5, 2), data.augment_table(5, 2)
+    with_camera = list(data.batches(3, order=order, augment=table, camera=data.camera_table(5, 2)))
+
+    def no_camera(*args, **kwargs):
+        raise AssertionError("the camera is off")
+
+    # off, the camera's code never runs, whatever noise seed is passed, and the batches are augment's alone
+    monkeypatch.setattr(learn.windows, "camera_augment_batch", no_camera)
     before = list(data.batches(3, order=order, augment=table))
-    for (x, y, _), (x2, y2, _) in zip(before, data.batches(3, order=order, augment=table, camera=None),
-                                      strict=True):
-        assert torch.equal(x, x2) and torch.equal(y, y2)
+    for (x, y, _), (x2, y2, _), (xc, _, _) in zip(before, data.batches(3, order=order, augment=table, camera=None,
+                                                                          camera_noise_seed=99), with_camera,
+                                                   strict=True):
+        assert torch.equal(x, x2) and torch.equal(y, y2) and not torch.equal(x, xc)
 
 
 def test_the_same_seed_and_epoch_give_the_same_batches_another_epoch_others(data):
