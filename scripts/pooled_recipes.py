@@ -1,0 +1,91 @@
+"""Two training recipes compared over several seeds each, paired on the same test clips.
+
+`clothgap eval ablation` pairs one recipe's seed with the first recipe's; this pools seeds: for each test
+clip, the fraction of a recipe's seeds that read it right (exact class, and within one grid step), then the
+difference of the two recipes' means with a 95 % interval from resampling test sequences, paired by clip
+(eval.metrics.bootstrap_mean_difference, 1,000 resamples, generator seed 0).
+
+    python scripts/pooled_recipes.py RUN --setting wind-uniform1 --look heldout \\
+        --a lighting-random:camera+epochs=80@0,camera+epochs=80+seeds=1@1 \\
+        --b lighting-random:baseline@0,baseline+seeds=1@1
+
+A side is VARIANT:RECIPE@SEED,RECIPE@SEED,...: the render variant the recipe trained on, and the ablation
+folders' recipe names (`RUN/ablation/RECIPE/SETTING/VARIANT/lrcn/sSEED`). --look own scores each on its training
+variant's test clips, --look V on the same clips rendered as V (`eval ablation --test-variant V`).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from eval import metrics  # noqa: E402
+
+
+def _side(spec: str) -> tuple[str, list[tuple[str, int]]]:
+    variant, sep, members = spec.partition(":")
+    if not sep or not members:
+        raise SystemExit(f"{spec!r}: expected VARIANT:RECIPE@SEED[,RECIPE@SEED...]")
+    pairs = []
+    for member in members.split(","):
+        recipe, at, seed = member.rpartition("@")
+        if not at or not seed.isdigit():
+            raise SystemExit(f"{member!r} in {spec!r}: expected RECIPE@SEED")
+        pairs.append((recipe, int(seed)))
+    return variant, pairs
+
+
+def _scores(run: Path, setting: str, model: str, look: str, spec: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per test clip (sorted by id): the fraction of seeds right, the fraction within one step; the clip ids."""
+    variant, members = _side(spec)
+    suffix = "" if look == "own" else f"-{look}"
+    frames = []
+    for recipe, seed in members:
+        path = run / "ablation" / recipe / setting / variant / model / f"s{seed}" / f"test_predictions{suffix}.csv"
+        if not path.is_file():
+            raise SystemExit(f"{path}: no predictions (train the recipe with `clothgap eval ablation`"
+                             f"{'' if look == 'own' else f' --test-variant {look}'} first)")
+        frames.append(pd.read_csv(path).sort_values(["clip_id", "start"]).reset_index(drop=True))
+    ids = frames[0]["clip_id"].to_numpy()
+    for frame, (recipe, seed) in zip(frames, members):
+        if len(frame) != len(ids) or not (frame["clip_id"].to_numpy() == ids).all():
+            raise SystemExit(f"{recipe}@{seed}: its test clips differ from {members[0][0]}@{members[0][1]}'s")
+    right = np.mean([metrics.correct(f["class_index"], f["pred"]) for f in frames], axis=0)
+    near = np.mean([metrics.within_one_bin(f["class_index"], f["pred"]) for f in frames], axis=0)
+    return right, near, ids
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    parser.add_argument("run", type=Path)
+    parser.add_argument("--setting", required=True)
+    parser.add_argument("--model", default="lrcn")
+    parser.add_argument("--look", default="own", help="own, or a test-only variant such as heldout")
+    parser.add_argument("--a", required=True, help="VARIANT:RECIPE@SEED,... (the side whose gain is reported)")
+    parser.add_argument("--b", required=True, help="VARIANT:RECIPE@SEED,... (the reference)")
+    args = parser.parse_args(argv)
+    a_right, a_near, a_ids = _scores(args.run, args.setting, args.model, args.look, args.a)
+    b_right, b_near, b_ids = _scores(args.run, args.setting, args.model, args.look, args.b)
+    out = {"run": str(args.run), "setting": args.setting, "model": args.model, "look": args.look,
+           "a": args.a, "b": args.b, "test_clips": int(len(a_ids))}
+    for name, a, b in (("acc", a_right, b_right), ("within1", a_near, b_near)):
+        out[f"a_{name}"] = metrics.bootstrap_mean(a, a_ids).as_dict(f"a_{name}")
+        out[f"b_{name}"] = metrics.bootstrap_mean(b, b_ids).as_dict(f"b_{name}")
+        out[f"{name}_a_minus_b"] = metrics.bootstrap_mean_difference(a, a_ids, b, b_ids).as_dict(f"{name}_a_minus_b")
+    flat = {}
+    for key, value in out.items():
+        flat.update(value if isinstance(value, dict) else {key: value})
+    json.dump(flat, sys.stdout, indent=1)
+    print()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

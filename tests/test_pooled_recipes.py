@@ -1,0 +1,54 @@
+"""scripts/pooled_recipes.py: seeds pooled per clip, the two recipes paired on the same test clips."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "scripts" / "pooled_recipes.py"
+
+
+def _write(run: Path, recipe: str, seed: int, preds: list[int], truth: list[int], look: str = "") -> None:
+    folder = run / "ablation" / recipe / "wind-uniform1" / "paper" / "lrcn" / f"s{seed}"
+    folder.mkdir(parents=True, exist_ok=True)
+    ids = [f"c{i:05d}" for i in range(len(truth))]
+    pd.DataFrame({"clip_id": ids, "start": 0, "class_index": truth, "pred": preds}).to_csv(
+        folder / f"test_predictions{'-' + look if look else ''}.csv", index=False)
+
+
+def _run(run: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SCRIPT), str(run), "--setting", "wind-uniform1", *args],
+                          capture_output=True, text=True, cwd=ROOT)
+
+
+def test_pooling_averages_seeds_per_clip_and_pairs_the_clips(tmp_path):
+    truth = list(range(20))
+    wrong = [(t + 27) % 54 for t in truth]   # three steps off in stretching: not within one
+    _write(tmp_path, "good", 0, truth, truth, "heldout")
+    _write(tmp_path, "good+seeds=1", 1, truth[:10] + wrong[10:], truth, "heldout")
+    _write(tmp_path, "base", 0, wrong, truth, "heldout")
+    done = _run(tmp_path, "--look", "heldout", "--a", "paper:good@0,good+seeds=1@1", "--b", "paper:base@0")
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout)
+    assert out["test_clips"] == 20
+    assert out["a_acc"] == pytest.approx(0.75)           # 20 right of 20, then 10 of 20
+    assert out["b_acc"] == 0.0
+    assert out["acc_a_minus_b"] == pytest.approx(0.75)
+    assert out["acc_a_minus_b_lo"] > 0.5                  # every clip moves the same way: a tight interval
+    same = json.loads(_run(tmp_path, "--look", "heldout", "--a", "paper:base@0", "--b", "paper:base@0").stdout)
+    assert same["acc_a_minus_b"] == same["acc_a_minus_b_lo"] == same["acc_a_minus_b_hi"] == 0.0
+
+
+def test_a_missing_look_and_other_clips_are_refused_by_name(tmp_path):
+    truth = list(range(6))
+    _write(tmp_path, "a", 0, truth, truth)
+    _write(tmp_path, "b", 0, truth[:5], truth[:5])
+    missing = _run(tmp_path, "--look", "heldout", "--a", "paper:a@0", "--b", "paper:a@0")
+    assert missing.returncode != 0 and "test_predictions-heldout.csv: no predictions" in missing.stderr
+    other = _run(tmp_path, "--a", "paper:a@0,b@0", "--b", "paper:a@0")
+    assert other.returncode != 0 and "b@0: its test clips differ from a@0's" in other.stderr
+    bad = _run(tmp_path, "--a", "paper:a", "--b", "paper:a@0")
+    assert bad.returncode != 0 and "expected RECIPE@SEED" in bad.stderr
