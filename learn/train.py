@@ -18,7 +18,10 @@ uninterrupted one: the data order and augmentations of an epoch depend only on
 (seed, epoch), and every other random state is restored. Batches are cut from
 the setting's frames held on the training device (``learn.windows``), so a step
 costs what the network costs. A loss or weight that turns non-finite stops the
-run with ``TrainingDiverged`` before anything is marked done.
+run with ``TrainingDiverged`` before anything is marked done. A network that gives
+every validation window the same output (a dead layer: it cannot learn again) is
+trained again from a new start drawn from its seed, at most ``DEAD_NETWORK_RESTARTS``
+times (``restarts`` in config.json and DONE), then stopped with ``TrainingDead``.
 """
 
 from __future__ import annotations
@@ -302,6 +305,71 @@ def _check_finite(model: torch.nn.Module, train_loss: float, cfg: TrainConfig, w
         "likely cause: lower it and run again (the folder is left unfinished and will start over)")
 
 
+class TrainingDead(TrainingDiverged):
+    """The network gave every input the same output after each of its restarts."""
+
+
+# A network whose outputs are the same for every input stays so: in practice every unit of a ReLU layer (fc6) is
+# off for every input, and no gradient reaches the layers below. Seen once in 31 GPU trainings (camera and colour
+# augmentation, 80 epochs, seed 1: constant from the first epoch, chance for all 80). It is trained again from a
+# new initialisation drawn from its seed, at most this many times.
+DEAD_NETWORK_RESTARTS = 2
+
+
+def network_is_dead(model: ClipClassifier, windows: WindowSet, batch_size: int) -> bool:
+    """True when ``model`` gives the first batch of ``windows`` (two windows at least) one and the same output."""
+    if len(windows) < 2:
+        return False
+    x, _, _ = next(iter(windows.batches(min(max(batch_size, 2), len(windows)))))
+    if len(x) < 2:
+        return False
+    training = model.training
+    model.eval()
+    with torch.no_grad():
+        logits = model(x)["logits"].float()
+    model.train(training)
+    spread = (logits - logits[:1]).abs().max()
+    return bool(spread <= 1e-6 * (1 + logits.abs().max()))
+
+
+def restart_seed(torch_seed: int, restarts: int) -> int:
+    """The torch seed of a training's ``restarts``-th new start (0: the seed itself)."""
+    return torch_seed if restarts == 0 else seeding.derive_int(torch_seed, restarts, seeding.TRAIN, "restart")
+
+
+def _adopt_restarts(out: Path, resolved: dict) -> None:
+    """A folder whose training was restarted resumes as the restart: its ``config.json``'s restart count and
+    seed replace the first start's in ``resolved`` when everything else that decides the weights matches."""
+    try:
+        stored = json.loads((out / "config.json").read_text())
+    except (OSError, ValueError):
+        return
+    restarts = stored.get("restarts", 0)
+    wanted = json.loads(json.dumps(resolved))
+    if (isinstance(restarts, int) and 0 < restarts <= DEAD_NETWORK_RESTARTS
+            and stored.get("torch_seed") == restart_seed(resolved["torch_seed"], restarts)
+            and all(stored.get(k) == wanted[k] for k in ("train", "model_args", "cnn_init"))):
+        resolved.update(restarts=restarts, first_torch_seed=resolved["torch_seed"], torch_seed=stored["torch_seed"])
+
+
+def _restart_dead(t: Training, epoch: int) -> Training:
+    """``t`` started over from a new initialisation (``restart_seed``), its folder cleared; TrainingDead when
+    it has had its restarts."""
+    resolved = dict(t.resolved)
+    restarts = resolved.get("restarts", 0) + 1
+    where = f"{t.out}: the network gives every validation window the same output after epoch {epoch}"
+    if restarts > DEAD_NETWORK_RESTARTS:
+        raise TrainingDead(f"{where}, after {DEAD_NETWORK_RESTARTS} new starts; lower train.lr={t.cfg.lr:g} or "
+                           "the augmentation's strength and run again (the folder is left unfinished)")
+    first_seed = resolved.get("first_torch_seed", resolved["torch_seed"])
+    resolved.update(restarts=restarts, first_torch_seed=first_seed, torch_seed=restart_seed(first_seed, restarts))
+    warnings.warn(f"{where} (its units are off for every input and cannot learn); training it again from a new "
+                  f"initialisation, start {restarts + 1} of at most {DEAD_NETWORK_RESTARTS + 1}", stacklevel=3)
+    if is_main():
+        t.writer.close()
+    return _start(t.out, t.cfg, t.device, resolved, t.train_set, t.val_set)
+
+
 # ---------------------------------------------------------------- training, step by step
 
 @dataclasses.dataclass
@@ -357,11 +425,13 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
     cnn_init = _cnn_init(run, setting, variant, model_name, seed, progress, cfg, root)
     train_set, val_set = window_sets(run, setting, variant, cfg, device, progress)
     resolved = _resolved_settings(run, setting, variant, model_name, seed, cfg, cnn_init, device, train_set, val_set)
+    _adopt_restarts(out, resolved)
     t = _start(out, cfg, device, resolved, train_set, val_set)
 
-    bar = tqdm(range(t.start_epoch, cfg.epochs), desc=f"{model_name} {setting}/{variant} s{seed}",
-               disable=not progress, initial=t.start_epoch, total=cfg.epochs)
-    for epoch in bar:
+    bar = tqdm(desc=f"{model_name} {setting}/{variant} s{seed}", disable=not progress, initial=t.start_epoch,
+               total=cfg.epochs)
+    epoch = t.start_epoch
+    while epoch < cfg.epochs:
         started = time.perf_counter()
         train_loss, train_acc, train_shape = train_epoch(t, epoch, progress)
         val_loss, val_acc, val_shape = validate(t)
@@ -372,6 +442,14 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
                "train_shape": train_shape, "val_shape": val_shape}
         _end_epoch(t, row)
         bar.set_postfix(loss=f"{train_loss:.3f}", acc=f"{train_acc:.2f}", val=f"{val_acc:.2f}")
+        if network_is_dead(t.model, t.val_set if len(t.val_set) >= 2 else t.train_set, cfg.batch_size):
+            t = _restart_dead(t, epoch)
+            epoch = 0
+            bar.reset()
+            continue
+        epoch += 1
+        bar.update()
+    bar.close()
     if is_main():
         _finish(t)
     _barrier()  # no rank moves on (say, to a model that starts from this checkpoint) before DONE exists
@@ -531,8 +609,9 @@ def _finish(t: Training) -> None:
     final = metrics[-1] if metrics else {}
     summary = {k: final.get(k) for k in METRIC_COLUMNS[1:5]}
     kept_epoch = kept["epoch"] if kept else (final.get("epoch") if metrics else None)
+    restarts = {"restarts": resolved["restarts"]} if resolved.get("restarts") else {}
     mark_done(t.out, {"epochs": cfg.epochs, "seconds": sum(r["seconds"] for r in metrics),
-                      "kept_epoch": kept_epoch,
+                      "kept_epoch": kept_epoch, **restarts,
                       **{k: None if v is None or math.isnan(v) else v for k, v in summary.items()}})
 
 

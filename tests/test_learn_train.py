@@ -341,3 +341,59 @@ def test_training_on_ray_gives_the_models_one_process_gives(tmp_path):
         pd.testing.assert_frame_equal(a.drop(columns="seconds"), pd.read_csv(folder / "metrics.csv").drop(columns="seconds"))
     with pytest.raises(ConfigError, match="--shard-size"):
         train_selected(on_ray, progress=False, options=ExecutorOptions("ray", workers=2, shard_size=4))
+
+
+def _fc6_dead_on_the_first_start(monkeypatch) -> None:
+    """Every fc6 unit off for every input when a model is built from its first seed (a bias far below any
+    input's reach): what the GPU training that never left chance looked like."""
+    build = learn.train.build_training_model
+
+    def build_then_kill(resolved, device):
+        model = build(resolved, device)
+        if not resolved.get("restarts"):
+            with torch.no_grad():
+                model.cnn.fc6[1].bias.fill_(-1e4)
+        return model
+
+    monkeypatch.setattr(learn.train, "build_training_model", build_then_kill)
+
+
+def test_a_network_dead_from_its_first_epoch_is_trained_again_from_a_new_start(tmp_path, monkeypatch):
+    run = synthetic_run(tmp_path / "run", tiny_train_config(epochs=2))
+    _fc6_dead_on_the_first_start(monkeypatch)
+    with pytest.warns(UserWarning, match="same output after epoch 0 .* start 2 of at most 3"):
+        out = train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
+    done, config = json.loads((out / "DONE").read_text()), json.loads((out / "config.json").read_text())
+    assert done["restarts"] == 1 and config["restarts"] == 1
+    assert config["torch_seed"] == learn.train.restart_seed(config["first_torch_seed"], 1) != config["first_torch_seed"]
+    assert pd.read_csv(out / "metrics.csv").epoch.tolist() == [0, 1]     # the dead start's epoch is not kept
+    model = load_model(out)
+    val = learn.train.window_sets(run, SETTING, VARIANT, run.config.train, torch.device("cpu"), False)[1]
+    assert not learn.train.network_is_dead(model, val, 8)
+
+    # killed after the restart's first epoch, it resumes as the restart instead of starting over
+    (out / "DONE").unlink()
+    (out / "checkpoint.pt").unlink()
+    state = torch.load(out / "last.pt", weights_only=True)
+    state["epoch"], state["metrics"] = 0, state["metrics"][:1]
+    torch.save(state, out / "last.pt")
+    first_epoch = state["metrics"][0]["seconds"]
+    again = train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
+    assert json.loads((again / "DONE").read_text())["restarts"] == 1
+    assert pd.read_csv(again / "metrics.csv").seconds[0] == pytest.approx(first_epoch, rel=1e-5)   # not redone
+
+
+def test_a_network_dead_after_every_restart_is_an_error_and_not_done(tmp_path, monkeypatch):
+    run = synthetic_run(tmp_path / "run", tiny_train_config(epochs=2))
+    build = learn.train.build_training_model
+
+    def always_dead(resolved, device):
+        model = build(resolved, device)
+        with torch.no_grad():
+            model.cnn.fc6[1].bias.fill_(-1e4)
+        return model
+
+    monkeypatch.setattr(learn.train, "build_training_model", always_dead)
+    with pytest.warns(UserWarning), pytest.raises(learn.train.TrainingDead, match="after 2 new starts"):
+        train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
+    assert not is_done(run.train_dir(SETTING, VARIANT, "lrcn", 0))
