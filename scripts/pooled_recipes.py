@@ -1,8 +1,8 @@
 """Two training recipes compared over several seeds each, paired on the same test clips.
 
 `clothgap eval ablation` pairs one recipe's seed with the first recipe's; this pools seeds: for each test
-clip, the fraction of a recipe's seeds that read it right (exact class, and within one grid step), then the
-difference of the two recipes' means with a 95 % interval from resampling test sequences, paired by clip
+clip, the fraction of a recipe's seeds that read it right (exact class, within one grid step, the stretching
+and the bending factor), then the difference of the two recipes' means with a 95 % interval from resampling test sequences, paired by clip
 (eval.metrics.bootstrap_mean_difference, 1,000 resamples, generator seed 0).
 
     python scripts/pooled_recipes.py RUN --setting wind-uniform1 --look heldout \\
@@ -41,8 +41,12 @@ def _side(spec: str) -> tuple[str, list[tuple[str, int]]]:
     return variant, pairs
 
 
-def _scores(run: Path, setting: str, model: str, look: str, spec: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per test clip (sorted by id): the fraction of seeds right, the fraction within one step; the clip ids."""
+SCORES = {"acc": metrics.correct, "within1": metrics.within_one_bin, "stretch_acc": metrics.stretch_correct,
+          "bend_acc": metrics.bend_correct}
+
+
+def _scores(run: Path, setting: str, model: str, look: str, spec: str) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Per test clip (sorted by id), for each of ``SCORES`` the fraction of seeds that got it; the clip ids."""
     variant, members = _side(spec)
     suffix = "" if look == "own" else f"-{look}"
     frames = []
@@ -56,9 +60,8 @@ def _scores(run: Path, setting: str, model: str, look: str, spec: str) -> tuple[
     for frame, (recipe, seed) in zip(frames, members):
         if len(frame) != len(ids) or not (frame["clip_id"].to_numpy() == ids).all():
             raise SystemExit(f"{recipe}@{seed}: its test clips differ from {members[0][0]}@{members[0][1]}'s")
-    right = np.mean([metrics.correct(f["class_index"], f["pred"]) for f in frames], axis=0)
-    near = np.mean([metrics.within_one_bin(f["class_index"], f["pred"]) for f in frames], axis=0)
-    return right, near, ids
+    return {name: np.mean([score(f["class_index"], f["pred"]) for f in frames], axis=0)
+            for name, score in SCORES.items()}, ids
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -71,11 +74,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--a", required=True, help="VARIANT:RECIPE@SEED,... (the side whose gain is reported)")
     parser.add_argument("--b", required=True, help="VARIANT:RECIPE@SEED,... (the reference)")
     args = parser.parse_args(argv)
-    a_right, a_near, a_ids = _scores(args.run, args.setting, args.model, args.look, args.a)
-    b_right, b_near, b_ids = _scores(args.run, args.setting, args.model, args.look, args.b)
+    a_scores, a_ids = _scores(args.run, args.setting, args.model, args.look, args.a)
+    b_scores, b_ids = _scores(args.run, args.setting, args.model, args.look, args.b)
     out = {"run": str(args.run), "setting": args.setting, "model": args.model, "look": args.look,
            "a": args.a, "b": args.b, "test_clips": int(len(a_ids))}
-    for name, a, b in (("acc", a_right, b_right), ("within1", a_near, b_near)):
+    for name in SCORES:
+        a, b = a_scores[name], b_scores[name]
         out[f"a_{name}"] = metrics.bootstrap_mean(a, a_ids).as_dict(f"a_{name}")
         out[f"b_{name}"] = metrics.bootstrap_mean(b, b_ids).as_dict(f"b_{name}")
         out[f"{name}_a_minus_b"] = metrics.bootstrap_mean_difference(a, a_ids, b, b_ids).as_dict(f"{name}_a_minus_b")
