@@ -116,6 +116,7 @@ WHY_EMPTY = {
     "in_domain_gain": "not an in-domain row, or no in-domain row of the reference training variant",
     **{c: _CORRELATION_WHY for c in tables.CORRELATION_COLUMNS},
     "mean_share": "no gap to close: the in-domain model did no better",
+    "top-1 minus first (points)": "the reference (every other recipe is paired with it)",
     "mean_gain": "no pair of training variants tells this axis apart",
     "pearson": "undefined: fewer than 3 points, or one side constant",
     "spearman": "undefined: fewer than 3 points, or one side constant",
@@ -546,6 +547,64 @@ def _measured_fabrics_table(g: pd.DataFrame) -> str:
     return f"<table><tr>{head}</tr>{''.join(rows)}</table>"
 
 
+ABLATION_KEYS = ("acc", "within1", "stretch_acc", "bend_acc", "acc_minus_first")
+ABLATION_COLUMNS = {"acc": "top-1 %", "within1": "within one step %", "stretch_acc": "stretching %",
+                    "bend_acc": "bending %", "acc_minus_first": "top-1 minus first (points)"}
+
+
+def _ablation_reports(run: Run) -> list[tuple[Path, dict]]:
+    """The recipe comparisons `clothgap eval ablation` (or scripts/gpu/learn_grid.py) wrote under eval/."""
+    found = []
+    for path in sorted(run.eval_dir.glob("*.json")):
+        try:
+            report = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+        if isinstance(report, dict) and isinstance(report.get("recipes"), list) and "base_train" in report:
+            found.append((path, report))
+    return found
+
+
+def _ablation_frame(recipes: list[dict], look: str | None) -> pd.DataFrame:
+    """One row per recipe x model: its scores in its training look (``look`` None) or in test-only ``look``."""
+    rows = []
+    for r in recipes:
+        scores = r if look is None else r.get("on", {}).get(look, {})
+        row = {"recipe": r["recipe"], "model": r["model"], "seeds": ", ".join(map(str, r.get("seeds", [])))}
+        for key in ABLATION_KEYS:
+            for suffix in ("", "_lo", "_hi"):
+                row[key + suffix] = scores.get(key + suffix, np.nan)
+        if look is None:
+            row["kept epoch"] = ", ".join(str(s.get("kept_epoch", "-")) for s in r.get("speed", [])) or np.nan
+        rows.append(row)
+    frame = pd.DataFrame(rows)
+    for suffix in ("", "_lo", "_hi"):
+        frame["acc_minus_first" + suffix] *= 100     # points, shown as value [lo, hi] like the other estimates
+    return frame.rename(columns={key + suffix: ABLATION_COLUMNS[key] + suffix
+                                 for key in ABLATION_KEYS for suffix in ("", "_lo", "_hi")})
+
+
+def _section_ablations(run: Run) -> str:
+    """Every recipe comparison under eval/: each recipe in its training look and in each test-only look."""
+    parts = []
+    pct = tuple(ABLATION_COLUMNS[k] for k in ABLATION_KEYS[:4])
+    est = (ABLATION_COLUMNS["acc_minus_first"],)
+    for path, report in _ablation_reports(run):
+        recipes = report["recipes"]
+        parts.append(f"<h3>{_esc(report.get('setting', ''))} / {_esc(report.get('variant', ''))}: "
+                     f"{_link(run, path)}</h3><p>{report.get('test_sequences', '?')} test sequences; the difference "
+                     "is paired with the first recipe on the same clips.</p>"
+                     + _table(_ablation_frame(recipes, None), pct=pct, est=est))
+        for look in report.get("test_variants", []):
+            parts.append(f"<p>The same test clips rendered as <code>{_esc(look)}</code>, a look the recipes did "
+                         "not train on:</p>" + _table(_ablation_frame(recipes, look), pct=pct, est=est))
+    if not parts:
+        return ""
+    return ('<h2 id="ablations">Training recipes</h2><p>Recipes compared on the same test clips '
+            "(<code>clothgap eval ablation</code>): exact class, within one grid step, stretching and bending, "
+            "with 95 % intervals over test sequences.</p>" + "".join(parts))
+
+
 def _section_extra_tables(run: Run) -> str:
     """Real-video (Table 4) outputs written under eval/real*/ (and measured-fabric folders a user wrote
     under eval/measured*/ with --out; the run's own eval/measured/ is the measured section's)."""
@@ -576,7 +635,7 @@ def write_report(run: Run) -> Path:
     sections = [("config", "Config", _section_config(run)), ("table3", "Table 3", _section_table3(run)),
                 ("confusion", "Confusion", _section_confusion(run)), ("learning", "Learning", _section_learning(run)),
                 ("frames", "Frames", _section_frames(run)), ("conv5", "conv5", _section_activations(run)),
-                ("gap", "Domain gap", _section_gap(run)),
+                ("gap", "Domain gap", _section_gap(run)), ("ablations", "Recipes", _section_ablations(run)),
                 ("measured", "Measured fabrics", _section_measured(run)),
                 ("sim", "Sub-space", _section_sim_analysis(run)), ("real", "Real", _section_extra_tables(run))]
     sections = [s for s in sections if s[2]]

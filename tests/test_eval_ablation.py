@@ -103,6 +103,15 @@ def test_ablation_scores_recipes_on_a_test_only_look_of_the_same_clips_too(tmp_p
     md = (run.eval_dir / f"ablation-{SETTING}-{VARIANT}.md").read_text()
     assert "rendered as `heldout`" in md and md.count("| augment | lrcn |") == 2
 
+    # the run's report shows both tables, the test-only look's numbers the JSON's
+    from eval.report import write_report
+
+    html = write_report(run).read_text()
+    section = html[html.index('<h2 id="ablations">'):]
+    assert f"ablation-{SETTING}-{VARIANT}.json" in section and "rendered as <code>heldout</code>" in section
+    assert section.count("<td>augment</td>") == 2
+    assert f"{100 * diff['acc_minus_first']:.2f} <span class=\"ci\">[{100 * diff['acc_minus_first_lo']:.2f}" in section
+
 
 def test_ablation_cli_checks_recipes_and_pairs_first(tmp_path):
     run = synthetic_run(tmp_path / "run", tiny())
