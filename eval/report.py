@@ -116,7 +116,7 @@ WHY_EMPTY = {
     "in_domain_gain": "not an in-domain row, or no in-domain row of the reference training variant",
     **{c: _CORRELATION_WHY for c in tables.CORRELATION_COLUMNS},
     "mean_share": "no gap to close: the in-domain model did no better",
-    "top-1 minus first (points)": "the reference (every other recipe is paired with it)",
+    "top-1 minus first (points)": "the reference recipe, or no test clip paired with it",
     "mean_gain": "no pair of training variants tells this axis apart",
     "pearson": "undefined: fewer than 3 points, or one side constant",
     "spearman": "undefined: fewer than 3 points, or one side constant",
@@ -560,7 +560,8 @@ def _ablation_reports(run: Run) -> list[tuple[Path, dict]]:
             report = json.loads(path.read_text())
         except (OSError, ValueError):
             continue
-        if isinstance(report, dict) and isinstance(report.get("recipes"), list) and "base_train" in report:
+        if isinstance(report, dict) and report.get("recipes") and isinstance(report["recipes"], list) \
+                and "base_train" in report:
             found.append((path, report))
     return found
 
@@ -569,13 +570,14 @@ def _ablation_frame(recipes: list[dict], look: str | None) -> pd.DataFrame:
     """One row per recipe x model: its scores in its training look (``look`` None) or in test-only ``look``."""
     rows = []
     for r in recipes:
-        scores = r if look is None else r.get("on", {}).get(look, {})
+        scores = r if look is None else (r.get("on") or {}).get(look) or {}
         row = {"recipe": r["recipe"], "model": r["model"], "seeds": ", ".join(map(str, r.get("seeds", [])))}
         for key in ABLATION_KEYS:
             for suffix in ("", "_lo", "_hi"):
                 row[key + suffix] = scores.get(key + suffix, np.nan)
         if look is None:
-            row["kept epoch"] = ", ".join(str(s.get("kept_epoch", "-")) for s in r.get("speed", [])) or np.nan
+            kept = [s.get("kept_epoch") for s in r.get("speed") or []]
+            row["kept epoch"] = ", ".join("-" if k is None else str(k) for k in kept) or np.nan
         rows.append(row)
     frame = pd.DataFrame(rows)
     for suffix in ("", "_lo", "_hi"):

@@ -312,24 +312,30 @@ class TrainingDead(TrainingDiverged):
 # A network whose outputs are the same for every input stays so: in practice every unit of a ReLU layer (fc6) is
 # off for every input, and no gradient reaches the layers below. Seen once in 31 GPU trainings (camera and colour
 # augmentation, 80 epochs, seed 1: constant from the first epoch, chance for all 80). It is trained again from a
-# new initialisation drawn from its seed, at most this many times.
+# new initialisation drawn from its seed, at most this many times. A restarted model no longer shares its
+# initialisation with the same seed's models of other variants (``training_seed``'s pairing).
 DEAD_NETWORK_RESTARTS = 2
 
 
 def network_is_dead(model: ClipClassifier, windows: WindowSet, batch_size: int) -> bool:
-    """True when ``model`` gives the first batch of ``windows`` (two windows at least) one and the same output."""
-    if len(windows) < 2:
-        return False
-    x, _, _ = next(iter(windows.batches(min(max(batch_size, 2), len(windows)))))
-    if len(x) < 2:
-        return False
-    training = model.training
-    model.eval()
-    with torch.no_grad():
-        logits = model(x)["logits"].float()
-    model.train(training)
-    spread = (logits - logits[:1]).abs().max()
-    return bool(spread <= 1e-6 * (1 + logits.abs().max()))
+    """True when ``model`` gives a batch of ``windows`` spread over the set (two windows at least) one and the same
+    output. Under torchrun the ranks' answers are combined (any rank's yes is every rank's), so that all restart."""
+    dead = False
+    if len(windows) >= 2:
+        n = min(max(batch_size, 2), len(windows))
+        spread_out = torch.linspace(0, len(windows) - 1, n).round().long()   # many clips, not one clip's windows
+        x, _, _ = next(iter(windows.batches(n, order=spread_out)))
+        training = model.training
+        model.eval()
+        with torch.no_grad():
+            logits = model(x)["logits"].float()
+        model.train(training)
+        dead = bool((logits - logits[:1]).abs().max() <= 1e-6 * (1 + logits.abs().max()))
+    if _world_size() > 1:
+        flag = torch.tensor([float(dead)], device=_comm_device())
+        torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
+        dead = bool(flag.item())
+    return dead
 
 
 def restart_seed(torch_seed: int, restarts: int) -> int:
@@ -358,6 +364,9 @@ def _restart_dead(t: Training, epoch: int) -> Training:
     resolved = dict(t.resolved)
     restarts = resolved.get("restarts", 0) + 1
     where = f"{t.out}: the network gives every validation window the same output after epoch {epoch}"
+    if t.model.freeze_cnn:
+        raise TrainingDead(f"{where}, and its CNN is frozen (from {resolved['cnn_init']}): a new start cannot "
+                           "change it; retrain the model it comes from")
     if restarts > DEAD_NETWORK_RESTARTS:
         raise TrainingDead(f"{where}, after {DEAD_NETWORK_RESTARTS} new starts; lower train.lr={t.cfg.lr:g} or "
                            "the augmentation's strength and run again (the folder is left unfinished)")
@@ -440,13 +449,14 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
         row = {"epoch": epoch, "train_loss": train_loss, "train_acc": train_acc, "val_loss": val_loss,
                "val_acc": val_acc, "lr": lr, "seconds": time.perf_counter() - started,
                "train_shape": train_shape, "val_shape": val_shape}
-        _end_epoch(t, row)
-        bar.set_postfix(loss=f"{train_loss:.3f}", acc=f"{train_acc:.2f}", val=f"{val_acc:.2f}")
+        # Before the epoch is saved: a dead network is never in last.pt, so no resume finishes one.
         if network_is_dead(t.model, t.val_set if len(t.val_set) >= 2 else t.train_set, cfg.batch_size):
             t = _restart_dead(t, epoch)
-            epoch = 0
+            epoch = t.start_epoch
             bar.reset()
             continue
+        _end_epoch(t, row)
+        bar.set_postfix(loss=f"{train_loss:.3f}", acc=f"{train_acc:.2f}", val=f"{val_acc:.2f}")
         epoch += 1
         bar.update()
     bar.close()

@@ -1,9 +1,10 @@
 """Two training recipes compared over several seeds each, paired on the same test clips.
 
 `clothgap eval ablation` pairs one recipe's seed with the first recipe's; this pools seeds: for each test
-clip, the fraction of a recipe's seeds that read it right (exact class, within one grid step, the stretching
-and the bending factor), then the difference of the two recipes' means with a 95 % interval from resampling test sequences, paired by clip
-(eval.metrics.bootstrap_mean_difference, 1,000 resamples, generator seed 0).
+window (a whole clip at the presets' clip length), the fraction of a recipe's seeds that read it right (exact
+class, within one grid step, the stretching and the bending factor), then the difference of the two recipes'
+means with a 95 % interval from resampling test clips, paired by clip (eval.metrics.bootstrap_mean_difference,
+1,000 resamples, generator seed 0).
 
     python scripts/pooled_recipes.py RUN --setting wind-uniform1 --look heldout \\
         --a lighting-random:camera+epochs=80@0,camera+epochs=80+seeds=1@1 \\
@@ -45,8 +46,9 @@ SCORES = {"acc": metrics.correct, "within1": metrics.within_one_bin, "stretch_ac
           "bend_acc": metrics.bend_correct}
 
 
-def _scores(run: Path, setting: str, model: str, look: str, spec: str) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Per test clip (sorted by id), for each of ``SCORES`` the fraction of seeds that got it; the clip ids."""
+def _scores(run: Path, setting: str, model: str, look: str, spec: str) -> tuple[dict[str, np.ndarray], pd.DataFrame]:
+    """Per test window (sorted by clip and start), for each of ``SCORES`` the fraction of seeds that got it; the
+    windows (clip_id, start)."""
     variant, members = _side(spec)
     suffix = "" if look == "own" else f"-{look}"
     frames = []
@@ -56,12 +58,12 @@ def _scores(run: Path, setting: str, model: str, look: str, spec: str) -> tuple[
             raise SystemExit(f"{path}: no predictions (train the recipe with `clothgap eval ablation`"
                              f"{'' if look == 'own' else f' --test-variant {look}'} first)")
         frames.append(pd.read_csv(path).sort_values(["clip_id", "start"]).reset_index(drop=True))
-    ids = frames[0]["clip_id"].to_numpy()
+    windows = frames[0][["clip_id", "start"]]
     for frame, (recipe, seed) in zip(frames, members):
-        if len(frame) != len(ids) or not (frame["clip_id"].to_numpy() == ids).all():
-            raise SystemExit(f"{recipe}@{seed}: its test clips differ from {members[0][0]}@{members[0][1]}'s")
+        if not frame[["clip_id", "start"]].equals(windows):
+            raise SystemExit(f"{recipe}@{seed}: its test windows differ from {members[0][0]}@{members[0][1]}'s")
     return {name: np.mean([score(f["class_index"], f["pred"]) for f in frames], axis=0)
-            for name, score in SCORES.items()}, ids
+            for name, score in SCORES.items()}, windows
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -74,10 +76,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--a", required=True, help="VARIANT:RECIPE@SEED,... (the side whose gain is reported)")
     parser.add_argument("--b", required=True, help="VARIANT:RECIPE@SEED,... (the reference)")
     args = parser.parse_args(argv)
-    a_scores, a_ids = _scores(args.run, args.setting, args.model, args.look, args.a)
-    b_scores, b_ids = _scores(args.run, args.setting, args.model, args.look, args.b)
+    a_scores, a_windows = _scores(args.run, args.setting, args.model, args.look, args.a)
+    b_scores, b_windows = _scores(args.run, args.setting, args.model, args.look, args.b)
+    if not a_windows.equals(b_windows):
+        raise SystemExit("--a and --b were scored on different test windows: no paired comparison")
+    a_ids = b_ids = a_windows["clip_id"].to_numpy()    # resampled by clip: a clip's windows go together
     out = {"run": str(args.run), "setting": args.setting, "model": args.model, "look": args.look,
-           "a": args.a, "b": args.b, "test_clips": int(len(a_ids))}
+           "a": args.a, "b": args.b, "test_windows": int(len(a_windows)), "test_clips": int(len(set(a_ids)))}
     for name in SCORES:
         a, b = a_scores[name], b_scores[name]
         out[f"a_{name}"] = metrics.bootstrap_mean(a, a_ids).as_dict(f"a_{name}")

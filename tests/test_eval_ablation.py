@@ -110,7 +110,36 @@ def test_ablation_scores_recipes_on_a_test_only_look_of_the_same_clips_too(tmp_p
     section = html[html.index('<h2 id="ablations">'):]
     assert f"ablation-{SETTING}-{VARIANT}.json" in section and "rendered as <code>heldout</code>" in section
     assert section.count("<td>augment</td>") == 2
-    assert f"{100 * diff['acc_minus_first']:.2f} <span class=\"ci\">[{100 * diff['acc_minus_first_lo']:.2f}" in section
+
+
+def test_the_report_shows_each_look_of_a_recipe_comparison_with_its_own_numbers(tmp_path):
+    from eval.report import write_report
+
+    run = synthetic_run(tmp_path / "run", tiny())
+
+    def scores(acc: float, diff: float | None) -> dict:
+        out = {"acc": acc, "acc_lo": acc - 0.05, "acc_hi": acc + 0.05, "within1": 0.9, "within1_lo": 0.8,
+               "within1_hi": 0.95, "stretch_acc": 0.7, "bend_acc": 0.6}
+        if diff is not None:
+            out.update(acc_minus_first=diff, acc_minus_first_lo=diff - 0.02, acc_minus_first_hi=diff + 0.02)
+        return out
+
+    report = {"setting": SETTING, "variant": VARIANT, "base_train": {}, "test_sequences": 4,
+              "test_variants": ["heldout"],
+              "recipes": [{"recipe": "baseline", "model": "lrcn", "seeds": [0], "speed": [{"kept_epoch": 3}],
+                           **scores(0.4321, None), "on": {"heldout": scores(0.0617, None)}},
+                          {"recipe": "camera", "model": "lrcn", "seeds": [0, 1], "speed": [{"kept_epoch": None}],
+                           **scores(0.3789, -0.0532), "on": {"heldout": scores(0.1543, 0.0926)}}]}
+    (run.eval_dir).mkdir(parents=True, exist_ok=True)
+    (run.eval_dir / "levers.json").write_text(json.dumps(report))
+    (run.eval_dir / "empty.json").write_text(json.dumps({"recipes": [], "base_train": {}}))   # nothing to show
+    (run.eval_dir / "other.json").write_text(json.dumps({"cells": 3}))                        # not a comparison
+    section = write_report(run).read_text().split('<h2 id="ablations">')[1]
+    own, heldout = section.split("rendered as <code>heldout</code>")
+    assert "43.2" in own and "37.9" in own and "-5.32" in own and "<td>0, 1</td>" in own and "<td>3</td>" in own
+    assert "6.2" in heldout and "15.4" in heldout and "9.26" in heldout
+    assert "43.2" not in heldout and "15.4" not in own
+    assert "empty.json" not in section and "other.json" not in section
 
 
 def test_ablation_cli_checks_recipes_and_pairs_first(tmp_path):

@@ -397,3 +397,28 @@ def test_a_network_dead_after_every_restart_is_an_error_and_not_done(tmp_path, m
     with pytest.warns(UserWarning), pytest.raises(learn.train.TrainingDead, match="after 2 new starts"):
         train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
     assert not is_done(run.train_dir(SETTING, VARIANT, "lrcn", 0))
+    # run again, it goes on from its last start and is refused again: no dead epoch was saved for a resume to finish
+    with pytest.raises(learn.train.TrainingDead, match="after 2 new starts"):
+        train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
+    assert not is_done(run.train_dir(SETTING, VARIANT, "lrcn", 0))
+
+
+def test_a_dead_network_in_its_last_epoch_is_never_finished_by_a_resume(tmp_path, monkeypatch):
+    run = synthetic_run(tmp_path / "run", tiny_train_config(epochs=1))
+    build = learn.train.build_training_model
+
+    def always_dead(resolved, device):
+        model = build(resolved, device)
+        with torch.no_grad():
+            model.cnn.fc6[1].bias.fill_(-1e4)
+        return model
+
+    monkeypatch.setattr(learn.train, "build_training_model", always_dead)
+    with pytest.warns(UserWarning), pytest.raises(learn.train.TrainingDead):
+        train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
+    folder = run.train_dir(SETTING, VARIANT, "lrcn", 0)
+    assert not (folder / "last.pt").exists()
+    monkeypatch.setattr(learn.train, "build_training_model", build)   # even if the next start were alive,
+    out = train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)   # it trains; it does not finish a dead one
+    assert is_done(out) and not learn.train.network_is_dead(load_model(out), learn.train.window_sets(
+        run, SETTING, VARIANT, run.config.train, torch.device("cpu"), False)[1], 8)

@@ -33,7 +33,8 @@ def test_pooling_averages_seeds_per_clip_and_pairs_the_clips(tmp_path):
     done = _run(tmp_path, "--look", "heldout", "--a", "paper:good@0,good+seeds=1@1", "--b", "paper:base@0")
     assert done.returncode == 0, done.stderr
     out = json.loads(done.stdout)
-    assert out["test_clips"] == 20
+    assert out["test_clips"] == out["test_windows"] == 20
+    assert out["a_stretch_acc"] == pytest.approx(0.75) and out["b_stretch_acc"] == 0.0   # three steps off
     assert out["a_acc"] == pytest.approx(0.75)           # 20 right of 20, then 10 of 20
     assert out["b_acc"] == 0.0
     assert out["acc_a_minus_b"] == pytest.approx(0.75)
@@ -49,6 +50,8 @@ def test_a_missing_look_and_other_clips_are_refused_by_name(tmp_path):
     missing = _run(tmp_path, "--look", "heldout", "--a", "paper:a@0", "--b", "paper:a@0")
     assert missing.returncode != 0 and "test_predictions-heldout.csv: no predictions" in missing.stderr
     other = _run(tmp_path, "--a", "paper:a@0,b@0", "--b", "paper:a@0")
-    assert other.returncode != 0 and "b@0: its test clips differ from a@0's" in other.stderr
+    assert other.returncode != 0 and "b@0: its test windows differ from a@0's" in other.stderr
+    unpaired = _run(tmp_path, "--a", "paper:b@0", "--b", "paper:a@0")
+    assert unpaired.returncode != 0 and "different test windows" in unpaired.stderr
     bad = _run(tmp_path, "--a", "paper:a", "--b", "paper:a@0")
     assert bad.returncode != 0 and "expected RECIPE@SEED" in bad.stderr
