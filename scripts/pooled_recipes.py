@@ -12,7 +12,8 @@ means with a 95 % interval from resampling test clips, paired by clip (eval.metr
 
 A side is VARIANT:RECIPE@SEED,RECIPE@SEED,...: the render variant the recipe trained on, and the ablation
 folders' recipe names (`RUN/ablation/RECIPE/SETTING/VARIANT/lrcn/sSEED`). --look own scores each on its training
-variant's test clips, --look V on the same clips rendered as V (`eval ablation --test-variant V`).
+variant's test clips, --look V on the same clips rendered as V (`eval ablation --test-variant V`). --b-run takes
+the reference from another run of the same simulations (the same seed and clips, e.g. rendered at another size).
 """
 from __future__ import annotations
 
@@ -75,14 +76,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--look", default="own", help="own, or a test-only variant such as heldout")
     parser.add_argument("--a", required=True, help="VARIANT:RECIPE@SEED,... (the side whose gain is reported)")
     parser.add_argument("--b", required=True, help="VARIANT:RECIPE@SEED,... (the reference)")
+    parser.add_argument("--b-run", type=Path, help="the reference's run, if another (the same simulations, e.g. "
+                                                   "rendered at another resolution): default RUN")
     args = parser.parse_args(argv)
     a_scores, a_windows = _scores(args.run, args.setting, args.model, args.look, args.a)
-    b_scores, b_windows = _scores(args.run, args.setting, args.model, args.look, args.b)
+    b_scores, b_windows = _scores(args.b_run or args.run, args.setting, args.model, args.look, args.b)
     if not a_windows.equals(b_windows):
         raise SystemExit("--a and --b were scored on different test windows: no paired comparison")
     a_ids = b_ids = a_windows["clip_id"].to_numpy()    # resampled by clip: a clip's windows go together
-    out = {"run": str(args.run), "setting": args.setting, "model": args.model, "look": args.look,
-           "a": args.a, "b": args.b, "test_windows": int(len(a_windows)), "test_clips": int(len(set(a_ids)))}
+    out = {"run": str(args.run), "b_run": str(args.b_run or args.run), "setting": args.setting, "model": args.model,
+           "look": args.look, "a": args.a, "b": args.b, "test_windows": int(len(a_windows)), "test_clips": int(len(set(a_ids)))}
     for name in SCORES:
         a, b = a_scores[name], b_scores[name]
         out[f"a_{name}"] = metrics.bootstrap_mean(a, a_ids).as_dict(f"a_{name}")

@@ -41,6 +41,11 @@ def test_pooling_averages_seeds_per_clip_and_pairs_the_clips(tmp_path):
     assert out["acc_a_minus_b_lo"] > 0.5                  # every clip moves the same way: a tight interval
     same = json.loads(_run(tmp_path, "--look", "heldout", "--a", "paper:base@0", "--b", "paper:base@0").stdout)
     assert same["acc_a_minus_b"] == same["acc_a_minus_b_lo"] == same["acc_a_minus_b_hi"] == 0.0
+    # the reference from another run of the same clips
+    _write(tmp_path / "other", "base", 0, truth, truth, "heldout")
+    other = json.loads(_run(tmp_path, "--look", "heldout", "--a", "paper:base@0", "--b", "paper:base@0",
+                            "--b-run", str(tmp_path / "other")).stdout)
+    assert other["b_acc"] == 1.0 and other["acc_a_minus_b"] == -1.0 and other["b_run"] == str(tmp_path / "other")
 
 
 def test_a_missing_look_and_other_clips_are_refused_by_name(tmp_path):
