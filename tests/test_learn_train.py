@@ -343,14 +343,14 @@ def test_training_on_ray_gives_the_models_one_process_gives(tmp_path):
         train_selected(on_ray, progress=False, options=ExecutorOptions("ray", workers=2, shard_size=4))
 
 
-def _fc6_dead_on_the_first_start(monkeypatch) -> None:
-    """Every fc6 unit off for every input when a model is built from its first seed (a bias far below any
-    input's reach): what the GPU training that never left chance looked like."""
+def _kill_fc6(monkeypatch, every_start: bool = False) -> None:
+    """Every fc6 unit off for every input when a model is built from its first seed (or from every seed: a bias
+    far below any input's reach): what the GPU training that never left chance looked like."""
     build = learn.train.build_training_model
 
     def build_then_kill(resolved, device):
         model = build(resolved, device)
-        if not resolved.get("restarts"):
+        if every_start or not resolved.get("restarts"):
             with torch.no_grad():
                 model.cnn.fc6[1].bias.fill_(-1e4)
         return model
@@ -360,7 +360,7 @@ def _fc6_dead_on_the_first_start(monkeypatch) -> None:
 
 def test_a_network_dead_from_its_first_epoch_is_trained_again_from_a_new_start(tmp_path, monkeypatch):
     run = synthetic_run(tmp_path / "run", tiny_train_config(epochs=2))
-    _fc6_dead_on_the_first_start(monkeypatch)
+    _kill_fc6(monkeypatch)
     with pytest.warns(UserWarning, match="same output after epoch 0 .* start 2 of at most 3"):
         out = train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
     done, config = json.loads((out / "DONE").read_text()), json.loads((out / "config.json").read_text())
@@ -385,15 +385,7 @@ def test_a_network_dead_from_its_first_epoch_is_trained_again_from_a_new_start(t
 
 def test_a_network_dead_after_every_restart_is_an_error_and_not_done(tmp_path, monkeypatch):
     run = synthetic_run(tmp_path / "run", tiny_train_config(epochs=2))
-    build = learn.train.build_training_model
-
-    def always_dead(resolved, device):
-        model = build(resolved, device)
-        with torch.no_grad():
-            model.cnn.fc6[1].bias.fill_(-1e4)
-        return model
-
-    monkeypatch.setattr(learn.train, "build_training_model", always_dead)
+    _kill_fc6(monkeypatch, every_start=True)
     with pytest.warns(UserWarning), pytest.raises(learn.train.TrainingDead, match="after 2 new starts"):
         train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
     assert not is_done(run.train_dir(SETTING, VARIANT, "lrcn", 0))
@@ -406,14 +398,7 @@ def test_a_network_dead_after_every_restart_is_an_error_and_not_done(tmp_path, m
 def test_a_dead_network_in_its_last_epoch_is_never_finished_by_a_resume(tmp_path, monkeypatch):
     run = synthetic_run(tmp_path / "run", tiny_train_config(epochs=1))
     build = learn.train.build_training_model
-
-    def always_dead(resolved, device):
-        model = build(resolved, device)
-        with torch.no_grad():
-            model.cnn.fc6[1].bias.fill_(-1e4)
-        return model
-
-    monkeypatch.setattr(learn.train, "build_training_model", always_dead)
+    _kill_fc6(monkeypatch, every_start=True)
     with pytest.warns(UserWarning), pytest.raises(learn.train.TrainingDead):
         train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
     folder = run.train_dir(SETTING, VARIANT, "lrcn", 0)
