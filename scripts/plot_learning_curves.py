@@ -5,8 +5,9 @@
         benchmarks/results/learn_models-wind-uniform1-h100-bottleneck.json
 
 Each JSON is an `clothgap eval ablation` result (its ``recipes`` rows carry ``curves``); a panel's title
-is the JSON's file name. Rows are labelled recipe (and model where a JSON holds several models);
-``--recipe R`` (repeatable) keeps only those recipes' rows.
+is the JSON's file name. ``FILE.json:NAME`` takes the table NAME of a results file that holds several
+(``{"tables": {NAME: ablation result}}``, e.g. learn_levers-*.json), titled NAME. Rows are labelled recipe
+(and model where a JSON holds several models); ``--recipe R`` (repeatable) keeps only those recipes' rows.
 """
 
 from __future__ import annotations
@@ -21,15 +22,27 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 
+def _result(spec: str) -> tuple[str, dict]:
+    """(panel title, ablation result) of a results argument: a file, or FILE.json:TABLE."""
+    path, sep, table = spec.partition(".json:")
+    if not sep:
+        return Path(spec).stem, json.loads(Path(spec).read_text())
+    tables = json.loads(Path(path + ".json").read_text()).get("tables", {})
+    if table not in tables:
+        raise SystemExit(f"{path}.json has no table {table!r}; it has: {', '.join(tables) or 'none'}")
+    return table, tables[table]
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", type=Path, help="PNG to write")
-    ap.add_argument("results", type=Path, nargs="+", help="result JSONs (clothgap eval ablation)")
+    ap.add_argument("results", nargs="+", help="result JSONs (clothgap eval ablation), or FILE.json:TABLE")
     ap.add_argument("--recipe", action="append", help="plot only this recipe's rows (repeatable; default all)")
     args = ap.parse_args(argv)
     fig, axes = plt.subplots(1, len(args.results), figsize=(6.5 * len(args.results), 4.5), squeeze=False)
-    for ax, path in zip(axes[0], args.results):
-        rows = [r for r in json.loads(path.read_text())["recipes"] if not args.recipe or r["recipe"] in args.recipe]
+    for ax, spec in zip(axes[0], args.results):
+        title, result = _result(spec)
+        rows = [r for r in result["recipes"] if not args.recipe or r["recipe"] in args.recipe]
         several_models = len({r["model"] for r in rows}) > 1
         for i, row in enumerate(rows):
             curve = next(iter(row["curves"].values()))     # the first seed
@@ -38,7 +51,7 @@ def main(argv: list[str] | None = None) -> None:
             epochs = [e["epoch"] for e in curve]
             ax.plot(epochs, [100 * e["val_acc"] for e in curve], color=colour, label=label)
             ax.plot(epochs, [100 * e["train_acc"] for e in curve], color=colour, linestyle=":")
-        ax.set_title(path.stem, fontsize=9)
+        ax.set_title(title, fontsize=9)
         ax.set_xlabel("epoch")
         ax.set_ylabel("accuracy % (validation solid, training dotted)")
         ax.set_ylim(0, 100)
