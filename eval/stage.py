@@ -24,13 +24,14 @@ not only those in the config, so a held-out variant rendered later is picked up.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 import pandas as pd
@@ -289,45 +290,33 @@ def _draw_confusion(counts: np.ndarray, title: str, true_classes: list[int], pat
     figures.save(figures.confusion(counts, title, true_classes), path)
 
 
-class _ConfusionFigures:
-    """One confusion-matrix PNG per cell, drawn in a pool of spawned processes or here, as ``pool_size`` says.
-
-    ``with _ConfusionFigures(run, cells) as confusion:`` starts them; leaving the block waits for every figure
-    (and raises a worker's error); ``confusion.written`` holds their paths relative to the run.
-    """
-
-    def __init__(self, run: Run, cells: dict[tuple, tables.Cell]):
-        true_classes = list(run.config.sim.class_indices())
-        self.jobs, self.written = [], []
-        for (setting, train_v, model, test_v), cell in sorted(cells.items()):
-            counts = metrics.confusion_matrix(cell.frame["class_index"], cell.frame["pred"])
-            acc = metrics.accuracy(cell.frame["class_index"], cell.frame["pred"])
-            title = f"{setting}: {model} trained on {train_v}, tested on {test_v} (acc {100 * acc:.1f}%)"
-            path = run.eval_dir / "figures" / "confusion" / setting / train_v / model / f"{test_v}.png"
-            self.jobs.append((counts, title, true_classes, path))
-            self.written.append(_rel(run, path))
-        self.processes = min(len(self.jobs), CONFUSION_POOL_MAX,
-                             pool_size(len(self.jobs), CONFUSION_POOL_MIN_FIGURES, CONFUSION_POOL_MIN_CPUS))
-        self.pool = self.drawn = None
-
-    def __enter__(self) -> _ConfusionFigures:
-        if self.processes > 1:
-            self.pool = spawn_pool(self.processes)
-            self.drawn = self.pool.map(_draw_confusion, *zip(*self.jobs),
-                                       chunksize=chunk_size(len(self.jobs), self.processes))
-        return self
-
-    def __exit__(self, kind, error, trace) -> None:
-        if self.pool is None:
-            if kind is None:
-                for job in self.jobs:
-                    _draw_confusion(*job)
-            return
-        try:
-            if kind is None:
-                list(self.drawn)
-        finally:
-            self.pool.shutdown(cancel_futures=True)
+@contextlib.contextmanager
+def _confusion_figures(run: Run, cells: dict[tuple, tables.Cell]) -> Iterator[list[str]]:
+    """One confusion-matrix PNG per cell, drawn in a pool of spawned processes (while the block runs) or here
+    (when it ends), as ``pool_size`` says. Yields their paths relative to the run; leaving the block waits for every
+    figure and raises a worker's error."""
+    true_classes = list(run.config.sim.class_indices())
+    jobs, written = [], []
+    for (setting, train_v, model, test_v), cell in sorted(cells.items()):
+        counts = metrics.confusion_matrix(cell.frame["class_index"], cell.frame["pred"])
+        acc = metrics.accuracy(cell.frame["class_index"], cell.frame["pred"])
+        title = f"{setting}: {model} trained on {train_v}, tested on {test_v} (acc {100 * acc:.1f}%)"
+        path = run.eval_dir / "figures" / "confusion" / setting / train_v / model / f"{test_v}.png"
+        jobs.append((counts, title, true_classes, path))
+        written.append(_rel(run, path))
+    processes = min(CONFUSION_POOL_MAX, pool_size(len(jobs), CONFUSION_POOL_MIN_FIGURES, CONFUSION_POOL_MIN_CPUS))
+    if processes <= 1:
+        yield written
+        for job in jobs:
+            _draw_confusion(*job)
+        return
+    pool = spawn_pool(processes)
+    try:
+        drawn = pool.map(_draw_confusion, *zip(*jobs), chunksize=chunk_size(len(jobs), processes))
+        yield written
+        list(drawn)
+    finally:
+        pool.shutdown(cancel_futures=True)
 
 
 def _gap_figures(run: Run, gap: pd.DataFrame) -> list[str]:
@@ -361,9 +350,9 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
     cells, counts, left_out = predict_all(run, models, predictor or _default_predictor, progress)
     if not cells:
         raise _no_test_clips_error(run, models)
-    with _ConfusionFigures(run, cells) as confusion:
+    with _confusion_figures(run, cells) as confusion:
         written = _write_tables(run, cells)
-    figs = {"confusion": confusion.written, "gap": _gap_figures(run, written.gap)}
+    figs = {"confusion": confusion, "gap": _gap_figures(run, written.gap)}
     in_domain = written.results[written.results["in_domain"]]
     headline = {f"{r.setting}/{r.train_variant}/{r.model}": round(float(r.acc), 4) for r in in_domain.itertuples()}
     summary = _summary(run, models, written, figs, headline, counts, left_out)

@@ -83,18 +83,16 @@ def main(argv: list[str] | None = None) -> int:
     b_scores, b_windows = _scores(args.b_run or args.run, args.setting, args.model, args.look, args.b)
     if not a_windows.equals(b_windows):
         raise SystemExit("--a and --b were scored on different test windows: no paired comparison")
-    a_ids = b_ids = a_windows["clip_id"].to_numpy()    # resampled by clip: a clip's windows go together
-    out = {"run": str(args.run), "b_run": str(args.b_run or args.run), "setting": args.setting, "model": args.model,
-           "look": args.look, "a": args.a, "b": args.b, "test_windows": int(len(a_windows)), "test_clips": int(len(set(a_ids)))}
+    clips = a_windows["clip_id"].to_numpy()    # resampled by clip: a clip's windows go together
+    out = {"run": str(args.run), "b_run": str(args.b_run or args.run), "setting": args.setting,
+           "model": args.model, "look": args.look, "a": args.a, "b": args.b, "test_windows": len(a_windows),
+           "test_clips": len(set(clips))}
     for name in SCORES:
         a, b = a_scores[name], b_scores[name]
-        out[f"a_{name}"] = metrics.bootstrap_mean(a, a_ids).as_dict(f"a_{name}")
-        out[f"b_{name}"] = metrics.bootstrap_mean(b, b_ids).as_dict(f"b_{name}")
-        out[f"{name}_a_minus_b"] = metrics.bootstrap_mean_difference(a, a_ids, b, b_ids).as_dict(f"{name}_a_minus_b")
-    flat = {}
-    for key, value in out.items():
-        flat.update(value if isinstance(value, dict) else {key: value})
-    json.dump(flat, sys.stdout, indent=1)
+        out.update(metrics.bootstrap_mean(a, clips).as_dict(f"a_{name}"))
+        out.update(metrics.bootstrap_mean(b, clips).as_dict(f"b_{name}"))
+        out.update(metrics.bootstrap_mean_difference(a, clips, b, clips).as_dict(f"{name}_a_minus_b"))
+    json.dump(out, sys.stdout, indent=1)
     print()
     return 0
 
