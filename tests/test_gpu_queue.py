@@ -92,3 +92,40 @@ def test_together_reports_the_worst_of_its_commands(tmp_path):
     assert together("true", "true") == 0
     assert together("true", "exit 75") == 75          # one stopped for time: call again
     assert together("exit 75", "exit 3") == 1         # one failed
+
+
+LANES = ROOT / "scripts" / "gpu" / "lanes.sh"
+
+
+def test_lanes_split_the_gpus_run_joined_plans_in_order_and_resume_each_lane(tmp_path):
+    gate = tmp_path / "second-call"
+    first, second, third = tmp_path / "a.plan", tmp_path / "b.plan", tmp_path / "c.plan"
+    first.write_text("tests: echo a-tests\nsee: echo \"gpus $CUDA_VISIBLE_DEVICES\" > $OUT/gpus.txt\n")
+    # a step name the lane's first plan already has runs once; the second plan's own step waits for a call
+    second.write_text(f"tests: echo b-tests\nslow: [ -f {gate} ] || exit 75; echo b-slow\n")
+    third.write_text("see: echo \"gpus $CUDA_VISIBLE_DEVICES\" > $OUT/gpus.txt\n")
+    env = {**os.environ, "QUEUE_STATE": str(tmp_path / "state"), "OUT": str(tmp_path / "out"), "BUDGET": "60",
+           "CUDA_VISIBLE_DEVICES": "0,1,2,3,4"}
+
+    def call() -> subprocess.CompletedProcess:
+        return subprocess.run(["bash", str(LANES), f"{first}+{second}", str(third)], capture_output=True,
+                              text=True, env=env, timeout=120)
+
+    r = call()
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "lane1 on GPUs 0,1,2:" in r.stdout and "lane2 on GPUs 3,4:" in r.stdout
+    lane1 = (tmp_path / "out" / "lane1" / "queue.log").read_text()
+    assert "a-tests" in lane1 and "b-tests" not in lane1 and "slow goes on in the next call" in lane1
+    for lane, gpus in (("lane1", "0,1,2"), ("lane2", "3,4")):
+        with tarfile.open(tmp_path / "out" / lane / "queue.tgz") as t:
+            assert t.extractfile("./see/gpus.txt").read().decode().strip() == f"gpus {gpus}"
+
+    gate.touch()
+    call()
+    lane1 = (tmp_path / "out" / "lane1" / "queue.log").read_text()
+    assert "== see: done before" in lane1 and "b-slow" in lane1
+
+    env["CUDA_VISIBLE_DEVICES"] = "7"                  # fewer GPUs than lanes: they share it
+    env["QUEUE_STATE"], env["OUT"] = str(tmp_path / "state2"), str(tmp_path / "out2")
+    r = call()
+    assert "lane1 on GPUs 7:" in r.stdout and "lane2 on GPUs 7:" in r.stdout

@@ -16,7 +16,7 @@
 # On two H100s the render of one setting's 5,184 clips took 202-270 s, so N=24 (1,296 clips) renders the ten
 # variants in ~10 min (motion blur renders four instants a frame).
 set -uo pipefail
-ngpu=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true)
+source "$(dirname "$0")/gpus.sh"
 N=${N:-$([ "${ngpu:-0}" -ge 2 ] && echo 24 || echo 12)}
 RUN=${RUN:-/tmp/gap}
 ok_file=$RUN.variants-ok

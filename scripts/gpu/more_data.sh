@@ -24,7 +24,7 @@ log=$OUT/more_data.log
 # outputs are named after the data's size as the run holds it (SEQ, else the preset's): seq96, ...
 data_tag() { python3 -c "import json,sys; print('seq%d' % json.load(open(sys.argv[1]))['sim']['sequences_per_class'])" \
   "$RUN/config.json" 2>/dev/null; }
-ngpu=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true); [ "${ngpu:-0}" -ge 1 ] || ngpu=1
+source "$(dirname "$0")/gpus.sh"
 
 # 1. data (quick when finished: every clip's DONE is checked and skipped)
 if [ ! -f "$RUN/.data-done" ]; then

@@ -27,7 +27,7 @@ SETS=(--set sim.motions=${MOTIONS:-wind} --set sim.remeshing=${REMESHING:-unifor
       ${SEQ:+--set sim.sequences_per_class=$SEQ} ${EXTRA:-})
 # Every GPU of the machine: render shards one worker per GPU (on one GPU the default path is faster),
 # training runs four models at a time per GPU (a model leaves most of an H100 idle). Set to override.
-ngpu=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true); [ "${ngpu:-0}" -ge 1 ] || ngpu=1
+source "$(dirname "$0")/gpus.sh"
 [ "$ngpu" -ge 2 ] && RENDER_ARGS=${RENDER_ARGS-"--executor process --gpus-per-worker 1"}
 TRAIN_ARGS=${TRAIN_ARGS-"--parallel $((4 * ngpu))"}
 started=$(date +%s) status=0 fixed_limit=${LIMIT:-}
@@ -43,7 +43,7 @@ for stage in $STAGES; do
   # GPU memory and utilisation sampled while the stage runs (after it ends the process has freed it all): the
   # peak memory of any GPU, and the mean share of time a kernel ran (whether a stage keeps its GPUs busy).
   samples="/tmp/gpu_samples_$(basename "$RUN")_$stage.txt"
-  nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv,noheader,nounits -lms 500 > "$samples" 2>/dev/null &
+  nvidia-smi ${gpus:+-i $gpus} --query-gpu=memory.used,utilization.gpu --format=csv,noheader,nounits -lms 500 > "$samples" 2>/dev/null &
   sampler=$!
   # LIMIT (seconds, optional) stops the stage in time for the call's 10 minutes; it resumes next call.
   ${LIMIT:+timeout -k 10 "$LIMIT"} python3 -m clothgap $stage "${args[@]}" "${extra[@]}" 2>&1 | tr '\r' '\n' | grep -vE "it/s\]|clip/s\]|shard/s\]|s/it\]|clip-frame/s\]" | tail -8

@@ -10,7 +10,7 @@
 set -uo pipefail
 run=$1 setting=${2:-wind-uniform1}
 e=${EPOCHS:-3}
-ngpu=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true); [ "${ngpu:-0}" -ge 1 ] || ngpu=1
+source "$(dirname "$0")/gpus.sh"
 recipes=${RECIPES:-"best+epochs=$e best+epochs=$e+compile=true best+epochs=$e+compile=true+compile_mode=reduce-overhead
 best+epochs=$e+batch_size=64+compile=true+compile_mode=reduce-overhead best+epochs=$e+clip_len=40+batch_size=16"}
 recipes=$(echo $recipes | tr ' ' ',')
