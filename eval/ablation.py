@@ -107,6 +107,22 @@ def training_speed(folder: Path) -> dict:
             "frames_on_device": config.get("frames_on_device")}
 
 
+def require_test_clips(run: Run, setting: str) -> dict:
+    """The test part of ``setting``'s split (``part_windows``), refused before any training when it is empty: a
+    split can hold no test sequence (too few sequences a class for the test share), and then no recipe can be
+    scored however long it trains."""
+    from learn.split import get_or_make_split, part_windows
+
+    test = part_windows(get_or_make_split(run, setting), "test")
+    if not test:
+        cfg = run.config
+        raise ConfigError(f"the split of {setting} in {run.root} holds no test sequence "
+                          f"({cfg.sim.sequences_per_class} sequence(s) a class, train.test_fraction="
+                          f"{cfg.train.test_fraction:g}), so no recipe can be scored: raise "
+                          "sim.sequences_per_class or train.test_fraction in a new run")
+    return test
+
+
 def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], models: list[str] | None = None,
                  seeds: list[int] | None = None, progress: bool = True, name: str | None = None,
                  test_variants: list[str] | None = None) -> dict:
@@ -124,15 +140,13 @@ def run_ablation(run: Run, setting: str, variant: str, recipes: list[str], model
     Returns:
         ``{"json": path of the written report, "top1": {"<recipe>/<model>": accuracy}}``.
     """
-    from learn.split import get_or_make_split, part_windows
-
     if not recipes:
         raise ConfigError("no recipes given")
     test_variants = [v for v in dict.fromkeys(test_variants or []) if v != variant]
     base = run.config.train
     configs = {r: recipe_config(run.config, r) for r in recipes}
     models = models or list(base.models)
-    test = part_windows(get_or_make_split(run, setting), "test")
+    test = require_test_clips(run, setting)
     for look in test_variants:
         # every test clip, or the look's scores would be of other clips than the training look's
         rendered = set(run.done_clips(run.render_dir(look, setting)))

@@ -151,6 +151,17 @@ def test_ablation_cli_checks_recipes_and_pairs_first(tmp_path):
     assert_user_error(result, "not a pair this run renders")
 
 
+def test_a_split_without_test_sequences_is_refused_before_any_training(tmp_path):
+    # 4 sequences a class, test share 0.1: round(0.4) is no test sequence, so no recipe could be scored
+    run = synthetic_run(tmp_path / "run", tiny_train_config(epochs=2, test_fraction=0.1))
+    assert not part_windows(get_or_make_split(run, SETTING), "test")
+    with pytest.raises(ConfigError, match="holds no test sequence .*4 sequence.* a class, train.test_fraction=0.1"):
+        run_ablation(run, SETTING, VARIANT, ["baseline"], progress=False)
+    assert not (run.root / "ablation").exists()                         # nothing trained
+    result = clothgap("eval", "ablation", str(run.root), "--recipe", "baseline")
+    assert_user_error(result, "holds no test sequence")
+
+
 @pytest.mark.slow
 def test_ablation_trains_recipes_side_by_side_as_one_process_does(tmp_path):
     cfg = tiny_train_config(epochs=2, dropout=0.5, num_threads=1)

@@ -121,6 +121,14 @@ def main() -> None:
     from clothgap.runs import Run
 
     run = Run.open(args.run)
+    if args.table:
+        from clothgap.errors import ConfigError
+        from eval.ablation import require_test_clips
+
+        try:
+            require_test_clips(run, args.setting)  # before the GPU time that no table could use
+        except ConfigError as e:
+            raise SystemExit(f"learn_grid: {e}") from None
     if args.train_only:
         _train(args, run)
         return
