@@ -455,10 +455,11 @@ def eval_ablation(run_dir: Path, recipes: tuple[str, ...], setting: str | None, 
     if (setting, variant) not in known:
         raise ConfigError(f"--setting {setting} --variant {variant} is not a pair this run renders: "
                           f"{', '.join(f'{s}/{v}' for s, v in known)}")
-    from eval.ablation import recipe_config, run_ablation
+    from eval.ablation import recipe_config, require_test_clips, run_ablation
 
     for recipe in recipes:
         recipe_config(run.config, recipe)   # every recipe is checked before any training
+    require_test_clips(run, setting)        # and that the split has test clips to score them on
     t0 = time.perf_counter()
     if name is not None and (not name or "/" in name):
         raise ConfigError(f"--name {name!r}: must be a plain file name")

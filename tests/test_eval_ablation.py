@@ -158,8 +158,10 @@ def test_a_split_without_test_sequences_is_refused_before_any_training(tmp_path)
     with pytest.raises(ConfigError, match="holds no test sequence .*4 sequence.* a class, train.test_fraction=0.1"):
         run_ablation(run, SETTING, VARIANT, ["baseline"], progress=False)
     assert not (run.root / "ablation").exists()                         # nothing trained
-    result = clothgap("eval", "ablation", str(run.root), "--recipe", "baseline")
-    assert_user_error(result, "holds no test sequence")
+    for parallel in ("1", "2"):                                       # --parallel trains before it scores
+        result = clothgap("eval", "ablation", str(run.root), "--recipe", "baseline", "--parallel", parallel)
+        assert_user_error(result, "holds no test sequence")
+        assert not (run.root / "ablation").exists()
 
 
 @pytest.mark.slow

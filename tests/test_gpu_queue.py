@@ -100,9 +100,10 @@ LANES = ROOT / "scripts" / "gpu" / "lanes.sh"
 def test_lanes_split_the_gpus_run_joined_plans_in_order_and_resume_each_lane(tmp_path):
     gate = tmp_path / "second-call"
     first, second, third = tmp_path / "a.plan", tmp_path / "b.plan", tmp_path / "c.plan"
-    first.write_text("tests: echo a-tests\nsee: echo \"gpus $CUDA_VISIBLE_DEVICES\" > $OUT/gpus.txt\n")
-    # a step name the lane's first plan already has runs once; the second plan's own step waits for a call
-    second.write_text(f"tests: echo b-tests\nslow: [ -f {gate} ] || exit 75; echo b-slow\n")
+    first.write_text("tests: echo ran-tests\nsee: echo \"gpus $CUDA_VISIBLE_DEVICES\" > $OUT/gpus.txt\n")
+    # a step the lane's first plan already has (same name, same command) runs once; the second plan's own
+    # step waits for a call
+    second.write_text(f"tests: echo ran-tests  # the same command\nslow: [ -f {gate} ] || exit 75; echo b-slow\n")
     third.write_text("see: echo \"gpus $CUDA_VISIBLE_DEVICES\" > $OUT/gpus.txt\n")
     env = {**os.environ, "QUEUE_STATE": str(tmp_path / "state"), "OUT": str(tmp_path / "out"), "BUDGET": "60",
            "CUDA_VISIBLE_DEVICES": "0,1,2,3,4"}
@@ -115,7 +116,7 @@ def test_lanes_split_the_gpus_run_joined_plans_in_order_and_resume_each_lane(tmp
     assert r.returncode == 0, r.stdout + r.stderr
     assert "lane1 on GPUs 0,1,2:" in r.stdout and "lane2 on GPUs 3,4:" in r.stdout
     lane1 = (tmp_path / "out" / "lane1" / "queue.log").read_text()
-    assert "a-tests" in lane1 and "b-tests" not in lane1 and "slow goes on in the next call" in lane1
+    assert lane1.splitlines().count("ran-tests") == 1 and "slow goes on in the next call" in lane1
     for lane, gpus in (("lane1", "0,1,2"), ("lane2", "3,4")):
         with tarfile.open(tmp_path / "out" / lane / "queue.tgz") as t:
             assert t.extractfile("./see/gpus.txt").read().decode().strip() == f"gpus {gpus}"
@@ -129,3 +130,24 @@ def test_lanes_split_the_gpus_run_joined_plans_in_order_and_resume_each_lane(tmp
     env["QUEUE_STATE"], env["OUT"] = str(tmp_path / "state2"), str(tmp_path / "out2")
     r = call()
     assert "lane1 on GPUs 7:" in r.stdout and "lane2 on GPUs 7:" in r.stdout
+    env["CUDA_VISIBLE_DEVICES"] = ""                   # none (a CPU dry run): every lane runs, without GPUs
+    env["QUEUE_STATE"], env["OUT"] = str(tmp_path / "state3"), str(tmp_path / "out3")
+    r = call()
+    assert r.returncode == 0 and "lane1 on GPUs (none):" in r.stdout, r.stdout + r.stderr
+    with tarfile.open(tmp_path / "out3" / "lane2" / "queue.tgz") as t:
+        assert t.extractfile("./see/gpus.txt").read().decode().strip() == "gpus"
+
+
+def test_lanes_refuse_a_bad_plan_before_any_lane_starts(tmp_path):
+    started = tmp_path / "started"
+    first = tmp_path / "a.plan"
+    first.write_text(f"go: touch {started}\ntrain: echo one\n")
+    other = tmp_path / "b.plan"
+    other.write_text("train: echo another\n")          # the same name, another command: one state, two steps
+    env = {**os.environ, "QUEUE_STATE": str(tmp_path / "state"), "OUT": str(tmp_path / "out"), "BUDGET": "60",
+           "CUDA_VISIBLE_DEVICES": "0,1"}
+    for lanes, message in (([f"{first}+{other}"], "step 'train' of"), ([str(first), str(tmp_path / "no.plan")],
+                                                                          "no plan file")):
+        r = subprocess.run(["bash", str(LANES), *lanes], capture_output=True, text=True, env=env, timeout=60)
+        assert r.returncode == 2 and message in r.stderr and "no lane started" in r.stderr
+        assert not started.exists()                     # not even the good lane ran

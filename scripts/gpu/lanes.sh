@@ -2,12 +2,15 @@
 # GPU: several plans at once on one machine of several GPUs, each in its own lane of the machine's GPUs:
 #   bash scripts/gpu/lanes.sh PLAN_A PLAN_B+PLAN_C     (the same command in every call)
 # An argument is one lane: plans joined by + run one after another in that lane (their steps, in order, as one
-# queue). The GPUs are split evenly between the lanes (the first lanes get the remainder; with fewer GPUs than
-# lanes, lanes share them round robin), pinned with CUDA_VISIBLE_DEVICES, so each plan sizes its render
-# workers and trainings by its own GPUs. Each lane is a scripts/gpu/queue.sh with its own state
-# (QUEUE_STATE/LANE) and output ($OUT/LANE/queue.log and queue.tgz: two of the device's eight files a lane),
-# resumable across calls like one queue. A step name used twice in one lane runs once (the first).
-# Exit status: 0 when every lane's queue returned 0 (steps that fail are recorded by the queue), else 1.
+# queue). A step that a lane's earlier plan already has with the same command runs once; the same name with
+# another command is refused (the queue keeps one state per name). The GPUs are split evenly between the lanes
+# (the first lanes get the remainder; with fewer GPUs than lanes, lanes share them round robin; with none, every
+# lane runs with CUDA_VISIBLE_DEVICES empty, a CPU dry run), pinned with CUDA_VISIBLE_DEVICES, so each plan sizes
+# its render workers and trainings by its own GPUs. Each lane is a scripts/gpu/queue.sh with its own state
+# (QUEUE_STATE/laneN) and output ($OUT/laneN/queue.log and queue.tgz: two of the device's eight files a lane),
+# resumable across calls like one queue. Lanes must not share a run folder: their plans' RUN paths differ.
+# Exit status: 0 when every lane's queue returned 0 (steps that fail are recorded by the queue), 2 for a bad
+# plan (before any lane starts), else 1.
 set -uo pipefail
 [ $# -ge 1 ] || { echo "usage: bash scripts/gpu/lanes.sh PLAN[+PLAN...] [PLAN[+PLAN...]...]" >&2; exit 2; }
 here=$(cd "$(dirname "$0")" && pwd)
@@ -17,43 +20,59 @@ out=${OUT:-/tmp/out}
 IFS=, read -r -a all <<< "$gpus"
 nlanes=$#
 mkdir -p "$state"
-pids=() i=0
+
+# Every lane's plan, merged and checked before any lane starts.
+i=0
 for lane in "$@"; do
-  name=lane$((i + 1))
-  # this lane's plan: the steps of its plans in order, a step name that came before left out
-  plan="$state/$name.plan"
+  i=$((i + 1))
+  plan="$state/lane$i.plan"
   : > "$plan.new"
   for p in ${lane//+/ }; do
-    [ -f "$p" ] || { echo "lanes: no plan file $p" >&2; exit 2; }
+    [ -f "$p" ] || { echo "lanes: no plan file $p (lane $i): no lane started" >&2; exit 2; }
     while IFS= read -r line || [ -n "$line" ]; do
       body=${line%%#*}
       [[ "$body" =~ ^[[:space:]]*$ ]] && continue
+      body=${body%"${body##*[![:space:]]}"}        # trailing blanks (before a comment) are not the command
       step=$(echo "${body%%:*}" | tr -d '[:space:]')
-      grep -q "^$step:" "$plan.new" && continue
-      echo "$step:${body#*:}" >> "$plan.new"
+      entry="$step:${body#*:}"
+      before=$(awk -v s="$step" 'index($0, s ":") == 1' "$plan.new")
+      if [ -n "$before" ]; then
+        [ "$before" = "$entry" ] && continue
+        echo "lanes: step '$step' of $p differs from the step of that name earlier in lane $i: rename one" \
+             "(no lane started)" >&2
+        exit 2
+      fi
+      echo "$entry" >> "$plan.new"
     done < "$p"
   done
   mv -f "$plan.new" "$plan"
+done
+
+pids=()
+for i in $(seq 1 "$nlanes"); do
+  name=lane$i k=$((i - 1))
   # its GPUs: an even share, or one shared round robin when there are fewer GPUs than lanes
-  if [ "${#all[@]}" -ge "$nlanes" ]; then
+  if [ "${#all[@]}" -eq 0 ]; then
+    mine=
+  elif [ "${#all[@]}" -ge "$nlanes" ]; then
     share=$(( ${#all[@]} / nlanes )) extra=$(( ${#all[@]} % nlanes ))
-    first=$(( i * share + (i < extra ? i : extra) )) count=$(( share + (i < extra ? 1 : 0) ))
+    first=$(( k * share + (k < extra ? k : extra) )) count=$(( share + (k < extra ? 1 : 0) ))
     mine=$(IFS=,; echo "${all[*]:$first:$count}")
   else
-    mine=${all[$(( i % ${#all[@]} ))]}
+    mine=${all[$(( k % ${#all[@]} ))]}
   fi
-  echo "lanes: $name on GPUs $mine: $lane"
+  echo "lanes: $name on GPUs ${mine:-(none)}: ${!i}"
+  rm -f "$state/$name.rc"
   ( CUDA_VISIBLE_DEVICES=$mine QUEUE_STATE="$state/$name" OUT="$out/$name" \
-      bash "$here/queue.sh" "$plan" > /dev/null 2>&1; echo $? > "$state/$name.rc" ) &
+      bash "$here/queue.sh" "$state/$name.plan" > /dev/null 2>&1; echo $? > "$state/$name.rc" ) &
   pids+=($!)
-  i=$((i + 1))
 done
 wait "${pids[@]}"
 status=0
-for j in $(seq 1 "$nlanes"); do
-  rc=$(cat "$state/lane$j.rc" 2>/dev/null || echo 1)
-  echo "lanes: lane$j's queue exit $rc; its last lines:"
-  tail -4 "$out/lane$j/queue.log" 2>/dev/null | sed 's/^/  /'
+for i in $(seq 1 "$nlanes"); do
+  rc=$(cat "$state/lane$i.rc" 2>/dev/null || echo 1)
+  echo "lanes: lane$i's queue exit $rc; its last lines:"
+  tail -4 "$out/lane$i/queue.log" 2>/dev/null | sed 's/^/  /'
   [ "$rc" = 0 ] || status=1
 done
 exit $status
