@@ -353,6 +353,7 @@ def run_measured(run: Run, *, models: list | None = None, sequences: int | None 
     models, heldout = _models_and_heldout(run, models, variant, progress)
     t0 = time.perf_counter()
     generation = make_clips(run, sequences, fabrics, variant, progress)
+    made = time.perf_counter()
     names = [clip_name(f, n) for f, n in wanted_clips(fabrics, sequences)]
     tables, corrs, matches, entries = [], [], [], []
     for m in models:
@@ -378,6 +379,7 @@ def run_measured(run: Run, *, models: list | None = None, sequences: int | None 
             "simulated": generation["sim"]["simulated"], "rendered": generation["render"]["rendered"],
             "predicted": sum(e["status"] == "predicted" for e in entries),
             "reused": sum(e["status"] == "reused" for e in entries),
+            "seconds": {"clips": round(made - t0, 1), "predict_and_score": round(time.perf_counter() - made, 1)},
             "exact": {f"{e['setting']}/{e['train_variant']}/{e['model']}/s{e['seed']}":
                       next(r["value"] for r in e["match"] if r["score"] == "exact")
                       for e in entries if "match" in e}}

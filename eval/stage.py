@@ -347,12 +347,24 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
     if not models:
         raise ConfigError(f"no finished train folder under {run.train_root} for the config's "
                           f"settings/variants/models/seeds: run `clothgap train {run.root}` first")
+    # Seconds per part, printed with the short summary (not in summary.json, which a rerun rewrites byte for
+    # byte): where a study's eval time goes.
+    clock, seconds = time.perf_counter(), {}
+
+    def lap(part: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        seconds[part] = round(now - clock, 1)
+        clock = now
+
     cells, counts, left_out = predict_all(run, models, predictor or _default_predictor, progress)
     if not cells:
         raise _no_test_clips_error(run, models)
+    lap("predict")
     with _confusion_figures(run, cells) as confusion:
         written = _write_tables(run, cells)
     figs = {"confusion": confusion, "gap": _gap_figures(run, written.gap)}
+    lap("tables_and_figures")
     in_domain = written.results[written.results["in_domain"]]
     headline = {f"{r.setting}/{r.train_variant}/{r.model}": round(float(r.acc), 4) for r in in_domain.itertuples()}
     summary = _summary(run, models, written, figs, headline, counts, left_out)
@@ -366,6 +378,7 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
     if cfg.eval.sim_analysis:
         summary["sim_analysis"] = short["sim_analysis"] = run_sim_analysis(run, progress)
         atomic_write_json(out / "summary.json", summary)
+        lap("sim_analysis")
     if cfg.eval.measured_sequences > 0:
         from eval.measured import run_measured
 
@@ -374,6 +387,8 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
                                         "correlations": "eval/measured_correlations.csv",
                                         "markdown": "eval/measured.md", "summary": "eval/measured.json"}
         atomic_write_json(out / "summary.json", summary)
+        lap("measured")
+    short["seconds"] = seconds
     return short
 
 

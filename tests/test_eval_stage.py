@@ -93,6 +93,8 @@ def test_run_eval_writes_tables_and_resumes(tmp_path):
     run = make_fake_run(tmp_path / "run", models=("lrcn", "base1"), seeds=(0, 1))
     out = run_eval(run, progress=False, predictor=stub_predictor)
     assert out["cells"] == 2 * 2 * 2 and out["predicted"] == 2 * 2 * 2 * 2
+    assert set(out["seconds"]) == {"predict", "tables_and_figures"} and min(out["seconds"].values()) >= 0
+    assert "seconds" not in json.loads((run.eval_dir / "summary.json").read_text())    # a rerun rewrites it as is
 
     ev = run.eval_dir
     pred_csv = ev / "predictions" / "wind-uniform1" / "paper" / "lrcn" / "s1" / "grid.csv"
