@@ -21,10 +21,6 @@ copied to the host:
 * ``processes_<N>``: N processes sharing the device, each rendering its share of
   the clips pooled (frozen too with ``--procs-freeze``), timed from a barrier
   after every process has compiled;
-* ``threads_<N>`` (with ``--threads``): N threads of this process at once, each
-  with its own scene pool (frozen on CUDA), from a barrier; one CUDA context, so
-  whether one process overlaps its per-frame host work; with each thread's first
-  frames checked against the same clips rendered alone;
 * ``batched_k<K>`` (with ``--k``): K frames of a clip per launch (render.batch),
   with its noise against a high-spp reference (batched frames are noisier);
 * ``phases``: host milliseconds per frame in each step of the stage's path
@@ -99,8 +95,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--k", default="", help="comma-separated frames per launch for the batched path (render.batch)")
     p.add_argument("--procs", default="2,4", help="comma-separated process counts sharing the device")
     p.add_argument("--procs-freeze", action="store_true", help="processes render frozen too")
-    p.add_argument("--threads", default="", help="comma-separated thread counts rendering at once in this process "
-                   "(each with its own pooled, frozen scenes): whether one process overlaps its per-frame host work")
     p.add_argument("--no-freeze", action="store_true", help="skip the pooled_frozen loop")
     p.add_argument("--clips", type=int, default=50)
     p.add_argument("--frames", type=int, default=40, help="frames per clip")
@@ -122,7 +116,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     args.spp = [int(s) for s in str(args.spp).split(",")]
     args.k = [int(k) for k in str(args.k).split(",") if k]
     args.procs = [int(n) for n in str(args.procs).split(",") if n]
-    args.threads = [int(n) for n in str(args.threads).split(",") if n]
     args.write_procs = [int(n) for n in str(args.write_procs).split(",") if n]
     args.outputs = [o for o in str(args.outputs).split(",") if o]
     bad = [o for o in args.outputs if o not in OUTPUTS]
@@ -256,52 +249,6 @@ def processes_loop(args, spp: int, n: int, outputs: str = "") -> dict:
             "frames": frames, "seconds": round(seconds, 3),
             "frames_per_s": round(frames / seconds, 2), "ms_per_frame": round(1000 * seconds / frames, 3),
             "gpu_used_mib_after": gpu_memory_mib()}
-
-
-def threads_loop(args, spp: int, n: int) -> dict:
-    """N threads of this process rendering at once, each every N-th clip with its own scene pool (frozen where
-    the backend freezes), aggregate rate from a barrier on; and whether each clip's frames equal the same clip
-    rendered alone (a thread may not change a frame)."""
-    frozen = load_mitsuba(args.backend).variant().startswith("cuda") and not args.no_freeze
-    mode = "pooled_frozen" if frozen else "pooled"
-    shares = [s for s in (list(range(args.clips))[i::n] for i in range(n)) if s]
-    barrier = threading.Barrier(len(shares))
-    spans, frames, first, errors = [], [], {}, []
-
-    def worker(share: list[int]) -> None:
-        try:
-            render_loop(args, [waving_sheet(frames=args.frames, n=args.vertices, index=10_000 + share[0])], spp, 1,
-                        mode)
-            barrier.wait()
-            start, count = time.perf_counter(), 0
-            for index in share:
-                r = make_renderer(args, waving_sheet(frames=args.frames, n=args.vertices, index=index), index, spp,
-                                  mode)
-                for t in range(args.frames):
-                    hdr = r.render_hdr(t)
-                    if t == 0:
-                        first[index] = hdr
-                    count += 1
-            spans.append((start, time.perf_counter()))
-            frames.append(count)
-        except Exception as e:     # recorded, not raised: a backend that cannot render from threads is a result
-            errors.append(f"{type(e).__name__}: {str(e).splitlines()[0][:300] if str(e) else ''}")
-            barrier.abort()
-
-    threads = [threading.Thread(target=worker, args=(share,)) for share in shares]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    if errors:
-        return {"threads": len(shares), "mode": mode, "error": next((e for e in errors if "Barrier" not in e),
-                                                                     errors[0])}
-    seconds = max(e for _, e in spans) - min(s for s, _ in spans)
-    alone = {i: make_renderer(args, waving_sheet(frames=args.frames, n=args.vertices, index=i), i, spp, mode)
-             .render_hdr(0) for i in sorted(first)[:2]}
-    return {"threads": len(shares), "mode": mode, "frames": sum(frames), "seconds": round(seconds, 3),
-            "frames_per_s": round(sum(frames) / seconds, 2), "ms_per_frame": round(1000 * seconds / sum(frames), 3),
-            "first_frame_max_abs_diff_vs_alone": float(max(np.abs(first[i] - a).max() for i, a in alone.items()))}
 
 
 def stage_loop(args, clips, spp: int, k: int, outputs: str = "png+exr", indices: list[int] | None = None,
@@ -486,13 +433,8 @@ def main(argv: list[str] | None = None) -> dict:
         for n in args.procs:
             result["render_only"][f"processes_{n}"] = processes_loop(args, spp, n)
             print(f"processes_{n}", json.dumps(result["render_only"][f"processes_{n}"]), flush=True)
-        for n in args.threads:
-            result["render_only"][f"threads_{n}"] = threads_loop(args, spp, n)
-            print(f"threads_{n}", json.dumps(result["render_only"][f"threads_{n}"]), flush=True)
         base = result["render_only"]["scene_per_clip"]["frames_per_s"]
         for row in result["render_only"].values():
-            if "frames_per_s" not in row:
-                continue
             row["speedup"] = round(row["frames_per_s"] / base, 3)
             row["samples_per_s_M"] = round(row["frames_per_s"] * result["samples_per_frame"] / 1e6, 1)
         if args.k:

@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import threading
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -150,13 +149,12 @@ class ScenePool:
         self._scenes.clear()
 
 
-_POOLS: dict[tuple[str, int], ScenePool] = {}
+_POOLS: dict[str, ScenePool] = {}
 
 
 def scene_pool(mi: ModuleType) -> ScenePool:
-    """This thread's pool for Mitsuba's current variant: a pooled scene is retargeted in place for each clip, so
-    two threads rendering at once must not share one."""
-    return _POOLS.setdefault((mi.variant(), threading.get_ident()), ScenePool())
+    """This process's pool for Mitsuba's current variant."""
+    return _POOLS.setdefault(mi.variant(), ScenePool())
 
 
 def _copy_params(src, dst, prefix: str) -> None:
