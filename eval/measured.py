@@ -54,6 +54,7 @@ from clothgap.runs import Run, atomic_write_json, atomic_write_text, fresh_dir, 
 from eval import classes, metrics, real
 from eval import predictions as preds
 from eval.trained import TrainedModel, checkpoint_sha256, finished_models
+from sim.phases import timed
 
 DEFAULT_SEQUENCES = 2       # `clothgap eval measured` when the run's eval.measured_sequences is 0
 MATCH_SCORES = ("exact", "p_match", "k_match", "class_dist")
@@ -351,19 +352,20 @@ def run_measured(run: Run, *, models: list | None = None, sequences: int | None 
 
     sequences, fabrics, variant = resolve(run, sequences, fabrics, variant)
     models, heldout = _models_and_heldout(run, models, variant, progress)
-    t0 = time.perf_counter()
-    generation = make_clips(run, sequences, fabrics, variant, progress)
-    made = time.perf_counter()
+    t0, seconds = time.perf_counter(), {}
+    with timed(seconds, "clips"):
+        generation = make_clips(run, sequences, fabrics, variant, progress)
     names = [clip_name(f, n) for f, n in wanted_clips(fabrics, sequences)]
     tables, corrs, matches, entries = [], [], [], []
-    for m in models:
-        entry, scored = score_model(run, m, variant, names, predictor=predictor, activations=activations,
-                                    progress=progress)
-        entries.append(entry)
-        if scored is not None:
-            tables.append(scored[0])
-            corrs.append(scored[1])
-            matches.append(scored[2])
+    with timed(seconds, "predict_and_score"):
+        for m in models:
+            entry, scored = score_model(run, m, variant, names, predictor=predictor, activations=activations,
+                                        progress=progress)
+            entries.append(entry)
+            if scored is not None:
+                tables.append(scored[0])
+                corrs.append(scored[1])
+                matches.append(scored[2])
     if not tables:
         raise ConfigError(f"no measured clip was rendered for any model's setting under "
                           f"{run.measured_root / 'render' / variant}: see the render summary "
@@ -379,7 +381,7 @@ def run_measured(run: Run, *, models: list | None = None, sequences: int | None 
             "simulated": generation["sim"]["simulated"], "rendered": generation["render"]["rendered"],
             "predicted": sum(e["status"] == "predicted" for e in entries),
             "reused": sum(e["status"] == "reused" for e in entries),
-            "seconds": {"clips": round(made - t0, 1), "predict_and_score": round(time.perf_counter() - made, 1)},
+            "seconds": {part: round(s, 1) for part, s in seconds.items()},
             "exact": {f"{e['setting']}/{e['train_variant']}/{e['model']}/s{e['seed']}":
                       next(r["value"] for r in e["match"] if r["score"] == "exact")
                       for e in entries if "match" in e}}

@@ -44,6 +44,7 @@ from clothgap.settings import to_dict
 from eval import figures, metrics, tables
 from eval import predictions as preds
 from eval.trained import TrainedModel, checkpoint_sha256, finished_models
+from sim.phases import timed
 
 # (train_dir, clip_dirs) -> predict_clips-shaped frame; the default calls learn.predict.
 Predictor = Callable[[Path, list[Path]], pd.DataFrame]
@@ -349,22 +350,15 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
                           f"settings/variants/models/seeds: run `clothgap train {run.root}` first")
     # Seconds per part, printed with the short summary (not in summary.json, which a rerun rewrites byte for
     # byte): where a study's eval time goes.
-    clock, seconds = time.perf_counter(), {}
-
-    def lap(part: str) -> None:
-        nonlocal clock
-        now = time.perf_counter()
-        seconds[part] = round(now - clock, 1)
-        clock = now
-
-    cells, counts, left_out = predict_all(run, models, predictor or _default_predictor, progress)
+    seconds: dict[str, float] = {}
+    with timed(seconds, "predict"):
+        cells, counts, left_out = predict_all(run, models, predictor or _default_predictor, progress)
     if not cells:
         raise _no_test_clips_error(run, models)
-    lap("predict")
-    with _confusion_figures(run, cells) as confusion:
-        written = _write_tables(run, cells)
-    figs = {"confusion": confusion, "gap": _gap_figures(run, written.gap)}
-    lap("tables_and_figures")
+    with timed(seconds, "tables_and_figures"):
+        with _confusion_figures(run, cells) as confusion:
+            written = _write_tables(run, cells)
+        figs = {"confusion": confusion, "gap": _gap_figures(run, written.gap)}
     in_domain = written.results[written.results["in_domain"]]
     headline = {f"{r.setting}/{r.train_variant}/{r.model}": round(float(r.acc), 4) for r in in_domain.itertuples()}
     summary = _summary(run, models, written, figs, headline, counts, left_out)
@@ -376,19 +370,19 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
 
     # Optional parts, each resumable: the sim stage's material analyses and the measured-fabric set.
     if cfg.eval.sim_analysis:
-        summary["sim_analysis"] = short["sim_analysis"] = run_sim_analysis(run, progress)
+        with timed(seconds, "sim_analysis"):
+            summary["sim_analysis"] = short["sim_analysis"] = run_sim_analysis(run, progress)
         atomic_write_json(out / "summary.json", summary)
-        lap("sim_analysis")
     if cfg.eval.measured_sequences > 0:
         from eval.measured import run_measured
 
-        short["measured"] = run_measured(run, models=models, predictor=predictor, progress=progress)
+        with timed(seconds, "measured"):
+            short["measured"] = run_measured(run, models=models, predictor=predictor, progress=progress)
         summary["files"]["measured"] = {"fabrics": "eval/measured.csv",
                                         "correlations": "eval/measured_correlations.csv",
                                         "markdown": "eval/measured.md", "summary": "eval/measured.json"}
         atomic_write_json(out / "summary.json", summary)
-        lap("measured")
-    short["seconds"] = seconds
+    short["seconds"] = {part: round(s, 1) for part, s in seconds.items()}
     return short
 
 

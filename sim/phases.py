@@ -1,4 +1,5 @@
-"""Where a batch's simulation time goes: named phases whose wall seconds add up (the stage's ``phases_s``)."""
+"""Where a stage's time goes: named phases whose wall seconds add up (the sim stage's ``phases_s``, the seconds
+`clothgap eval` prints)."""
 
 from __future__ import annotations
 

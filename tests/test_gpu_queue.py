@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+import sys
 import tarfile
 from pathlib import Path
 
@@ -106,7 +107,7 @@ def test_lanes_split_the_gpus_run_joined_plans_in_order_and_resume_each_lane(tmp
     second.write_text(f"tests: echo ran-tests  # the same command\nslow: [ -f {gate} ] || exit 75; echo b-slow\n")
     third.write_text("see: echo \"gpus $CUDA_VISIBLE_DEVICES\" > $OUT/gpus.txt\n")
     env = {**os.environ, "QUEUE_STATE": str(tmp_path / "state"), "OUT": str(tmp_path / "out"), "BUDGET": "60",
-           "CUDA_VISIBLE_DEVICES": "0,1,2,3,4"}
+           "CUDA_VISIBLE_DEVICES": "0,1,2,3,4", "PYTHON": sys.executable}
 
     def call() -> subprocess.CompletedProcess:
         return subprocess.run(["bash", str(LANES), f"{first}+{second}", str(third)], capture_output=True,
@@ -145,7 +146,7 @@ def test_lanes_refuse_a_bad_plan_before_any_lane_starts(tmp_path):
     other = tmp_path / "b.plan"
     other.write_text("train: echo another\n")          # the same name, another command: one state, two steps
     env = {**os.environ, "QUEUE_STATE": str(tmp_path / "state"), "OUT": str(tmp_path / "out"), "BUDGET": "60",
-           "CUDA_VISIBLE_DEVICES": "0,1"}
+           "CUDA_VISIBLE_DEVICES": "0,1", "PYTHON": sys.executable}
     for lanes, message in (([f"{first}+{other}"], "step 'train' of"), ([str(first), str(tmp_path / "no.plan")],
                                                                           "no plan file")):
         r = subprocess.run(["bash", str(LANES), *lanes], capture_output=True, text=True, env=env, timeout=60)

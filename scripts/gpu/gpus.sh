@@ -1,12 +1,8 @@
-# Sourced by the GPU scripts: gpus (this process's GPUs as CUDA_VISIBLE_DEVICES entries: that variable when
-# set, else every GPU nvidia-smi lists; empty when there are none) and ngpu (their count, at least 1, as a
-# size). A lane of scripts/gpu/lanes.sh sees only its own GPUs, so a script sizes its work and samples memory
-# by its lane, not by the whole machine. Blank and -1 entries are dropped, as clothgap.executor.visible_gpus
-# drops them.
-if [ -n "${CUDA_VISIBLE_DEVICES+x}" ]; then gpus=$CUDA_VISIBLE_DEVICES
-elif listed=$(nvidia-smi --query-gpu=index --format=csv,noheader 2>/dev/null); then
-  gpus=$(echo "$listed" | grep -E '^[[:space:]]*[0-9]+[[:space:]]*$' | tr -d ' ' | paste -sd, -)
-else gpus=
-fi
-gpus=$(echo "$gpus" | tr ',' '\n' | tr -d ' ' | awk '$0 != "" && $0 != "-1"' | paste -sd, -)
+# Sourced by the GPU scripts: gpus (this process's GPUs as CUDA_VISIBLE_DEVICES entries, as
+# clothgap.executor.visible_gpus reads them: that variable when set, else nvidia-smi's list; empty when there are
+# none) and ngpu (their count, at least 1, as a size). A lane of scripts/gpu/lanes.sh sees only its own GPUs, so a
+# script sizes its work and samples memory by its lane, not by the whole machine. PYTHON names the interpreter
+# (default python3, the one that imports the project).
+gpus=$("${PYTHON:-python3}" -c 'from clothgap.executor import visible_gpus; print(",".join(visible_gpus()))') ||
+  { echo "gpus.sh: ${PYTHON:-python3} cannot import clothgap.executor (is the project on PYTHONPATH?)" >&2; exit 2; }
 ngpu=$(echo "$gpus" | tr ',' '\n' | grep -c . || true); [ "${ngpu:-0}" -ge 1 ] || ngpu=1

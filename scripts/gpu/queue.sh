@@ -1,7 +1,10 @@
 #!/usr/bin/env bash
 # GPU: a session's plan, step after step, across the device's calls of at most 10 minutes.
-#   bash scripts/gpu/queue.sh PLAN            (the same command in every call: finished steps are skipped)
-# PLAN has one step a line, "NAME: COMMAND" (bash; blank lines and # comments skipped). A step's command
+#   bash scripts/gpu/queue.sh PLAN [PLAN...]  (the same command in every call: finished steps are skipped)
+#   bash scripts/gpu/queue.sh --check PLAN [PLAN...]   (read the plans and say what is wrong; run nothing)
+# PLAN has one step a line, "NAME: COMMAND" (bash; blank lines and # comments skipped). Every plan is read
+# before any step runs. Several plans run one after another as one queue: a step that an earlier plan has too,
+# with the same command, runs once; one name twice in a plan, or with two commands, is refused (exit 2). A step's command
 # gets BUDGET (the seconds this call has left for it) and its own OUT folder, and must resume when called
 # again. Its exit status says what happened:
 #   0   done: never run again;
@@ -15,12 +18,13 @@
 # call's tarball holds all),
 # two files of the device's eight.
 set -uo pipefail
-plan=${1:?usage: bash scripts/gpu/queue.sh PLAN}
-[ -f "$plan" ] || { echo "queue: no plan file $plan" >&2; exit 2; }
+check=; [ "${1:-}" = --check ] && { check=1; shift; }
+[ $# -ge 1 ] || { echo "usage: bash scripts/gpu/queue.sh [--check] PLAN [PLAN...]" >&2; exit 2; }
+plans="$*"
 BUDGET=${BUDGET:-560}
 state=${QUEUE_STATE:-/tmp/queue}
 out=${OUT:-/tmp/out}
-mkdir -p "$state/out" "$out"
+[ -n "$check" ] || mkdir -p "$state/out" "$out"
 t0=$(date +%s)
 left() { echo $(( BUDGET - ($(date +%s) - t0) )); }
 log=$out/queue.log
@@ -54,16 +58,33 @@ pack() {
   [ -s "$left.new" ] && ! cmp -s "$left.new" "$left" && tee -a "$log" < "$state/out/LEFT_OUT.txt"
   mv -f "$left.new" "$left"
 }
-trap pack EXIT
-names=()
-while IFS= read -r line || [ -n "$line" ]; do
-  line=${line%%#*}
-  [[ "$line" =~ ^[[:space:]]*$ ]] && continue
-  name=$(echo "${line%%:*}" | tr -d '[:space:]')
-  cmd=${line#*:}
-  [[ "$name" =~ ^[A-Za-z0-9_.-]+$ ]] || { echo "queue: bad step name '$name' in $plan" | tee -a "$log"; exit 2; }
-  [[ " ${names[*]-} " == *" $name "* ]] && { echo "queue: step $name twice in $plan" | tee -a "$log"; exit 2; }
-  names+=("$name")
+[ -n "$check" ] || trap pack EXIT
+# Every plan read first, so that a bad step stops the queue before anything runs.
+names=() cmds=() origins=()
+refuse() { echo "queue: $*" | { [ -n "$check" ] && cat || tee -a "$log"; }; exit 2; }
+for plan in "$@"; do
+  [ -f "$plan" ] || refuse "no plan file $plan"
+  seen=" "
+  while IFS= read -r line || [ -n "$line" ]; do
+    line=${line%%#*}
+    [[ "$line" =~ ^[[:space:]]*$ ]] && continue
+    line=${line%"${line##*[![:space:]]}"}     # trailing blanks (before a comment) are not the command
+    name=$(echo "${line%%:*}" | tr -d '[:space:]')
+    cmd=${line#*:}
+    [[ "$name" =~ ^[A-Za-z0-9_.-]+$ ]] || refuse "bad step name '$name' in $plan"
+    [[ "$seen" == *" $name "* ]] && refuse "step $name twice in $plan"
+    seen+="$name "
+    for k in "${!names[@]}"; do
+      [ "${names[$k]}" = "$name" ] || continue
+      [ "${cmds[$k]}" = "$cmd" ] && continue 2      # an earlier plan's step, the same command: it runs once
+      refuse "step '$name' of $plan differs from the step of that name in ${origins[$k]}: rename one"
+    done
+    names+=("$name") cmds+=("$cmd") origins+=("$plan")
+  done < "$plan"
+done
+[ -n "$check" ] && exit 0
+for k in "${!names[@]}"; do
+  name=${names[$k]} cmd=${cmds[$k]}
   if [ -f "$state/$name.done" ]; then echo "== $name: done before" | tee -a "$log"; continue; fi
   if [ -f "$state/$name.failed" ]; then echo "== $name: failed before, left" | tee -a "$log"; continue; fi
   budget=$(( $(left) - 15 ))                  # the tarball's time
@@ -80,5 +101,5 @@ while IFS= read -r line || [ -n "$line" ]; do
     75|124|137) echo "queue: $name goes on in the next call" | tee -a "$log"; exit 0 ;;
     *) echo "$rc" > "$state/$name.failed" ;;
   esac
-done < "$plan"
-echo "queue: every step of $plan has run ($(ls "$state"/*.failed 2>/dev/null | wc -l) failed)" | tee -a "$log"
+done
+echo "queue: every step of $plans has run ($(ls "$state"/*.failed 2>/dev/null | wc -l) failed)" | tee -a "$log"
