@@ -76,7 +76,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from render.backend import BACKENDS, find_libllvm, load_mitsuba  # noqa: E402
 from render.batch import BatchRenderer  # noqa: E402
-from render.config import LIGHT_SHAPES, RenderConfig  # noqa: E402
+from render.config import RenderConfig  # noqa: E402
 from render.scene import ClipRenderer  # noqa: E402
 from render.synthetic import waving_sheet  # noqa: E402
 from render.variants import get_variant  # noqa: E402
@@ -90,8 +90,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    "without a good libLLVM); overrides --backend")
     p.add_argument("--backend", default="auto", choices=BACKENDS)
     p.add_argument("--variant", default="paper")
-    p.add_argument("--light-shapes", default="rectangle", choices=LIGHT_SHAPES,
-                   help="render.light_shapes: rectangle lights and room walls as rectangles or as meshes")
     p.add_argument("--resolution", type=int, default=224)
     p.add_argument("--spp", default="16,4", help="comma-separated samples per pixel, one round each")
     p.add_argument("--k", default="", help="comma-separated frames per launch for the batched path (render.batch)")
@@ -179,8 +177,7 @@ OUTPUTS = {"npy": (False, False), "png": (True, False), "png+exr": (True, True)}
 def make_renderer(args, clip, index: int, spp: int, mode: str = "scene_per_clip") -> ClipRenderer:
     reuse, freeze = MODES[mode]
     return ClipRenderer(clip, get_variant(args.variant), resolution=args.resolution, spp=spp, run_seed=0,
-                        clip_index=index, backend=args.backend, reuse_scenes=reuse, freeze=freeze,
-                        light_shapes=args.light_shapes)
+                        clip_index=index, backend=args.backend, reuse_scenes=reuse, freeze=freeze)
 
 
 def render_loop(args, clips, spp: int, k: int, mode: str = "scene_per_clip") -> int:
@@ -266,7 +263,7 @@ def stage_loop(args, clips, spp: int, k: int, outputs: str = "png+exr", indices:
     write_png, write_hdr = OUTPUTS[outputs]
     config = RenderConfig(variants=(args.variant,), resolution=args.resolution, spp=spp, backend=args.backend,
                           frames_per_launch=k, writer_threads=args.writer_threads, write_png=write_png,
-                          write_hdr=write_hdr, frames_in_flight=in_flight, light_shapes=args.light_shapes)
+                          write_hdr=write_hdr, frames_in_flight=in_flight)
     frames = 0
     with tempfile.TemporaryDirectory(prefix="render-bench-") as tmp, \
             ThreadPoolExecutor(args.writer_threads) as writer:

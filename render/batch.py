@@ -52,7 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from render.scene import ClipRenderer, Frame, rectangle_corners
+from render.scene import ClipRenderer, Frame
 
 ENCLOSURE_MARGIN = 1.05  # the shell's radius over the farthest point of the slot, seen from its camera
 WINDOW_MARGIN = 1.1      # the window's half-angle over the frustum's diagonal half-angle
@@ -84,6 +84,11 @@ def _rotation_to_down(direction: np.ndarray) -> np.ndarray:
     right /= np.linalg.norm(right)
     up = np.cross(right, v)
     return np.stack([right, up, -v])  # rows: right -> x, up -> y, view -> -z (a proper rotation)
+
+
+def _rectangle_corners(to_world: np.ndarray) -> np.ndarray:
+    corners = np.array([[-1, -1, 0, 1], [1, -1, 0, 1], [1, 1, 0, 1], [-1, 1, 0, 1]], np.float64)
+    return (corners @ to_world.T)[:, :3]
 
 
 def enclosure_mesh(radius: float, window_deg: float, tunnel: float = TUNNEL_LENGTH,
@@ -222,7 +227,7 @@ class BatchRenderer:
         camera at ``origin``, and its window's half-angle in degrees."""
         lo, hi = self.clip.bounds()
         box = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-        points = [box] + [rectangle_corners(np.asarray(e["to_world"].matrix, np.float64))
+        points = [box] + [_rectangle_corners(np.asarray(e["to_world"].matrix, np.float64))
                           for e in rectangles.values()]
         reach = max(float(np.linalg.norm(np.concatenate(points) - origin, axis=1).max()), 1e-3)
         half_diag = math.degrees(math.atan(math.tan(math.radians(self.r.framing.fov_deg) / 2) * math.sqrt(2)))
@@ -260,9 +265,7 @@ class BatchRenderer:
             "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}},
         })
         for name, entry in rectangles.items():
-            moved = {**entry, "to_world": to_world @ entry["to_world"]}
-            key = f"{name}_{i:03d}"
-            scene[key] = self.r._rectangle_mesh(key, moved) if self.r.light_shapes == "mesh" else mi.load_dict(moved)
+            scene[f"{name}_{i:03d}"] = mi.load_dict({**entry, "to_world": to_world @ entry["to_world"]})
 
     def _shell(self, i: int, pose: SlotPose, shell: tuple[np.ndarray, np.ndarray], ambient: np.ndarray, black):
         """Slot ``i``'s black shell, emitting the ambient radiance inward, around its camera."""

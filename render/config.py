@@ -14,9 +14,6 @@ from clothgap import checks
 AUTO_FRAMES_PER_LAUNCH = {"cuda_ad_rgb": 1, "llvm_ad_rgb": 1, "scalar_rgb": 1}
 
 
-LIGHT_SHAPES = ("rectangle", "mesh")  # how rectangle lights and room walls are built (render.scene)
-
-
 @dataclass(frozen=True)
 class RenderConfig:
     variants: tuple[str, ...] = ("paper",)  # names from the variant registry (`clothgap render --list-variants`)
@@ -42,9 +39,6 @@ class RenderConfig:
                                             # them every frame: 1.8-2.7x per process on an H100, frames equal to
                                             # 1e-8. CUDA only: on llvm_ad_rgb the replay kept the BVH of the frame
                                             # it was recorded on (wrong frames), so it is ignored there
-    light_shapes: str = "rectangle"         # "mesh": rectangle lights and room walls as two-triangle meshes, so
-                                            # OptiX builds one acceleration structure a frame instead of three
-                                            # (render.scene); the same surfaces, images equal in expectation
 
     def settings_of(self, variant: str, settings: list[str]) -> list[str]:
         """The settings (of ``settings``, in order) that ``variant`` is rendered for."""
@@ -82,7 +76,6 @@ class RenderConfig:
         out += checks.choice("render.backend", self.backend, BACKENDS)
         out += checks.number("render.frames_per_launch", self.frames_per_launch, 0)
         out += checks.number("render.writer_threads", self.writer_threads, 1)
-        out += checks.choice("render.light_shapes", self.light_shapes, LIGHT_SHAPES)
         out += checks.number("render.frames_in_flight", self.frames_in_flight, 1)
         return out
 

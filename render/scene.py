@@ -17,11 +17,7 @@ structure (variant, light and room layout, mesh capacity) and retargets it in
 place, writing its camera, lights, room and texture in through ``mi.traverse``.
 Meshes are allocated for a capacity and padded (unreferenced vertices,
 degenerate faces that no ray hits), so clips and remeshed frames of different
-sizes share one scene. ``light_shapes="mesh"`` builds the rectangle lights and room walls as
-two-triangle meshes (the same surfaces, sampled uniformly by area as the rectangles are): on CUDA
-Mitsuba keeps meshes and other shapes in separate OptiX acceleration structures, rebuilt with every
-parameter update and joined by a top-level one, so a scene of meshes only has one structure to build a
-frame instead of three. On CUDA ``mi.render`` runs under ``dr.freeze``: its
+sizes share one scene. On CUDA ``mi.render`` runs under ``dr.freeze``: its
 kernels are recorded once per scene and replayed with the new parameters, which
 removes the per-frame tracing of the integrator (the larger part of a frame's
 time at one frame per launch). ``reuse_scenes=False`` gives a scene per clip,
@@ -54,7 +50,6 @@ from clothgap import seeding
 from render.backend import load_mitsuba
 from render.backgrounds import Backgrounds
 from render.camera import adds_noise, apply_camera, draw_camera
-from render.config import LIGHT_SHAPES
 from render.device_finish import DeviceFinish, unsupported as device_unsupported
 from render.lighting import Framing, emitters, room_shapes
 from render.materials import cloth_bsdf
@@ -184,24 +179,6 @@ def _copy_params(src, dst, prefix: str) -> None:
 _STRUCTURE_KEYS = {"size", "crop_size", "crop_offset", "allow_thread_reordering"}
 
 
-# A rectangle's corners in its local frame (Mitsuba's rectangle spans [-1, 1]^2 at z = 0, normal +z),
-# wound counter-clockwise about +z so the triangles' normal is the rectangle's, and its uv.
-_RECT_CORNERS = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)
-_RECT_FACES = np.array([[0, 1, 2], [0, 2, 3]], np.uint32)
-_RECT_UV = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32)
-
-
-def rectangle_corners(to_world: np.ndarray) -> np.ndarray:
-    """The world positions of a rectangle's four corners (``_RECT_CORNERS`` order) under a 4x4 matrix."""
-    m = np.asarray(to_world, np.float64)
-    return _RECT_CORNERS @ m[:3, :3].T + m[:3, 3]
-
-
-def _corners_f32(to_world) -> np.ndarray:
-    """A Mitsuba transform's rectangle corners, flat float32 (a mesh's vertex_positions)."""
-    return rectangle_corners(np.asarray(to_world.matrix, np.float64)).astype(np.float32).ravel()
-
-
 def _opaque(value):
     """``value`` made a kernel input rather than a literal Dr.Jit would bake into the kernel."""
     if not isinstance(value, (int, float)):
@@ -216,10 +193,7 @@ class ClipRenderer:
 
     def __init__(self, clip: SimClip, variant: RenderVariant, *, resolution: int, spp: int, run_seed: int,
                  clip_index: int, backend: str = "auto", backgrounds: Backgrounds | None = None,
-                 reuse_scenes: bool = True, freeze: bool = True, light_shapes: str = "rectangle"):
-        if light_shapes not in LIGHT_SHAPES:
-            raise ValueError(f"light_shapes={light_shapes!r}: expected one of {', '.join(LIGHT_SHAPES)}")
-        self.light_shapes = light_shapes
+                 reuse_scenes: bool = True, freeze: bool = True):
         self.mi: ModuleType = load_mitsuba(backend)
         self.clip, self.variant = clip, variant
         self.resolution, self.spp = int(resolution), int(spp)
@@ -315,30 +289,6 @@ class ClipRenderer:
             **self.room,
         }
 
-    def _loadable(self, scene: dict) -> dict:
-        """``scene`` with its rectangles as meshes when ``light_shapes`` is "mesh" (else unchanged)."""
-        if self.light_shapes == "rectangle":
-            return scene
-        return {name: self._rectangle_mesh(name, value)
-                if isinstance(value, dict) and value.get("type") == "rectangle" else value
-                for name, value in scene.items()}
-
-    def _rectangle_mesh(self, name: str, entry: dict):
-        """A rectangle entry as a two-triangle ``mi.Mesh`` with the same emitter and BSDF."""
-        mi = self.mi
-        props = mi.Properties()
-        if "bsdf" in entry:  # else Mitsuba's default, as for the rectangle: black for a light, else grey
-            props["bsdf"] = mi.load_dict(entry["bsdf"])
-        if "emitter" in entry:
-            props["emitter"] = mi.load_dict(entry["emitter"])
-        mesh = mi.Mesh(name, 4, 2, props=props, has_vertex_texcoords=True)
-        params = mi.traverse(mesh)
-        params["vertex_positions"] = type(params["vertex_positions"])(_corners_f32(entry["to_world"]))
-        params["faces"] = type(params["faces"])(_RECT_FACES.ravel())
-        params["vertex_texcoords"] = type(params["vertex_texcoords"])(_RECT_UV.ravel())
-        params.update()
-        return mesh
-
     def _mesh(self, n_vertices: int, n_faces: int, positions, faces, uv):
         mi = self.mi
         props = mi.Properties()
@@ -352,7 +302,7 @@ class ClipRenderer:
 
     def _build(self, positions: np.ndarray, faces: np.ndarray, uv: np.ndarray) -> None:
         """One scene for this clip alone (reuse_scenes=False)."""
-        scene = self._loadable(self._scene_dict())
+        scene = self._scene_dict()
         scene["cloth"] = self._mesh(len(positions), len(faces), positions, faces, uv)
         self.scene = self.mi.load_dict(scene)
         self.params = self.mi.traverse(self.scene)
@@ -367,7 +317,6 @@ class ClipRenderer:
                                                                            "radiance", "irradiance", "direction")}
             return type(entry).__name__
         return json.dumps({"variant": self.variant.settings(), "resolution": self.resolution,
-                           "light_shapes": self.light_shapes,
                            "capacity": capacity, "lights": shape(self.lights), "room": shape(self.room)},
                           sort_keys=True, default=str)
 
@@ -385,7 +334,7 @@ class ClipRenderer:
         capacity = self._clip_capacity()
 
         def build() -> PooledScene:
-            scene = self._loadable(self._scene_dict())
+            scene = self._scene_dict()
             p, f, u = self._padded(positions, faces, uv, capacity)
             scene["cloth"] = self._mesh(capacity[0], capacity[1], p, f, u)
             loaded = mi.load_dict(scene)
@@ -426,11 +375,7 @@ class ClipRenderer:
             if name == "sensor":
                 put("sensor.to_world", mi.AffineTransform4f(value["to_world"]))
             elif kind == "rectangle":
-                if self.light_shapes == "mesh":
-                    key = f"{name}.vertex_positions"
-                    params[key] = type(params[key])(_corners_f32(value["to_world"]))
-                else:
-                    put(f"{name}.to_world", mi.AffineTransform4f(value["to_world"]))
+                put(f"{name}.to_world", mi.AffineTransform4f(value["to_world"]))
                 if "emitter" in value:
                     put(f"{name}.emitter.radiance.value", rgb(value["emitter"]["radiance"]))
                 if "bsdf" in value and f"{name}.bsdf.reflectance.value" in params:

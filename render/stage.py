@@ -84,8 +84,7 @@ def render_clip(clip: SimClip, variant: RenderVariant, out_dir: Path, *, config:
     start = time.perf_counter()
     renderer = ClipRenderer(clip, variant, resolution=config.resolution, spp=config.spp, run_seed=run_seed,
                             clip_index=clip_index, backend=config.backend, backgrounds=backgrounds,
-                            reuse_scenes=config.reuse_scenes, freeze=config.freeze,
-                            light_shapes=config.light_shapes)
+                            reuse_scenes=config.reuse_scenes, freeze=config.freeze)
     frames, per_launch, on_host, unbatched = _frame_source(renderer, config, device_finish)
     compress = variant.video_crf > 0
     png = config.write_png

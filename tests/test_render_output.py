@@ -82,19 +82,17 @@ def _jit_or_scalar() -> list[str]:
     return ["llvm_ad_rgb", "scalar_rgb"] if find_libllvm() else ["scalar_rgb"]
 
 
-@pytest.mark.parametrize("backend,light_shapes", [(b, "rectangle") for b in _jit_or_scalar()]
-                         + [(_jit_or_scalar()[0], "mesh")])
-def test_pooled_scenes_render_exactly_what_a_scene_per_clip_renders(backend, light_shapes):
+@pytest.mark.parametrize("backend", _jit_or_scalar())
+def test_pooled_scenes_render_exactly_what_a_scene_per_clip_renders(backend):
     """Retargeting a pooled scene (camera, lights, room, texture, padded mesh) must not change a pixel."""
     from render.scene import scene_pool
 
     pool = scene_pool(load_mitsuba(backend))
     pool.clear()
-    variants = ("paper", "room", "daylight", "fabric-table") if light_shapes == "rectangle" else ("paper", "room")
-    for variant in variants:
+    for variant in ("paper", "room", "daylight", "fabric-table"):
         for index, remesh in ((0, 0), (1, 0), (2, 2), (3, 3)):  # 0, 1 share a scene; so do the remeshed 2, 3
             clip = waving_sheet(frames=4, n=8, index=index, remesh_every=remesh)
-            kw = dict(resolution=16, spp=2, run_seed=3, clip_index=index, backend=backend, light_shapes=light_shapes)
+            kw = dict(resolution=16, spp=2, run_seed=3, clip_index=index, backend=backend)
             alone = ClipRenderer(clip, get_variant(variant), reuse_scenes=False, **kw)
             pooled = ClipRenderer(clip, get_variant(variant), **kw)
             for t in range(clip.num_frames):
@@ -106,37 +104,6 @@ def test_pooled_scenes_render_exactly_what_a_scene_per_clip_renders(backend, lig
                 assert off.mean() <= 0.01, f"{variant} clip {index} frame {t}: {off.sum()} pixels differ"
     assert pool.retargets > 0, "clips of one structure must share a scene"
     assert pool.builds < pool.retargets + pool.builds
-
-
-@pytest.mark.parametrize("variant", ["paper", "room"])
-def test_lights_and_walls_as_meshes_render_the_rectangles_image_in_expectation(variant):
-    """render.light_shapes=mesh builds the same surfaces: the same image up to Monte Carlo noise.
-
-    A mesh light wound the wrong way would face away from the cloth, a wall would show its back, and a light
-    given a grey BSDF instead of the rectangle's black one adds a bounce (+2 % here): each far beyond the
-    noise at this many samples."""
-    clip = waving_sheet(frames=1, n=8, index=1)
-    kw = dict(resolution=16, spp=256, run_seed=5, clip_index=1, backend=BACKEND, reuse_scenes=False)
-    rect = ClipRenderer(clip, get_variant(variant), **kw).render_hdr(0)
-    mesh_renderer = ClipRenderer(clip, get_variant(variant), light_shapes="mesh", **kw)
-    mesh = mesh_renderer.render_hdr(0)
-    assert all(shape.is_mesh() for shape in mesh_renderer.scene.shapes())
-    assert np.array_equal(rect[..., 3] > 0.5, mesh[..., 3] > 0.5)  # the same cloth covers the same pixels
-    rgb_rect, rgb_mesh = rect[..., :3], mesh[..., :3]
-    np.testing.assert_allclose(rgb_mesh.mean((0, 1)), rgb_rect.mean((0, 1)), rtol=0.02)  # each channel
-
-    def quadrants(rgb):  # 64 pixels x 256 samples each: about 1 % noise
-        return rgb.reshape(2, 8, 2, 8, 3).mean((1, 3, 4))
-    assert np.abs(quadrants(rgb_mesh) - quadrants(rgb_rect)).max() < 0.04 * rgb_rect.mean()
-
-
-def test_unknown_light_shapes_are_refused():
-    with pytest.raises(ValueError, match="light_shapes='disk'"):
-        ClipRenderer(waving_sheet(frames=1, n=4), get_variant("paper"), resolution=8, spp=1, run_seed=0,
-                     clip_index=0, backend=BACKEND, light_shapes="disk")
-    with pytest.raises(ConfigError, match="render.light_shapes"):
-        smoke = preset("smoke")
-        validate(replace(smoke, render=replace(smoke.render, light_shapes="disk")))
 
 
 @pytest.mark.xfail(strict=False, reason="known: with random lighting (environment map + area lights), some scene "
