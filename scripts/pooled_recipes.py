@@ -14,6 +14,8 @@ A side is VARIANT:RECIPE@SEED,RECIPE@SEED,...: the render variant the recipe tra
 folders' recipe names (`RUN/ablation/RECIPE/SETTING/VARIANT/lrcn/sSEED`). --look own scores each on its training
 variant's test clips, --look V on the same clips rendered as V (`eval ablation --test-variant V`). --b-run takes
 the reference from another run of the same simulations (the same seed and clips, e.g. rendered at another size).
+--a-ensemble (--b-ensemble) scores that side's seeds as one model instead: each window's class probabilities
+averaged over the seeds, the most probable class its prediction (what N seeds trained and kept together give).
 """
 from __future__ import annotations
 
@@ -47,9 +49,10 @@ SCORES = {"acc": metrics.correct, "within1": metrics.within_one_bin, "stretch_ac
           "bend_acc": metrics.bend_correct}
 
 
-def _scores(run: Path, setting: str, model: str, look: str, spec: str) -> tuple[dict[str, np.ndarray], pd.DataFrame]:
-    """Per test window (sorted by clip and start), for each of ``SCORES`` the fraction of seeds that got it; the
-    windows (clip_id, start)."""
+def _scores(run: Path, setting: str, model: str, look: str, spec: str,
+            ensemble: bool = False) -> tuple[dict[str, np.ndarray], pd.DataFrame]:
+    """Per test window (sorted by clip and start), for each of ``SCORES`` the fraction of seeds that got it (with
+    ``ensemble``, whether the seeds' mean probabilities got it); the windows (clip_id, start)."""
     variant, members = _side(spec)
     suffix = "" if look == "own" else f"-{look}"
     frames = []
@@ -63,6 +66,13 @@ def _scores(run: Path, setting: str, model: str, look: str, spec: str) -> tuple[
     for frame, (recipe, seed) in zip(frames, members):
         if not frame[["clip_id", "start"]].equals(windows):
             raise SystemExit(f"{recipe}@{seed}: its test windows differ from {members[0][0]}@{members[0][1]}'s")
+    if ensemble:
+        columns = [c for c in frames[0].columns if c.startswith("prob_")]
+        if not columns:
+            raise SystemExit(f"{spec!r}: the predictions hold no class probabilities (prob_NN): no ensemble")
+        mean = np.mean([f[columns].to_numpy(np.float64) for f in frames], axis=0)
+        pred = np.array([int(columns[i].removeprefix("prob_")) for i in mean.argmax(axis=1)])
+        return {name: score(frames[0]["class_index"], pred) for name, score in SCORES.items()}, windows
     return {name: np.mean([score(f["class_index"], f["pred"]) for f in frames], axis=0)
             for name, score in SCORES.items()}, windows
 
@@ -78,14 +88,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--b", required=True, help="VARIANT:RECIPE@SEED,... (the reference)")
     parser.add_argument("--b-run", type=Path, help="the reference's run, if another (the same simulations, e.g. "
                                                    "rendered at another resolution): default RUN")
+    parser.add_argument("--a-ensemble", action="store_true", help="score --a's seeds as one averaged model")
+    parser.add_argument("--b-ensemble", action="store_true", help="score --b's seeds as one averaged model")
     args = parser.parse_args(argv)
-    a_scores, a_windows = _scores(args.run, args.setting, args.model, args.look, args.a)
-    b_scores, b_windows = _scores(args.b_run or args.run, args.setting, args.model, args.look, args.b)
+    a_scores, a_windows = _scores(args.run, args.setting, args.model, args.look, args.a, args.a_ensemble)
+    b_scores, b_windows = _scores(args.b_run or args.run, args.setting, args.model, args.look, args.b,
+                                  args.b_ensemble)
     if not a_windows.equals(b_windows):
         raise SystemExit("--a and --b were scored on different test windows: no paired comparison")
     clips = a_windows["clip_id"].to_numpy()    # resampled by clip: a clip's windows go together
     out = {"run": str(args.run), "b_run": str(args.b_run or args.run), "setting": args.setting,
-           "model": args.model, "look": args.look, "a": args.a, "b": args.b, "test_windows": len(a_windows),
+           "model": args.model, "look": args.look, "a": args.a, "b": args.b, "a_ensemble": args.a_ensemble,
+           "b_ensemble": args.b_ensemble, "test_windows": len(a_windows),
            "test_clips": len(set(clips))}
     for name in SCORES:
         a, b = a_scores[name], b_scores[name]
