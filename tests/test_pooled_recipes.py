@@ -60,3 +60,37 @@ def test_a_missing_look_and_other_clips_are_refused_by_name(tmp_path):
     assert unpaired.returncode != 0 and "different test windows" in unpaired.stderr
     bad = _run(tmp_path, "--a", "paper:a", "--b", "paper:a@0")
     assert bad.returncode != 0 and "expected RECIPE@SEED" in bad.stderr
+
+
+def _write_probs(run: Path, recipe: str, seed: int, probs, truth: list[int]) -> None:
+    """Predictions with class probabilities (prob_00 .. prob_53), the argmax the prediction."""
+    import numpy as np
+
+    folder = run / "ablation" / recipe / "wind-uniform1" / "paper" / "lrcn" / f"s{seed}"
+    folder.mkdir(parents=True, exist_ok=True)
+    probs = np.asarray(probs, float)
+    frame = pd.DataFrame({"clip_id": [f"c{i:05d}" for i in range(len(truth))], "start": 0, "class_index": truth,
+                          "pred": probs.argmax(1)})
+    frame = pd.concat([frame, pd.DataFrame(probs, columns=[f"prob_{c:02d}" for c in range(54)])], axis=1)
+    frame.to_csv(folder / "test_predictions.csv", index=False)
+
+
+def test_an_ensemble_scores_the_seeds_mean_probabilities(tmp_path):
+    import numpy as np
+
+    truth = [0, 10, 20, 30]
+    # Each seed puts 0.4 on the true class and 0.6 on a wrong one of its own: each is always wrong, and their
+    # mean (0.4 on the truth, 0.3 on each wrong class) always right.
+    first, second = np.zeros((4, 54)), np.zeros((4, 54))
+    for i, t in enumerate(truth):
+        first[i, t], first[i, t + 5] = 0.4, 0.6
+        second[i, t], second[i, t + 7] = 0.4, 0.6
+    _write_probs(tmp_path, "base", 0, first, truth)
+    _write_probs(tmp_path, "base+seeds=1", 1, second, truth)
+    spec = "paper:base@0,base+seeds=1@1"
+    out = json.loads(_run(tmp_path, "--a", spec, "--a-ensemble", "--b", spec).stdout)
+    assert out["a_ensemble"] and not out["b_ensemble"]
+    assert out["a_acc"] == 1.0 and out["b_acc"] == 0.0 and out["acc_a_minus_b"] == 1.0
+    _write(tmp_path, "plain", 0, truth, truth)     # predictions without probabilities cannot be averaged
+    refused = _run(tmp_path, "--a", "paper:plain@0", "--a-ensemble", "--b", spec)
+    assert refused.returncode != 0 and "no class probabilities" in refused.stderr
