@@ -1,8 +1,6 @@
-"""Prediction frames: what ``learn.predict.predict_clips`` returns, on disk as CSV.
-
-One row per sub-sequence (``train.clip_len`` frames): ``clip_id, start, class_index, pred`` and the
-54 class probabilities, stored as columns ``prob_00 .. prob_53`` so that the CSV
-opens in any tool. In memory ``probs`` is an (rows, 54) array beside the frame.
+"""Prediction frames: what ``learn.predict.predict_clips`` returns, on disk as CSV (the format is
+``learn.predictions``'s: ``clip_id, start, class_index, pred`` and ``prob_00 .. prob_53``), read back and
+summarised per sequence.
 """
 
 from __future__ import annotations
@@ -12,30 +10,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from clothgap.runs import atomic_write_text
-from eval import classes
-
-PROB_COLUMNS = [f"prob_{i:02d}" for i in range(classes.NUM_CLASSES)]
-KEY_COLUMNS = ["clip_id", "start", "class_index", "pred"]
-
-
-def to_flat(frame: pd.DataFrame) -> pd.DataFrame:
-    """A predict_clips frame (``probs`` column of 54-vectors) as flat columns."""
-    missing = [c for c in KEY_COLUMNS + ["probs"] if c not in frame.columns]
-    if missing:
-        raise ValueError(f"prediction frame lacks column(s) {', '.join(missing)}; has {', '.join(frame.columns)}")
-    probs = np.stack([np.asarray(p, dtype=float) for p in frame["probs"]]) if len(frame) else \
-        np.zeros((0, classes.NUM_CLASSES))
-    if probs.shape[1] != classes.NUM_CLASSES:
-        raise ValueError(f"probs must have {classes.NUM_CLASSES} entries per row, got {probs.shape[1]}")
-    flat = frame[KEY_COLUMNS].reset_index(drop=True).copy()
-    flat["clip_id"] = flat["clip_id"].astype(str)
-    return pd.concat([flat, pd.DataFrame(probs, columns=PROB_COLUMNS)], axis=1)
-
-
-def save(frame: pd.DataFrame, path: Path) -> None:
-    """Write atomically, so a killed eval never leaves a half CSV that a resume would trust."""
-    atomic_write_text(path, to_flat(frame).to_csv(index=False, float_format="%.6g"))
+from learn.predictions import KEY_COLUMNS, PROB_COLUMNS, save, to_flat  # noqa: F401  (the format; eval's names)
 
 
 def load(path: Path) -> pd.DataFrame:

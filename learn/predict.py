@@ -19,6 +19,7 @@ from clothgap.errors import InputError, MissingInputError, UserError
 from clothgap.runs import read_meta
 from learn.dataset import FrameCache, FrameError, read_frames, subsequence_starts, to_input
 from learn.models import ClipClassifier, build_model
+from learn.predictions import window_predictions
 from learn.train import resolve_device
 from learn.windows import WindowSet
 
@@ -122,11 +123,4 @@ def predict_windows(train_dir: Path | str, cache: FrameCache, windows, device: t
     tcfg = ckpt["config"]["train"]
     model = load_model(train_dir, str(device))
     data = WindowSet(cache, windows, tcfg["clip_len"], tcfg["clip_stride"], device)
-    probs = []
-    with torch.autocast(data.device.type, dtype=torch.bfloat16, enabled=data.device.type == "cuda"):
-        for x, _, _ in data.batches(batch_size):
-            probs.append(model.probs(model(x)).float().cpu().numpy())
-    p = np.concatenate(probs) if probs else np.zeros((0, 54), np.float32)
-    return pd.DataFrame({"clip_id": data.clip_ids, "start": data.starts.numpy(),
-                         "class_index": data.labels.numpy(), "pred": p.argmax(1) if len(p) else [],
-                         "probs": list(p.astype(np.float32))})
+    return window_predictions(model, data, batch_size)

@@ -11,6 +11,8 @@
                     data only: it is read with ``weights_only=True``, so a run folder cannot run code)
     checkpoint.pt   the kept model (``train.keep``: the last epoch, or the best by validation
                     accuracy) in the contract format (docs/contracts.md)
+    val_predictions.csv  the kept model on every validation window (``learn.predictions``'s CSV), so
+                    recipes and ensembles of seeds can be compared on validation after the fact
     DONE            written last
 
 A killed run resumes from ``last.pt`` and ends with the same weights as an
@@ -47,6 +49,7 @@ from learn.config import SCHEDULES, TrainConfig
 from learn.dataset import build_cache
 from learn.geometry import geometry_targets
 from learn.models import NUM_CLASSES, ClipClassifier, build_model, load_cnn_weights, model_args
+from learn import predictions
 from learn.registry import get_model_entry
 from learn.split import PARTS, get_or_make_split, part_clips, part_windows, training_subset
 from learn.windows import WindowSet
@@ -616,6 +619,10 @@ def _finish(t: Training) -> None:
     # temporary name would change the bytes that eval hashes (checkpoint_sha256). DONE, written next, is what
     # says the folder is complete; a kill before it resumes from last.pt and writes this again.
     torch.save(checkpoint, t.out / "checkpoint.pt")
+    if len(t.val_set):
+        t.model.load_state_dict(weights)
+        predictions.save(predictions.window_predictions(t.model, t.val_set, t.cfg.batch_size, t.amp),
+                         t.out / "val_predictions.csv")
     final = metrics[-1] if metrics else {}
     summary = {k: final.get(k) for k in METRIC_COLUMNS[1:5]}
     kept_epoch = kept["epoch"] if kept else (final.get("epoch") if metrics else None)

@@ -12,7 +12,8 @@ means with a 95 % interval from resampling test clips, paired by clip (eval.metr
 
 A side is VARIANT:RECIPE@SEED,RECIPE@SEED,...: the render variant the recipe trained on, and the ablation
 folders' recipe names (`RUN/ablation/RECIPE/SETTING/VARIANT/lrcn/sSEED`). --look own scores each on its training
-variant's test clips, --look V on the same clips rendered as V (`eval ablation --test-variant V`). --b-run takes
+variant's test clips, --look V on the same clips rendered as V (`eval ablation --test-variant V`), --look val on
+the validation windows (the kept weights' val_predictions.csv that training writes: choose recipes there). --b-run takes
 the reference from another run of the same simulations (the same seed and clips, e.g. rendered at another size).
 --a-ensemble (--b-ensemble) scores that side's seeds as one model instead: each window's class probabilities
 averaged over the seeds, the most probable class its prediction (what N seeds trained and kept together give).
@@ -54,13 +55,16 @@ def _scores(run: Path, setting: str, model: str, look: str, spec: str,
     """Per test window (sorted by clip and start), for each of ``SCORES`` the fraction of seeds that got it (with
     ``ensemble``, whether the seeds' mean probabilities got it); the windows (clip_id, start)."""
     variant, members = _side(spec)
-    suffix = "" if look == "own" else f"-{look}"
+    name = {"own": "test_predictions.csv", "val": "val_predictions.csv"}.get(look, f"test_predictions-{look}.csv")
     frames = []
     for recipe, seed in members:
-        path = run / "ablation" / recipe / setting / variant / model / f"s{seed}" / f"test_predictions{suffix}.csv"
+        path = run / "ablation" / recipe / setting / variant / model / f"s{seed}" / name
+        if not path.is_file() and look == "val":
+            raise SystemExit(f"{path}: no validation predictions (a model trained before training wrote them: "
+                             "train the recipe again)")
         if not path.is_file():
-            raise SystemExit(f"{path}: no predictions (train the recipe with `clothgap eval ablation`"
-                             f"{'' if look == 'own' else f' --test-variant {look}'} first)")
+            how = "" if look == "own" else f" --test-variant {look}"
+            raise SystemExit(f"{path}: no predictions (train the recipe with `clothgap eval ablation`{how} first)")
         frames.append(pd.read_csv(path).sort_values(["clip_id", "start"]).reset_index(drop=True))
     windows = frames[0][["clip_id", "start"]]
     for frame, (recipe, seed) in zip(frames, members):
@@ -83,7 +87,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("run", type=Path)
     parser.add_argument("--setting", required=True)
     parser.add_argument("--model", default="lrcn")
-    parser.add_argument("--look", default="own", help="own, or a test-only variant such as heldout")
+    parser.add_argument("--look", default="own", help="own (test clips), val (validation windows), or a test-only "
+                                                      "variant such as heldout")
     parser.add_argument("--a", required=True, help="VARIANT:RECIPE@SEED,... (the side whose gain is reported)")
     parser.add_argument("--b", required=True, help="VARIANT:RECIPE@SEED,... (the reference)")
     parser.add_argument("--b-run", type=Path, help="the reference's run, if another (the same simulations, e.g. "

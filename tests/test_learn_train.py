@@ -298,6 +298,13 @@ def test_keep_best_checkpoints_the_best_validation_epoch(tmp_path):
     state = torch.load(out / "last.pt", weights_only=True)
     assert state["best"]["epoch"] == best_epoch
     assert all(torch.equal(kept[k], v) for k, v in state["best"]["model"].items())
+    # The kept weights' validation predictions: every validation window once, scored as the kept epoch was.
+    val = pd.read_csv(out / "val_predictions.csv", dtype={"clip_id": str})
+    split = get_or_make_split(run, SETTING)
+    assert set(val.clip_id) == set(split["val"]) and not val.duplicated(["clip_id", "start"]).any()
+    probs = val[[f"prob_{i:02d}" for i in range(54)]].to_numpy()
+    assert (probs.argmax(1) == val.pred).all() and abs(probs.sum(1) - 1).max() < 1e-4
+    assert (val.pred == val.class_index).mean() == pytest.approx(metrics.val_acc[best_epoch], abs=1e-9)
     with pytest.raises(ConfigError, match="train.keep=best needs validation clips"):
         synthetic_run(tmp_path / "noval", tiny_train_config(keep="best", val_fraction=0.0))
 

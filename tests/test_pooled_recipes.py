@@ -94,3 +94,16 @@ def test_an_ensemble_scores_the_seeds_mean_probabilities(tmp_path):
     _write(tmp_path, "plain", 0, truth, truth)     # predictions without probabilities cannot be averaged
     refused = _run(tmp_path, "--a", "paper:plain@0", "--a-ensemble", "--b", spec)
     assert refused.returncode != 0 and "no class probabilities" in refused.stderr
+
+
+def test_look_val_reads_the_validation_predictions(tmp_path):
+    truth = [0, 1, 2, 3]
+    _write(tmp_path, "a", 0, truth, truth)
+    folder = tmp_path / "ablation" / "a" / "wind-uniform1" / "paper" / "lrcn" / "s0"
+    pd.DataFrame({"clip_id": ["c00100", "c00101"], "start": 0, "class_index": [5, 6], "pred": [5, 9]}).to_csv(
+        folder / "val_predictions.csv", index=False)
+    out = json.loads(_run(tmp_path, "--look", "val", "--a", "paper:a@0", "--b", "paper:a@0").stdout)
+    assert out["test_windows"] == 2 and out["a_acc"] == 0.5
+    _write(tmp_path, "old", 0, truth, truth)       # trained before validation predictions were written
+    missing = _run(tmp_path, "--look", "val", "--a", "paper:old@0", "--b", "paper:a@0")
+    assert missing.returncode != 0 and "no validation predictions" in missing.stderr
