@@ -10,7 +10,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from learn.predictions import KEY_COLUMNS, PROB_COLUMNS, save, to_flat  # noqa: F401  (the format; eval's names)
+from learn import predictions as _format
+
+# The format is learn's (training writes validation predictions in it); eval's modules know it by these names.
+KEY_COLUMNS, PROB_COLUMNS = _format.KEY_COLUMNS, _format.PROB_COLUMNS
+to_flat, save = _format.to_flat, _format.save
 
 
 def load(path: Path) -> pd.DataFrame:

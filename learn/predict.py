@@ -19,7 +19,7 @@ from clothgap.errors import InputError, MissingInputError, UserError
 from clothgap.runs import read_meta
 from learn.dataset import FrameCache, FrameError, read_frames, subsequence_starts, to_input
 from learn.models import ClipClassifier, build_model
-from learn.predictions import window_predictions
+from learn import predictions
 from learn.train import resolve_device
 from learn.windows import WindowSet
 
@@ -123,4 +123,5 @@ def predict_windows(train_dir: Path | str, cache: FrameCache, windows, device: t
     tcfg = ckpt["config"]["train"]
     model = load_model(train_dir, str(device))
     data = WindowSet(cache, windows, tcfg["clip_len"], tcfg["clip_stride"], device)
-    return window_predictions(model, data, batch_size)
+    probs = data.probabilities(model, batch_size)
+    return predictions.frame(data.clip_ids, data.starts.numpy(), data.labels.numpy(), probs)

@@ -621,7 +621,9 @@ def _finish(t: Training) -> None:
     torch.save(checkpoint, t.out / "checkpoint.pt")
     if len(t.val_set):
         t.model.load_state_dict(weights)
-        predictions.save(predictions.window_predictions(t.model, t.val_set, t.cfg.batch_size, t.amp),
+        data = t.val_set
+        probs = data.probabilities(t.model, t.cfg.batch_size, t.amp)
+        predictions.save(predictions.frame(data.clip_ids, data.starts.numpy(), data.labels.numpy(), probs),
                          t.out / "val_predictions.csv")
     final = metrics[-1] if metrics else {}
     summary = {k: final.get(k) for k in METRIC_COLUMNS[1:5]}

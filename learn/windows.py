@@ -145,6 +145,18 @@ class WindowSet:
             perm = perm[rank::world]
         return perm
 
+    @torch.no_grad()
+    def probabilities(self, model, batch_size: int = 256, amp: bool | None = None) -> np.ndarray:
+        """``model``'s class probabilities (windows, classes) on every window, in order, unaugmented, in eval
+        mode (bf16 autocast on CUDA unless ``amp`` says otherwise); an empty array without windows."""
+        model.eval()
+        amp = self.device.type == "cuda" if amp is None else amp
+        out = []
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=amp):
+            for x, _, _ in self.batches(batch_size):
+                out.append(model.probs(model(x)).float().cpu().numpy())
+        return np.concatenate(out) if out else np.empty((0, 0), np.float32)
+
     def batches(self, batch_size: int, *, order: torch.Tensor | None = None, augment: torch.Tensor | None = None,
                 drop_last: bool = False, crop: bool = True, camera: torch.Tensor | None = None,
                 camera_noise_seed: int = 0) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]]:

@@ -60,8 +60,8 @@ def _scores(run: Path, setting: str, model: str, look: str, spec: str,
     for recipe, seed in members:
         path = run / "ablation" / recipe / setting / variant / model / f"s{seed}" / name
         if not path.is_file() and look == "val":
-            raise SystemExit(f"{path}: no validation predictions (a model trained before training wrote them: "
-                             "train the recipe again)")
+            raise SystemExit(f"{path}: no validation predictions (training writes them when its split has "
+                             "validation clips; a model trained before it did has none: train the recipe again)")
         if not path.is_file():
             how = "" if look == "own" else f" --test-variant {look}"
             raise SystemExit(f"{path}: no predictions (train the recipe with `clothgap eval ablation`{how} first)")
@@ -72,8 +72,10 @@ def _scores(run: Path, setting: str, model: str, look: str, spec: str,
             raise SystemExit(f"{recipe}@{seed}: its test windows differ from {members[0][0]}@{members[0][1]}'s")
     if ensemble:
         columns = [c for c in frames[0].columns if c.startswith("prob_")]
-        if not columns:
-            raise SystemExit(f"{spec!r}: the predictions hold no class probabilities (prob_NN): no ensemble")
+        for frame, (recipe, seed) in zip(frames, members):
+            if not columns or any(c not in frame.columns for c in columns):
+                raise SystemExit(f"{recipe}@{seed}: its predictions hold no class probabilities (prob_NN) "
+                                 f"matching {members[0][0]}@{members[0][1]}'s: no ensemble")
         mean = np.mean([f[columns].to_numpy(np.float64) for f in frames], axis=0)
         pred = np.array([int(columns[i].removeprefix("prob_")) for i in mean.argmax(axis=1)])
         return {name: score(frames[0]["class_index"], pred) for name, score in SCORES.items()}, windows
@@ -100,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     b_scores, b_windows = _scores(args.b_run or args.run, args.setting, args.model, args.look, args.b,
                                   args.b_ensemble)
     if not a_windows.equals(b_windows):
-        raise SystemExit("--a and --b were scored on different test windows: no paired comparison")
+        raise SystemExit("--a and --b were scored on different windows: no paired comparison")
     clips = a_windows["clip_id"].to_numpy()    # resampled by clip: a clip's windows go together
     out = {"run": str(args.run), "b_run": str(args.b_run or args.run), "setting": args.setting,
            "model": args.model, "look": args.look, "a": args.a, "b": args.b, "a_ensemble": args.a_ensemble,
