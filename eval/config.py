@@ -23,6 +23,9 @@ class EvalConfig:
     # The sim stage's material analyses run by `clothgap eval` into RUN/sim_analysis (the report shows them):
     # "table2" (the paper's Table 2, no simulation) and/or "sensitivity" (Fig. 3, simulates).
     sim_analysis: tuple[str, ...] = ()
+    # Cells of two or more seeds are also scored as one model, the seeds' class probabilities averaged per
+    # window (model ``<model>-avg<N>`` in every table), beside the seeds pooled.
+    seed_ensemble: bool = False
 
     def problems(self) -> list[str]:
         """What is wrong with these settings, one message each (empty when they are valid)."""

@@ -353,6 +353,8 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
     seconds: dict[str, float] = {}
     with timed(seconds, "predict"):
         cells, counts, left_out = predict_all(run, models, predictor or _default_predictor, progress)
+        if cfg.eval.seed_ensemble:
+            cells.update({c.key: c for c in tables.ensemble_cells(list(cells.values()))})
     if not cells:
         raise _no_test_clips_error(run, models)
     with timed(seconds, "tables_and_figures"):

@@ -35,6 +35,7 @@ class Cell:
     test_variant: str
     frame: pd.DataFrame                      # flat predictions, plus a ``seed`` column
     sources: list[str] = field(default_factory=list)   # checkpoint paths that made the rows
+    seeds: str = ""                          # the seeds behind the rows, when not the frame's ``seed`` column
     # (frame, its seed_sequences): made once for the scores and the correlations, again if the frame is replaced
     _sequences: tuple[pd.DataFrame, pd.DataFrame] | None = field(default=None, repr=False, compare=False)
 
@@ -56,7 +57,9 @@ def split_setting(setting: str) -> tuple[str, str]:
 
 
 def model_sort_key(model: str) -> tuple[int, str]:
-    return (MODEL_ORDER.index(model) if model in MODEL_ORDER else len(MODEL_ORDER), model)
+    """The paper's order; a seed ensemble (``lrcn-avg4``) right after its model, other models last."""
+    base = model.partition("-avg")[0]
+    return (MODEL_ORDER.index(base) if base in MODEL_ORDER else len(MODEL_ORDER), model)
 
 
 def score_cell(cell: Cell, *, resamples: int, confidence: float, rng: np.random.Generator) -> dict:
@@ -80,11 +83,32 @@ def results_frame(cells: list[Cell], *, resamples: int, confidence: float, rng_f
         row = {"setting": cell.setting, "motion": motion, "remeshing": remeshing,
                "train_variant": cell.train_variant, "model": cell.model, "test_variant": cell.test_variant,
                "in_domain": cell.train_variant == cell.test_variant,
-               "seeds": " ".join(str(s) for s in sorted(cell.frame["seed"].unique()))}
+               "seeds": cell.seeds or " ".join(str(s) for s in sorted(cell.frame["seed"].unique()))}
         row.update(score_cell(cell, resamples=resamples, confidence=confidence, rng=rng_for("score", *cell.key)))
         row["checkpoints"] = " ".join(cell.sources)
         rows.append(row)
     return pd.DataFrame(rows)
+
+
+def ensemble_cells(cells) -> list[Cell]:
+    """For each cell of two or more seeds, the cell of their ensemble: one row per window that every seed
+    scored, the seeds' class probabilities averaged, the most probable class its prediction (model
+    ``<model>-avg<N>``). It is one model, so its interval is over sequences alone."""
+    out = []
+    for cell in cells:
+        seeds = sorted(int(s) for s in cell.frame["seed"].unique())
+        if len(seeds) < 2:
+            continue
+        frame = cell.frame
+        everyone = frame.groupby(["clip_id", "start"])["seed"].transform("nunique") == len(seeds)
+        mean = (frame[everyone].groupby(["clip_id", "start"], sort=True)
+                .agg({"class_index": "first", **{c: "mean" for c in preds.PROB_COLUMNS}}).reset_index())
+        mean["pred"] = mean[preds.PROB_COLUMNS].to_numpy().argmax(axis=1)
+        mean["seed"] = seeds[0]
+        out.append(Cell(cell.setting, cell.train_variant, f"{cell.model}-avg{len(seeds)}", cell.test_variant,
+                        frame=mean[preds.KEY_COLUMNS + preds.PROB_COLUMNS + ["seed"]], sources=list(cell.sources),
+                        seeds=" ".join(map(str, seeds))))
+    return out
 
 
 # ------------------------------------------------------------------ Table 3

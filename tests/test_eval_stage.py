@@ -148,6 +148,29 @@ def test_run_eval_writes_tables_and_resumes(tmp_path):
 
 
 @pytest.mark.slow
+def test_a_seed_ensemble_is_scored_as_one_model_beside_the_seeds_pooled(tmp_path):
+    run = make_fake_run(tmp_path / "run", variants=("paper",), seeds=(0, 1, 2), seed_ensemble=True)
+    run_eval(run, progress=False, predictor=stub_predictor)
+    results = pd.read_csv(run.eval_dir / "results.csv")
+    row = results[results.model == "lrcn-avg3"].iloc[0]
+    assert row["seeds"] == "0 1 2" and row["in_domain"]
+    # The ensemble by hand: each window's probabilities averaged over the three seeds' saved predictions.
+    folder = run.eval_dir / "predictions" / "wind-uniform1" / "paper" / "lrcn"
+    frames = [preds.load(folder / f"s{s}" / "paper.csv").sort_values(["clip_id", "start"]) for s in (0, 1, 2)]
+    mean = np.mean([preds.probs_of(f) for f in frames], axis=0)
+    expected = (mean.argmax(axis=1) == frames[0]["class_index"].to_numpy()).mean()
+    assert row["acc"] == pytest.approx(expected)
+    # Three seeds right 90 % of the time each, independently: the majority is right more often than one seed.
+    pooled = results[results.model == "lrcn"].iloc[0]
+    assert row["acc"] > pooled["acc"]
+    table3 = pd.read_csv(run.eval_dir / "table3.csv")
+    assert table3.columns.get_loc("lrcn_acc") < table3.columns.get_loc("lrcn-avg3_acc")
+    assert table3["lrcn-avg3_seeds"].iloc[0] == "0 1 2"
+    off = make_fake_run(tmp_path / "off", variants=("paper",), seeds=(0, 1))     # the default: no ensemble
+    run_eval(off, progress=False, predictor=stub_predictor)
+    assert set(pd.read_csv(off.eval_dir / "results.csv").model) == {"lrcn"}
+
+
 def test_confusion_figures_drawn_in_the_pool_are_the_bytes_drawn_here(tmp_path, monkeypatch):
     from eval import stage
 
