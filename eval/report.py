@@ -200,7 +200,7 @@ def _section_table3(run: Run) -> str:
         return '<h2 id="table3">Table 3</h2><p class="note">No in-domain results in this run.</p>'
     models = tables.table3_models(table)
     head = "".join(f"<th>{h}</th>" for h in ("Motion", "Re-mesh", "Texture", "Variant"))
-    head += "".join(f"<th>{_esc(tables.MODEL_TITLES.get(m, m))}</th>" for m in models)
+    head += "".join(f"<th>{_esc(tables.model_title(m))}</th>" for m in models)
     rows = []
     for _, r in table.iterrows():
         cells = "".join(f"<td>{_esc(r[c])}</td>" for c in ("motion", "remeshing", "texture", "variant"))
@@ -226,7 +226,7 @@ def _section_table3(run: Run) -> str:
             cells += (f'<td class="num">{int(r[f"{m}_sequences"])}</td><td>{_esc(r[f"{m}_seeds"])}</td>'
                       f"<td>{_links(run, r[f'{m}_checkpoints'])}</td>")
             rows.append(f"<tr>{cells}</tr>")
-        out.append(f"<h3>{_esc(tables.MODEL_TITLES.get(m, m))}: details</h3>"
+        out.append(f"<h3>{_esc(tables.model_title(m))}: details</h3>"
                    f"<table><tr>{head}</tr>{''.join(rows)}</table>")
     return "".join(out)
 
@@ -503,7 +503,7 @@ def _measured_model(run: Run, key: tuple, g: pd.DataFrame, info: dict, corr: pd.
     """One model's part of the measured section: its fabrics against Table 2, match rates, correlations, figures."""
     keys = _MEASURED_KEYS
     setting, train_v, model, seed, _ = key
-    out = [f"<h3>{_esc(tables.MODEL_TITLES.get(model, model))} trained on {_esc(train_v)} "
+    out = [f"<h3>{_esc(tables.model_title(model))} trained on {_esc(train_v)} "
            f"({_esc(setting)}, seed {_esc(seed)})</h3><p>Model: {_links(run, g['checkpoint'].iloc[0])}; "
            f"per-clip predictions and Table 4: {_links(run, g['folder'].iloc[0])}</p>",
            _measured_fabrics_table(g)]

@@ -56,6 +56,13 @@ def split_setting(setting: str) -> tuple[str, str]:
     return motion, remeshing or "?"
 
 
+def model_title(model: str) -> str:
+    """The model's title in tables and the report (a seed ensemble: its model's, and how many seeds)."""
+    base, avg, n = model.partition("-avg")
+    title = MODEL_TITLES.get(base, base)
+    return f"{title}, {n} seeds averaged" if avg else title
+
+
 def model_sort_key(model: str) -> tuple[int, str]:
     """The paper's order; a seed ensemble (``lrcn-avg4``) right after its model, other models last."""
     base = model.partition("-avg")[0]
@@ -155,7 +162,7 @@ def table3_markdown(table: pd.DataFrame) -> str:
     if table.empty:
         return "No in-domain results: no model was both trained and tested on one variant.\n"
     models = table3_models(table)
-    head = ["Motion", "Re-mesh", "Texture", "Variant"] + [MODEL_TITLES.get(m, m) for m in models]
+    head = ["Motion", "Re-mesh", "Texture", "Variant"] + [model_title(m) for m in models]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for _, r in table.iterrows():
         cells = [r["motion"], r["remeshing"], r["texture"], r["variant"]]
@@ -166,7 +173,7 @@ def table3_markdown(table: pd.DataFrame) -> str:
     detail_head = ["Motion", "Re-mesh", "Texture", "Variant", "Top-3 %", "Stretch-factor %", "Bend-factor %",
                    "Class distance (grid steps)", "Per-video %", "Test sequences", "Seeds", "Checkpoint(s)"]
     for m in models:
-        out += [f"Details: {MODEL_TITLES.get(m, m)}", "", "| " + " | ".join(detail_head) + " |",
+        out += [f"Details: {model_title(m)}", "", "| " + " | ".join(detail_head) + " |",
                 "|" + "---|" * len(detail_head)]
         for _, r in table.iterrows():
             if pd.isna(r.get(f"{m}_acc")):

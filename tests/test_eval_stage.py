@@ -166,6 +166,7 @@ def test_a_seed_ensemble_is_scored_as_one_model_beside_the_seeds_pooled(tmp_path
     table3 = pd.read_csv(run.eval_dir / "table3.csv")
     assert table3.columns.get_loc("lrcn_acc") < table3.columns.get_loc("lrcn-avg3_acc")
     assert table3["lrcn-avg3_seeds"].iloc[0] == "0 1 2"
+    assert "CNN+LSTM (RGB-V), 3 seeds averaged" in (run.eval_dir / "table3.md").read_text()
     off = make_fake_run(tmp_path / "off", variants=("paper",), seeds=(0, 1))     # the default: no ensemble
     run_eval(off, progress=False, predictor=stub_predictor)
     assert set(pd.read_csv(off.eval_dir / "results.csv").model) == {"lrcn"}

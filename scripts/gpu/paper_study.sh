@@ -75,7 +75,7 @@ cat "$RUN/gpu_timings.jsonl"
 # The report (images embedded) in a tarball of its own: the device brings back files of at most 16 MiB, and the
 # numbers must come back even when the report does not.
 cd "$RUN" && tar czf "$OUT/paper_study.tgz" config.json gpu_timings.jsonl train/index.json \
-  $(ls -d train/*/*/*/s*/metrics.csv eval/*.csv eval/*.md eval/*.json eval/predictions 2>/dev/null) 2>/dev/null
+  $(ls -d train/*/*/*/s*/metrics.csv train/*/*/*/s*/val_predictions.csv eval/*.csv eval/*.md eval/*.json eval/predictions 2>/dev/null) 2>/dev/null
 [ -f report/report.html ] && tar czf "$OUT/paper_study-report.tgz" report/report.html
 ls -la "$OUT"
 exit $status
