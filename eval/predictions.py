@@ -47,6 +47,18 @@ def per_sequence(frame: pd.DataFrame) -> pd.DataFrame:
     return pd.concat([out, mean_probs.reset_index(drop=True)], axis=1)
 
 
+def seed_average(frame: pd.DataFrame) -> pd.DataFrame:
+    """The seeds of a stacked frame (a ``seed`` column) as one model: one row per window that every seed
+    scored (sorted by clip and start), the seeds' class probabilities averaged, the most probable class its
+    ``pred``."""
+    seeds = frame["seed"].nunique()
+    everyone = frame.groupby(["clip_id", "start"])["seed"].transform("nunique") == seeds
+    mean = (frame[everyone].groupby(["clip_id", "start"], sort=True)
+            .agg({"class_index": "first", **{c: "mean" for c in PROB_COLUMNS}}).reset_index())
+    mean["pred"] = mean[PROB_COLUMNS].to_numpy().argmax(axis=1)
+    return mean[KEY_COLUMNS + PROB_COLUMNS]
+
+
 def seed_sequences(frame: pd.DataFrame) -> pd.DataFrame:
     """``per_sequence`` of each seed's rows of a frame of one or several seeds' predictions, stacked."""
     return pd.concat([per_sequence(f) for _, f in frame.groupby("seed")], ignore_index=True)

@@ -21,6 +21,7 @@ from learn.registry import MODELS
 
 MODEL_ORDER = ("base1", "base2", "base3", "lrcn")   # the paper's column order; other models follow
 MODEL_TITLES = {name: entry.title for name, entry in MODELS.items()}
+ENSEMBLE_MARK = "-avg"    # a seed ensemble's model name: lrcn-avg4 is lrcn's four seeds averaged (ensemble_cells)
 DETAIL_SCORES = ("top3", "stretch_acc", "bend_acc", "within1", "class_dist", "seq_acc")
 
 # rng_for(key...) -> Generator: the stage passes clothgap.seeding-derived generators
@@ -58,14 +59,14 @@ def split_setting(setting: str) -> tuple[str, str]:
 
 def model_title(model: str) -> str:
     """The model's title in tables and the report (a seed ensemble: its model's, and how many seeds)."""
-    base, avg, n = model.partition("-avg")
+    base, mark, n = model.partition(ENSEMBLE_MARK)
     title = MODEL_TITLES.get(base, base)
-    return f"{title}, {n} seeds averaged" if avg else title
+    return f"{title}, {n} seeds averaged" if mark else title
 
 
 def model_sort_key(model: str) -> tuple[int, str]:
     """The paper's order; a seed ensemble (``lrcn-avg4``) right after its model, other models last."""
-    base = model.partition("-avg")[0]
+    base = model.partition(ENSEMBLE_MARK)[0]
     return (MODEL_ORDER.index(base) if base in MODEL_ORDER else len(MODEL_ORDER), model)
 
 
@@ -98,23 +99,16 @@ def results_frame(cells: list[Cell], *, resamples: int, confidence: float, rng_f
 
 
 def ensemble_cells(cells) -> list[Cell]:
-    """For each cell of two or more seeds, the cell of their ensemble: one row per window that every seed
-    scored, the seeds' class probabilities averaged, the most probable class its prediction (model
+    """For each cell of two or more seeds, the cell of their ensemble (``preds.seed_average``, model
     ``<model>-avg<N>``). It is one model, so its interval is over sequences alone."""
     out = []
     for cell in cells:
         seeds = sorted(int(s) for s in cell.frame["seed"].unique())
         if len(seeds) < 2:
             continue
-        frame = cell.frame
-        everyone = frame.groupby(["clip_id", "start"])["seed"].transform("nunique") == len(seeds)
-        mean = (frame[everyone].groupby(["clip_id", "start"], sort=True)
-                .agg({"class_index": "first", **{c: "mean" for c in preds.PROB_COLUMNS}}).reset_index())
-        mean["pred"] = mean[preds.PROB_COLUMNS].to_numpy().argmax(axis=1)
-        mean["seed"] = seeds[0]
-        out.append(Cell(cell.setting, cell.train_variant, f"{cell.model}-avg{len(seeds)}", cell.test_variant,
-                        frame=mean[preds.KEY_COLUMNS + preds.PROB_COLUMNS + ["seed"]], sources=list(cell.sources),
-                        seeds=" ".join(map(str, seeds))))
+        out.append(Cell(cell.setting, cell.train_variant, f"{cell.model}{ENSEMBLE_MARK}{len(seeds)}",
+                        cell.test_variant, frame=preds.seed_average(cell.frame).assign(seed=seeds[0]),
+                        sources=list(cell.sources), seeds=" ".join(map(str, seeds))))
     return out
 
 

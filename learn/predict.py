@@ -81,16 +81,16 @@ def predict_clips(train_dir: Path | str, clip_dirs: Iterable[Path | str], device
     dev = resolve_device(device)
     model = load_model(train_dir, str(dev))
 
-    rows: list[dict] = []
-    pending: list[tuple[dict, torch.Tensor]] = []
+    windows: list[tuple[str, int, int]] = []     # (clip_id, start, class_index) of each window predicted
+    probs: list[np.ndarray] = []
+    pending: list[tuple[tuple[str, int, int], torch.Tensor]] = []
 
     def flush() -> None:
         if not pending:
             return
         frames = torch.stack([f for _, f in pending])
-        probs = model.probs(model(to_input(frames, dev))).cpu().numpy().astype(np.float32)
-        for (row, _), p in zip(pending, probs):
-            rows.append({**row, "pred": int(p.argmax()), "probs": p})
+        probs.append(model.probs(model(to_input(frames, dev))).cpu().numpy().astype(np.float32))
+        windows.extend(w for w, _ in pending)
         pending.clear()
 
     for clip_dir in map(Path, clip_dirs):
@@ -106,12 +106,14 @@ def predict_clips(train_dir: Path | str, clip_dirs: Iterable[Path | str], device
             warnings.warn(f"{err}; clip left out of the predictions", stacklevel=2)
             continue
         for start in subsequence_starts(len(frames), clip_len, stride):
-            pending.append(({"clip_id": meta.get("clip_id", clip_dir.name), "start": start,
-                             "class_index": class_index}, frames[start:start + clip_len]))
+            pending.append(((meta.get("clip_id", clip_dir.name), start, class_index),
+                            frames[start:start + clip_len]))
             if len(pending) == batch_size:
                 flush()
     flush()
-    return pd.DataFrame(rows, columns=["clip_id", "start", "class_index", "pred", "probs"])
+    ids, starts, labels = zip(*windows) if windows else ((), (), ())
+    return predictions.frame(ids, starts, labels,
+                             np.concatenate(probs) if probs else np.empty((0, predictions.NUM_CLASSES)))
 
 
 @torch.no_grad()
@@ -123,5 +125,4 @@ def predict_windows(train_dir: Path | str, cache: FrameCache, windows, device: t
     tcfg = ckpt["config"]["train"]
     model = load_model(train_dir, str(device))
     data = WindowSet(cache, windows, tcfg["clip_len"], tcfg["clip_stride"], device)
-    probs = data.probabilities(model, batch_size)
-    return predictions.frame(data.clip_ids, data.starts.numpy(), data.labels.numpy(), probs)
+    return data.predict(model, batch_size)

@@ -621,10 +621,7 @@ def _finish(t: Training) -> None:
     torch.save(checkpoint, t.out / "checkpoint.pt")
     if len(t.val_set):
         t.model.load_state_dict(weights)
-        data = t.val_set
-        probs = data.probabilities(t.model, t.cfg.batch_size, t.amp)
-        predictions.save(predictions.frame(data.clip_ids, data.starts.numpy(), data.labels.numpy(), probs),
-                         t.out / "val_predictions.csv")
+        predictions.save(t.val_set.predict(t.model, t.cfg.batch_size, t.amp), t.out / "val_predictions.csv")
     final = metrics[-1] if metrics else {}
     summary = {k: final.get(k) for k in METRIC_COLUMNS[1:5]}
     kept_epoch = kept["epoch"] if kept else (final.get("epoch") if metrics else None)

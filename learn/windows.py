@@ -21,10 +21,12 @@ import warnings
 from typing import Iterator
 
 import numpy as np
+import pandas as pd
 import torch
 import torch.nn.functional as F
 
 from clothgap import seeding
+from learn import predictions
 from learn.dataset import FrameCache, subsequence_starts
 
 AUG_PARAMS = 8        # shift, crop side, crop x, crop y, flip, brightness, contrast, saturation
@@ -146,16 +148,17 @@ class WindowSet:
         return perm
 
     @torch.no_grad()
-    def probabilities(self, model, batch_size: int = 256, amp: bool | None = None) -> np.ndarray:
-        """``model``'s class probabilities (windows, classes) on every window, in order, unaugmented, in eval
-        mode (bf16 autocast on CUDA unless ``amp`` says otherwise); an empty array without windows."""
+    def predict(self, model, batch_size: int = 256, amp: bool | None = None) -> pd.DataFrame:
+        """``model``'s prediction frame (``learn.predictions``) on every window, in order, unaugmented, in eval
+        mode (bf16 autocast on CUDA unless ``amp`` says otherwise)."""
         model.eval()
         amp = self.device.type == "cuda" if amp is None else amp
         out = []
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=amp):
             for x, _, _ in self.batches(batch_size):
                 out.append(model.probs(model(x)).float().cpu().numpy())
-        return np.concatenate(out) if out else np.empty((0, 0), np.float32)
+        probs = np.concatenate(out) if out else np.empty((0, predictions.NUM_CLASSES), np.float32)
+        return predictions.frame(self.clip_ids, self.starts.numpy(), self.labels.numpy(), probs)
 
     def batches(self, batch_size: int, *, order: torch.Tensor | None = None, augment: torch.Tensor | None = None,
                 drop_last: bool = False, crop: bool = True, camera: torch.Tensor | None = None,

@@ -31,6 +31,7 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from eval import metrics  # noqa: E402
+from eval import predictions as preds  # noqa: E402
 
 
 def _side(spec: str) -> tuple[str, list[tuple[str, int]]]:
@@ -71,14 +72,13 @@ def _scores(run: Path, setting: str, model: str, look: str, spec: str,
         if not frame[["clip_id", "start"]].equals(windows):
             raise SystemExit(f"{recipe}@{seed}: its test windows differ from {members[0][0]}@{members[0][1]}'s")
     if ensemble:
-        columns = [c for c in frames[0].columns if c.startswith("prob_")]
         for frame, (recipe, seed) in zip(frames, members):
-            if not columns or any(c not in frame.columns for c in columns):
-                raise SystemExit(f"{recipe}@{seed}: its predictions hold no class probabilities (prob_NN) "
-                                 f"matching {members[0][0]}@{members[0][1]}'s: no ensemble")
-        mean = np.mean([f[columns].to_numpy(np.float64) for f in frames], axis=0)
-        pred = np.array([int(columns[i].removeprefix("prob_")) for i in mean.argmax(axis=1)])
-        return {name: score(frames[0]["class_index"], pred) for name, score in SCORES.items()}, windows
+            if any(c not in frame.columns for c in preds.PROB_COLUMNS):
+                raise SystemExit(f"{recipe}@{seed}: its predictions hold no class probabilities (prob_00 .. "
+                                 "prob_53): no ensemble")
+        stacked = pd.concat([f.assign(seed=i) for i, f in enumerate(frames)], ignore_index=True)
+        one = windows.merge(preds.seed_average(stacked), on=["clip_id", "start"], how="left")
+        return {name: score(one["class_index"], one["pred"]) for name, score in SCORES.items()}, windows
     return {name: np.mean([score(f["class_index"], f["pred"]) for f in frames], axis=0)
             for name, score in SCORES.items()}, windows
 
@@ -115,6 +115,10 @@ def main(argv: list[str] | None = None) -> int:
         out.update(metrics.bootstrap_mean_difference(a, clips, b, clips).as_dict(f"{name}_a_minus_b"))
     json.dump(out, sys.stdout, indent=1)
     print()
+    print(f"a {100 * out['a_acc']:.1f} % against b {100 * out['b_acc']:.1f} %: {100 * out['acc_a_minus_b']:+.1f} "
+          f"[{100 * out['acc_a_minus_b_lo']:+.1f}, {100 * out['acc_a_minus_b_hi']:+.1f}] points "
+          f"({'validation windows' if args.look == 'val' else args.look + ' test clips'}; {len(a_windows)} windows)",
+          file=sys.stderr)
     return 0
 
 
