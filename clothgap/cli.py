@@ -61,7 +61,13 @@ def _run_options(fn):
 
 
 def _executor_options(fn):
-    """Where sim/render/train work runs: --executor, --workers, --address, --gpus-per-worker, --shard-size."""
+    """Where sim/render/train work runs: --executor, --workers, --address, --gpus-per-worker, --shard-size,
+    --cuda-mps."""
+    fn = click.option("--cuda-mps", type=click.Choice(["auto", "on", "off"]), default="auto", show_default=True,
+                      help="Process workers sharing a GPU run under a private CUDA MPS daemon, so their kernels "
+                           "overlap instead of time-slicing the GPU (render 2.2x on H100s). auto: for sim and "
+                           "render when nvidia-cuda-mps-control exists; on: for training too, and an error "
+                           "without it; off: never.")(fn)
     fn = click.option("--shard-size", type=click.IntRange(min=1), metavar="N",
                       help="Clip indices per shard (default: an even split over the workers).")(fn)
     fn = click.option("--gpus-per-worker", type=click.FloatRange(min=0), default=0.0, metavar="G",
@@ -100,11 +106,13 @@ def check_failures(stage: str, summary: object, allow_failures: bool) -> None:
 
 
 def executor_options(executor: str, workers: int | None, address: str | None, gpus_per_worker: float,
-                     shard_size: int | None):
+                     shard_size: int | None, cuda_mps: str = "auto"):
     from clothgap.executor import ExecutorOptions
 
+    if cuda_mps == "on" and executor == "local":
+        executor = "process"        # MPS serves several processes; `--cuda-mps on` alone means a pool
     return ExecutorOptions(executor=executor, workers=workers, address=address, gpus_per_worker=gpus_per_worker,
-                           shard_size=shard_size).validate()
+                           shard_size=shard_size, cuda_mps=cuda_mps).validate()
 
 
 def resolve_run(run_dir: Path | None, preset_name: str | None, out: Path | None,
@@ -320,7 +328,7 @@ def train(run_dir, preset_name, out, overrides, config_file, model_name, variant
 
     t0 = time.perf_counter()
     chosen = (execution["executor"] != "local" or execution["workers"] or execution["gpus_per_worker"]
-              or execution["shard_size"])
+              or execution["shard_size"] or execution["cuda_mps"] == "on")
     opts = executor_options(**execution) if chosen else None
     done = train_selected(run, [setting] if setting else None, [variant] if variant else None,
                           [model_name] if model_name else None, [train_seed] if train_seed is not None else None,

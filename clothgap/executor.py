@@ -19,8 +19,10 @@ this module knows no stage's summary.
     local     in this process (default; what CPU runs and tests use)
     process   a local pool of spawned processes (Warp, Mitsuba and torch are not
               fork-safe); with ``gpus_per_worker`` one worker per GPU (or per
-              share of one), pinned with CUDA_VISIBLE_DEVICES; a pool broken by a
-              killed worker is rebuilt and the unfinished shards are run again
+              share of one), pinned with CUDA_VISIBLE_DEVICES; workers that share a
+              GPU run under a private CUDA MPS daemon (``cuda_mps``; sim and render
+              by default); a pool broken by a killed worker is rebuilt and the
+              unfinished shards are run again
     ray       tasks on a Ray cluster (``address``: "auto", "ray://host:10001",
               or None for a fresh local instance); ``gpus_per_worker`` is each
               task's ``num_gpus``; a task whose worker dies is retried
@@ -38,6 +40,7 @@ import math
 import os
 import socket
 import subprocess
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -46,6 +49,8 @@ from typing import Any
 
 # clothgap.config also registers the study config that a worker's Run.open reads (workers import this module).
 from clothgap.config import ConfigError, validate
+from clothgap.cuda_mps import MODES as CUDA_MPS_MODES
+from clothgap.cuda_mps import cuda_mps
 from clothgap.parallel import HOST_PROCESSES_ENV, host_processes, share_of_host
 from clothgap.runs import Run
 
@@ -70,6 +75,9 @@ class ExecutorOptions:
     shard_size: int | None = None       # clip indices per shard; None = an even split over the workers
     retries: int = 2                    # times a shard whose worker died is run again (process, ray)
     progress: bool = True
+    # process workers sharing a GPU: "auto" = under an MPS daemon for sim and render (measured: the render
+    # stage 2.2x), not for training (not measured); "on" = for training too, and an error without MPS
+    cuda_mps: str = "auto"
 
     def validate(self) -> "ExecutorOptions":
         if self.executor not in EXECUTORS:
@@ -84,6 +92,10 @@ class ExecutorOptions:
             raise ConfigError("--address names a Ray cluster: use it with --executor ray")
         if self.executor == "local" and (self.workers not in (None, 1) or self.gpus_per_worker):
             raise ConfigError("--workers and --gpus-per-worker need --executor process or ray")
+        if self.cuda_mps not in CUDA_MPS_MODES:
+            raise ConfigError(f"--cuda-mps must be one of {', '.join(CUDA_MPS_MODES)}, got {self.cuda_mps!r}")
+        if self.cuda_mps == "on" and self.executor != "process":
+            raise ConfigError("--cuda-mps on serves a local process pool: use it with --executor process")
         return self
 
 
@@ -140,6 +152,9 @@ def run_stage(run: Run, stage: str, options: ExecutorOptions = ExecutorOptions()
         raise ConfigError(f"stage {stage!r} cannot be sharded; shardable: {', '.join(STAGES)}")
     options = options.validate()
     run_whole, merge = _stage_functions(stage)
+    if options.cuda_mps == "on" and not options.gpus_per_worker:
+        raise ConfigError(f"--cuda-mps on: give the {stage} workers their share of a GPU with --gpus-per-worker "
+                          "(0.25 = four workers a GPU)")
     if options.executor == "local" and options.shard_size is None:
         return run_whole(run, progress=options.progress)
     # The workers open the run unchecked (Run.open(check=False)): a bad setting (e.g. an unknown render variant)
@@ -147,25 +162,35 @@ def run_stage(run: Run, stage: str, options: ExecutorOptions = ExecutorOptions()
     validate(run.config)
     start = time.perf_counter()
     indices = list(range(run.config.sim.num_clips()))
-    with ray_session(options) as ray:
+    mps_state = None
+    with ray_session(options) as ray, contextlib.ExitStack() as stack:
+        env = None
         if ray is not None:
             workers = options.workers or ray_parallelism(ray, options)
             slots = None
         elif options.executor == "process" and options.gpus_per_worker:
-            slots = gpu_slots(visible_gpus(), options.gpus_per_worker, options.workers)
+            visible = visible_gpus()
+            slots = gpu_slots(visible, options.gpus_per_worker, options.workers)
             workers = len(slots)
+            mps = stack.enter_context(cuda_mps(slots, visible, options.cuda_mps, say=_say))
+            slots, env, mps_state = mps.slots, mps.env, mps.state
         else:
             slots = None
             workers = options.workers or (os.cpu_count() or 1 if options.executor == "process" else 1)
         shards = shard(indices, options.shard_size or default_shard_size(len(indices), workers))
         parts = run_shards(SHARD_FNS[stage], str(run.root.resolve()), shards, options=options, label=stage,
-                           gpu_slots=slots)
+                           gpu_slots=slots, worker_env=env)
     summary = merge(parts)
     summary["seconds"] = round(time.perf_counter() - start, 3)
     summary["executor"] = {"name": options.executor, "workers": workers, "shards": len(shards),
                            **({"address": options.address} if options.address else {}),
-                           **({"gpus_per_worker": options.gpus_per_worker} if options.gpus_per_worker else {})}
+                           **({"gpus_per_worker": options.gpus_per_worker} if options.gpus_per_worker else {}),
+                           **({"cuda_mps": mps_state} if mps_state else {})}
     return summary
+
+
+def _say(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
 
 
 # ---------------------------------------------------------------- training several models at once
@@ -244,7 +269,9 @@ def run_train_parallel(run: Run, grid: Sequence[TrainEntry], parallel: int = 1, 
     if pending:
         configs = [settings[e][0] for e in pending]
         prepare_shared_inputs(run, [e[:4] for e in pending], progress, configs=configs)
-        slots = None
+        slots = gpus = None
+        # MPS for training only when asked for: several models a GPU were not measured under it
+        mps_mode = "on" if options is not None and options.cuda_mps == "on" else "off"
         if options is None or (options.executor == "process" and not options.gpus_per_worker):
             workers = (options and options.workers) or parallel
             devices = {resolve_device(c.device).type for c in configs}
@@ -252,10 +279,12 @@ def run_train_parallel(run: Run, grid: Sequence[TrainEntry], parallel: int = 1, 
             slots = [gpus[i % len(gpus)] for i in range(workers)] if gpus else None
             options = ExecutorOptions("process", workers=workers)
         elif options.executor == "process":
-            slots = gpu_slots(visible_gpus(), options.gpus_per_worker, options.workers)
-        run_shards(train_shard, str(run.root.resolve()), train_jobs(pending),
-                   options=dataclasses.replace(options, progress=progress), label="train", gpu_slots=slots,
-                   describe=describe_models)
+            gpus = visible_gpus()
+            slots = gpu_slots(gpus, options.gpus_per_worker, options.workers)
+        with cuda_mps(slots, gpus or [], mps_mode if slots else "off", say=_say) as mps:
+            run_shards(train_shard, str(run.root.resolve()), train_jobs(pending),
+                       options=dataclasses.replace(options, progress=progress), label="train", gpu_slots=mps.slots,
+                       describe=describe_models, worker_env=mps.env)
     return folders
 
 
@@ -315,9 +344,11 @@ def describe_clips(shard: list[int]) -> str:
 
 def run_shards(fn: ShardFn, run_root: str, shards: list[list[int]], *,
                options: ExecutorOptions = ExecutorOptions(), label: str = "shards",
-               gpu_slots: list[str] | None = None, describe: Callable[[list], str] = describe_clips) -> list[dict]:
+               gpu_slots: list[str] | None = None, describe: Callable[[list], str] = describe_clips,
+               worker_env: dict[str, str] | None = None) -> list[dict]:
     """Run ``fn(run_root, shard)`` for every shard; returns the shards' summaries in shard order.
-    ``describe`` names a shard in errors (a shard of clip indices by default)."""
+    ``describe`` names a shard in errors (a shard of clip indices by default); ``worker_env`` is set in each
+    process worker before it starts (an MPS daemon's pipe folder)."""
     options = options.validate()
     if not shards:
         return []
@@ -329,7 +360,7 @@ def run_shards(fn: ShardFn, run_root: str, shards: list[list[int]], *,
                 bar.update()
             return results
     if options.executor == "process":
-        return _run_process_pool(fn, run_root, shards, options, label, gpu_slots, describe)
+        return _run_process_pool(fn, run_root, shards, options, label, gpu_slots, describe, worker_env or {})
     return _run_ray(fn, run_root, shards, options, label, describe)
 
 
@@ -339,15 +370,16 @@ def _progress(total: int, enabled: bool, desc: str):
     return tqdm(total=total, disable=not enabled, desc=desc, unit="shard")
 
 
-def _init_worker(slots, host_share: int) -> None:
-    """Pool initializer: this worker's share of the host's CPUs for its own pools, and (with GPU slots) one
-    slot's GPUs, taken before anything initialises CUDA."""
+def _init_worker(slots, host_share: int, env: dict[str, str]) -> None:
+    """Pool initializer: this worker's share of the host's CPUs for its own pools, ``env`` (an MPS daemon's
+    pipe folder), and (with GPU slots) one slot's GPUs, all set before anything initialises CUDA."""
+    os.environ.update(env)
     os.environ[HOST_PROCESSES_ENV] = str(host_share)
     if slots is not None:
         os.environ["CUDA_VISIBLE_DEVICES"] = slots.get()
 
 
-def _run_process_pool(fn, run_root, shards, options, label, slots, describe) -> list[dict]:
+def _run_process_pool(fn, run_root, shards, options, label, slots, describe, env) -> list[dict]:
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor, as_completed
     from concurrent.futures.process import BrokenProcessPool
@@ -363,7 +395,7 @@ def _run_process_pool(fn, run_root, shards, options, label, slots, describe) -> 
                 queue = ctx.Queue()
                 for s in slots:
                     queue.put(s)
-            init = {"initializer": _init_worker, "initargs": (queue, share_of_host(workers))}
+            init = {"initializer": _init_worker, "initargs": (queue, share_of_host(workers), env)}
             broken: list[int] = []
             with ProcessPoolExecutor(max_workers=min(workers, len(pending)), mp_context=ctx, **init) as pool:
                 futures = {pool.submit(fn, run_root, shards[i]): i for i in pending}

@@ -306,7 +306,7 @@ def test_process_workers_share_the_host_cpus_between_their_own_pools(monkeypatch
     monkeypatch.setattr(parallel.os, "cpu_count", lambda: 32)
     assert parallel.host_processes() == 32 and parallel.share_of_host(2) == 16 and parallel.share_of_host(64) == 1
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "")
-    _init_worker(None, parallel.share_of_host(2))          # what a worker of a pool of two runs first
+    _init_worker(None, parallel.share_of_host(2), {})      # what a worker of a pool of two runs first
     assert parallel.host_processes() == 16
     for bad in ("0", "-3", "many", ""):
         monkeypatch.setenv(parallel.HOST_PROCESSES_ENV, bad)

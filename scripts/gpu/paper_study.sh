@@ -2,8 +2,9 @@
 # GPU: one setting of the paper's study at full size through the real CLI, stage by stage.
 #   STAGES="sim render" bash scripts/gpu/paper_study.sh     (then "train", then "eval report")
 #   SEQ=48 simulates the paper's 48 sequences per class instead of the preset's 96 (half the render time).
-#   RENDER_ARGS="--executor process --workers 12 --gpus-per-worker 0.0833" overlaps the per-clip host work;
-#   on a machine of several GPUs the default is "--executor process --gpus-per-worker 1" (1.8x on two).
+#   RENDER_ARGS: the default on any GPU machine is "--executor process --gpus-per-worker 0.25", four workers a
+#   GPU under the private CUDA MPS daemon clothgap starts for them (--cuda-mps auto): 2.2x one worker a GPU on
+#   four H100s (benchmarks/results/render_stage-mps-h100x4-n2592.json); without MPS four a GPU gain nothing.
 #   TRAIN_ARGS (default "--parallel <4 x GPUs>") trains that many models at once over the machine's GPUs.
 #   SIM_ARGS="--executor process --workers 2 --gpus-per-worker 0.5" simulates two shards on one GPU, so one's
 #   host work (an adaptive setting's health, remesh and rebuild: a third of its stage) overlaps the other's steps.
@@ -25,10 +26,10 @@ STAGES=${STAGES:-"sim render train eval report"}
 SETS=(--set sim.motions=${MOTIONS:-wind} --set sim.remeshing=${REMESHING:-uniform1} --set sim.batch_size=${BATCH:-2592}
       --set render.resolution=${RES:-112} --set render.spp=${SPP:-8}
       ${SEQ:+--set sim.sequences_per_class=$SEQ} ${EXTRA:-})
-# Every GPU of the machine: render shards one worker per GPU (on one GPU the default path is faster),
+# Every GPU of the machine: render shards four workers a GPU under MPS,
 # training runs four models at a time per GPU (a model leaves most of an H100 idle). Set to override.
 source "$(dirname "$0")/gpus.sh"
-[ "$ngpu" -ge 2 ] && RENDER_ARGS=${RENDER_ARGS-"--executor process --gpus-per-worker 1"}
+[ "$ngpu" -ge 1 ] && RENDER_ARGS=${RENDER_ARGS-"--executor process --gpus-per-worker 0.25"}
 TRAIN_ARGS=${TRAIN_ARGS-"--parallel $((4 * ngpu))"}
 started=$(date +%s) status=0 fixed_limit=${LIMIT:-}
 for stage in $STAGES; do

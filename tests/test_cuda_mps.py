@@ -1,0 +1,156 @@
+"""The private CUDA MPS daemon of workers that share a GPU (clothgap.cuda_mps).
+
+These machines have no GPU and no NVIDIA driver, so the daemon's lifecycle is checked against a stand-in
+``nvidia-cuda-mps-control`` on PATH that does what the real one does to the file system (``-d`` makes the
+control pipe in CUDA_MPS_PIPE_DIRECTORY; ``quit`` on stdin ends it) and records each call. What the real
+daemon does to the renders was measured on H100s (benchmarks/results/render_stage-mps-h100x4-n2592.json).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from clothgap import cuda_mps as mps_module
+from clothgap.config import ConfigError
+from clothgap.cuda_mps import MPSError, cuda_mps, quit_orphans, renumber, shares_a_gpu
+from clothgap.executor import ExecutorOptions, gpu_slots, run_shards, shard, visible_gpus
+
+FAKE_CONTROL = """#!{python}
+import json, os, pathlib, sys
+record = os.environ["FAKE_MPS_RECORD"]
+pipe = pathlib.Path(os.environ["CUDA_MPS_PIPE_DIRECTORY"])
+if sys.argv[1:] == ["-d"]:
+    if os.environ.get("FAKE_MPS_FAIL"):
+        print("An instance of this daemon is already running", file=sys.stderr)
+        sys.exit(1)
+    (pipe / "control").write_text("")
+    event = {{"start": str(pipe), "visible": os.environ.get("CUDA_VISIBLE_DEVICES")}}
+else:
+    event = {{sys.stdin.read().strip(): str(pipe)}}
+with open(record, "a") as f:
+    f.write(json.dumps(event) + "\\n")
+"""
+
+
+@pytest.fixture
+def control(tmp_path, monkeypatch):
+    """A stand-in control program first on PATH; returns the file its calls are recorded in."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    program = bin_dir / mps_module.CONTROL
+    program.write_text(FAKE_CONTROL.format(python=sys.executable))
+    program.chmod(0o755)
+    record = tmp_path / "calls.jsonl"
+    monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
+    monkeypatch.setenv("FAKE_MPS_RECORD", str(record))
+    monkeypatch.delenv("CUDA_MPS_PIPE_DIRECTORY", raising=False)
+    monkeypatch.delenv("FAKE_MPS_FAIL", raising=False)
+    monkeypatch.setattr(mps_module, "DEFAULT_PIPE_DIRECTORY", tmp_path / "no-system-daemon")
+    return record
+
+
+def calls(record: Path) -> list[dict]:
+    return [json.loads(line) for line in record.read_text().splitlines()] if record.exists() else []
+
+
+def _report_env(run_root: str, indices: list[int]) -> dict:
+    import time
+
+    time.sleep(0.2)                  # long enough that every worker takes a shard
+    return {"gpu": os.environ.get("CUDA_VISIBLE_DEVICES"), "pipe": os.environ.get("CUDA_MPS_PIPE_DIRECTORY"),
+            "pid": os.getpid()}
+
+
+def test_which_workers_share_a_gpu_and_how_the_daemon_numbers_them():
+    assert not shares_a_gpu(None) and not shares_a_gpu(["0", "1"]) and not shares_a_gpu(["0,1", "2,3"])
+    assert shares_a_gpu(["0", "0", "1", "1"]) and shares_a_gpu(["0,1", "1,2"])
+    # a daemon started under CUDA_VISIBLE_DEVICES=2,3 sees those GPUs as 0 and 1
+    assert renumber(["2", "2", "3", "3"], ["2", "3"]) == ["0", "0", "1", "1"]
+    assert renumber(["GPU-b,GPU-a"], ["GPU-a", "GPU-b"]) == ["1,0"]
+    with pytest.raises(ConfigError, match="'7' is not among the visible GPUs 2, 3"):
+        renumber(["7"], ["2", "3"])
+
+
+def test_workers_sharing_a_gpu_run_under_a_private_daemon_that_is_quit_afterwards(control, tmp_path, monkeypatch):
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "3,5")
+    visible = visible_gpus()
+    slots = gpu_slots(visible, 0.5)
+    assert slots == ["3", "3", "5", "5"]
+    said: list[str] = []
+    with cuda_mps(slots, visible, "auto", root=tmp_path, say=said.append) as mps:
+        assert mps.state == "started" and mps.slots == ["0", "0", "1", "1"]
+        pipe = Path(mps.env["CUDA_MPS_PIPE_DIRECTORY"])
+        assert (pipe / "control").exists() and "CUDA_MPS_PIPE_DIRECTORY" not in os.environ   # the parent stays out
+        got = run_shards(_report_env, "/nowhere", shard(range(8), 1),
+                         options=ExecutorOptions("process", gpus_per_worker=0.5, progress=False),
+                         gpu_slots=mps.slots, worker_env=mps.env)
+    assert {r["pipe"] for r in got} == {str(pipe)}                  # every worker reaches the daemon
+    assert {r["gpu"] for r in got} <= {"0", "1"}                    # ... by the daemon's numbers
+    # the daemon saw the GPUs the parent sees, and was quit once the workers were done
+    assert calls(control) == [{"start": str(pipe), "visible": "3,5"}, {"quit": str(pipe)}]
+    assert not pipe.parent.exists() and any("daemon started" in s for s in said)
+
+
+def test_without_a_shared_gpu_or_with_mps_off_no_daemon_starts(control, tmp_path):
+    with cuda_mps(["0", "1"], ["0", "1"], "auto", root=tmp_path, say=lambda m: None) as mps:
+        assert mps.slots == ["0", "1"] and mps.env == {} and mps.state.startswith("not used: no GPU is shared")
+    with cuda_mps(["0", "0"], ["0"], "off", root=tmp_path, say=lambda m: None) as mps:
+        assert mps.slots == ["0", "0"] and mps.env == {} and mps.state == "off"
+    assert calls(control) == []
+
+
+def test_a_daemon_already_serving_this_process_is_used_as_it_is(control, tmp_path, monkeypatch):
+    monkeypatch.setenv("CUDA_MPS_PIPE_DIRECTORY", str(tmp_path / "theirs"))
+    with cuda_mps(["2", "2"], ["2"], "on", root=tmp_path, say=lambda m: None) as mps:
+        assert mps.state == "existing" and mps.slots == ["2", "2"] and mps.env == {}
+    assert calls(control) == []                                     # neither started nor quit
+
+
+def test_without_the_control_program_auto_runs_without_mps_and_on_refuses(tmp_path, monkeypatch):
+    monkeypatch.setenv("PATH", str(tmp_path))                       # no nvidia-cuda-mps-control here
+    monkeypatch.delenv("CUDA_MPS_PIPE_DIRECTORY", raising=False)
+    monkeypatch.setattr(mps_module, "DEFAULT_PIPE_DIRECTORY", tmp_path / "no-system-daemon")
+    said: list[str] = []
+    with cuda_mps(["0", "0"], ["0"], "auto", root=tmp_path, say=said.append) as mps:
+        assert mps.slots == ["0", "0"] and mps.env == {} and "not on PATH" in mps.state
+    assert "time-slice" in said[0]
+    with pytest.raises(MPSError, match="nvidia-cuda-mps-control is not on PATH"):
+        with cuda_mps(["0", "0"], ["0"], "on", root=tmp_path, say=said.append):
+            pass
+
+
+def test_a_daemon_that_does_not_start_is_named(control, tmp_path, monkeypatch):
+    monkeypatch.setenv("FAKE_MPS_FAIL", "1")
+    with cuda_mps(["0", "0"], ["0"], "auto", root=tmp_path, say=lambda m: None) as mps:
+        assert mps.env == {} and "already running" in mps.state
+    with pytest.raises(MPSError, match="did not start a daemon: An instance of this daemon is already running"):
+        with cuda_mps(["0", "0"], ["0"], "on", root=tmp_path, say=lambda m: None):
+            pass
+    assert not list(tmp_path.glob(mps_module.FOLDER_PREFIX + "*"))  # no folder left behind
+
+
+def test_a_daemon_left_by_a_killed_run_is_quit_and_a_live_runs_daemon_is_not(control, tmp_path):
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    for name, owner in (("orphan", gone.pid), ("live", os.getpid())):
+        folder = tmp_path / f"{mps_module.FOLDER_PREFIX}{name}"
+        (folder / "pipe").mkdir(parents=True)
+        (folder / mps_module.OWNER_FILE).write_text(str(owner))
+    quit_ = quit_orphans(mps_module.CONTROL, tmp_path)
+    assert [f.name for f in quit_] == [f"{mps_module.FOLDER_PREFIX}orphan"]
+    assert calls(control) == [{"quit": str(tmp_path / f"{mps_module.FOLDER_PREFIX}orphan" / "pipe")}]
+    assert not quit_[0].exists() and (tmp_path / f"{mps_module.FOLDER_PREFIX}live").exists()
+
+
+def test_mps_options_are_checked():
+    with pytest.raises(ConfigError, match="--cuda-mps must be one of auto, on, off"):
+        ExecutorOptions("process", cuda_mps="sometimes").validate()
+    with pytest.raises(ConfigError, match="use it with --executor process"):
+        ExecutorOptions("ray", cuda_mps="on").validate()
+    assert ExecutorOptions("process", gpus_per_worker=0.25, cuda_mps="on").validate().cuda_mps == "on"
