@@ -65,9 +65,9 @@ def _executor_options(fn):
     --cuda-mps."""
     fn = click.option("--cuda-mps", type=click.Choice(["auto", "on", "off"]), default="auto", show_default=True,
                       help="Process workers sharing a GPU run under a private CUDA MPS daemon, so their kernels "
-                           "overlap instead of time-slicing the GPU (render 2.2x on H100s). auto: for sim and "
-                           "render when nvidia-cuda-mps-control exists; on: for training too, and an error "
-                           "without it; off: never.")(fn)
+                           "overlap instead of time-slicing the GPU (render 2.2x on H100s). auto: for render "
+                           "when nvidia-cuda-mps-control exists; on: for sim and `clothgap train` too (not "
+                           "measured there), and an error without MPS; off: never.")(fn)
     fn = click.option("--shard-size", type=click.IntRange(min=1), metavar="N",
                       help="Clip indices per shard (default: an even split over the workers).")(fn)
     fn = click.option("--gpus-per-worker", type=click.FloatRange(min=0), default=0.0, metavar="G",

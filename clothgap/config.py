@@ -135,8 +135,8 @@ def _paper() -> StudyConfig:
     # lattice from each frame and its difference from the previous one, the classes are read from that
     # lattice alone (bottleneck), fc6 without dropout (with AlexNet's 0.5 the regressor barely leaves
     # the mean shape), the readers trained on the true lattice too, both lattices noised (0.2), best
-    # validation epoch kept, 80 epochs, weight decay 0.05, and the whole 40-frame clip as one window in
-    # batches of 16: against 20-frame windows in batches of 32 it reads +13.6 points [10.5, 16.6] of new
+    # validation epoch kept, weight decay 0.05, and the whole 40-frame clip as one window in batches of 16
+    # (measured at 40 epochs): against 20-frame windows in batches of 32 it reads +13.6 points [10.5, 16.6] of new
     # wind simulations (76.7 %, a second seed 77.1 %) and +14.7 [11.2, 18.0] of arm ones, chosen on
     # validation on both motions (wind 78.5 against 62.6 %, arm 39.6 against 25.3 %), for fewer frames a
     # step: with windows shorter than the clip the network memorises and misses the part of the motion a

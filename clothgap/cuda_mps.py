@@ -9,12 +9,13 @@ processes reach 0.81 of the ceiling, and the render stage on four H100s took 28 
 ``cuda_mps(slots, mode)`` starts a daemon with its own pipe and log folders (so it neither joins nor
 disturbs a daemon someone else runs), hands the workers the environment that connects them to it and
 their GPUs renumbered as the daemon sees them, and quits it afterwards. The GPUs' settings (compute
-mode, MIG) are not touched. A daemon left behind by a killed run is quit the next time one starts.
+mode, MIG) are not touched. A stage stopped by SIGTERM (``timeout``) still quits its daemon; one left
+behind by a killed run is quit the next time a daemon starts.
 
 Modes: ``auto`` uses MPS when two or more workers share a GPU and the control program exists, and runs
 without it otherwise (saying why); ``on`` refuses to run without it; ``off`` never starts one. A daemon
-already serving this process's environment (CUDA_MPS_PIPE_DIRECTORY set, or one in NVIDIA's default
-folder) is used as it is.
+already serving this process's environment (CUDA_MPS_PIPE_DIRECTORY set, or a live one in NVIDIA's
+default folder) is used as it is, the workers' GPU numbers unchanged.
 """
 
 from __future__ import annotations
@@ -22,8 +23,10 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+import signal
 import subprocess
 import tempfile
+import threading
 import time
 from collections import Counter
 from collections.abc import Iterator, Sequence
@@ -36,8 +39,12 @@ MODES = ("auto", "on", "off")
 CONTROL = "nvidia-cuda-mps-control"
 DEFAULT_PIPE_DIRECTORY = Path("/tmp/nvidia-mps")     # where CUDA looks for a daemon when the variable is unset
 OWNER_FILE = "owner.pid"
+DAEMON_PID_FILE = "nvidia-cuda-mps-control.pid"       # the control daemon writes it into its pipe folder
 FOLDER_PREFIX = "clothgap-mps-"
 START_TIMEOUT_S = 20.0
+QUIT_TIMEOUT_S = 30.0
+SHORT_TMP = Path("/tmp")
+SOCKET_ROOM = 60          # characters a daemon's folder may take: its sockets' paths must stay under ~108
 
 
 class MPSError(ConfigError):
@@ -72,34 +79,69 @@ def renumber(slots: Sequence[str], visible: Sequence[str]) -> list[str]:
         raise ConfigError(f"GPU slot {e.args[0]!r} is not among the visible GPUs {', '.join(visible)}") from None
 
 
+def _daemon_pid(pipe: Path) -> int | None:
+    try:
+        return int((pipe / DAEMON_PID_FILE).read_text().strip())
+    except (OSError, ValueError):
+        return None
+
+
 def existing_daemon(environ: dict[str, str] | None = None) -> str | None:
-    """The pipe folder of a daemon this process's CUDA clients would already connect to, if any."""
+    """The pipe folder of a daemon this process's CUDA clients would already connect to, if any: the one the
+    environment names, or a live one in NVIDIA's default folder (a control pipe left by a daemon that is gone
+    serves no one)."""
     environ = os.environ if environ is None else environ
     pipe = environ.get("CUDA_MPS_PIPE_DIRECTORY")
     if pipe:
         return pipe
-    return str(DEFAULT_PIPE_DIRECTORY) if (DEFAULT_PIPE_DIRECTORY / "control").exists() else None
+    pid = _daemon_pid(DEFAULT_PIPE_DIRECTORY)
+    live = (DEFAULT_PIPE_DIRECTORY / "control").exists() and pid is not None and _alive(pid)
+    return str(DEFAULT_PIPE_DIRECTORY) if live else None
 
 
 def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie waiting for its parent to reap it does not)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:
         return True
-    return True
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return True
 
 
-def _quit(control: str, folder: Path, timeout: float = 30.0) -> None:
+def _quit(control: str, folder: Path, timeout: float | None = None) -> bool:
+    """Ask the daemon of ``folder`` to quit and wait for it to go (SIGTERM if it does not); whether it is gone.
+    A daemon that outlives this keeps its folder, so the next start finds it as an orphan and tries again."""
+    timeout = QUIT_TIMEOUT_S if timeout is None else timeout
+    pid = _daemon_pid(folder / "pipe")
     env = dict(os.environ, CUDA_MPS_PIPE_DIRECTORY=str(folder / "pipe"), CUDA_MPS_LOG_DIRECTORY=str(folder / "log"))
     with contextlib.suppress(OSError, subprocess.SubprocessError):
-        subprocess.run([control], input="quit\n", text=True, env=env, capture_output=True, timeout=timeout)
+        subprocess.run([control], input="quit\n", text=True, env=env, stdout=subprocess.DEVNULL,
+                       stderr=subprocess.DEVNULL, timeout=timeout)
+    if pid is None:
+        return True
+    deadline = time.monotonic() + timeout
+    while _alive(pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    if _alive(pid):
+        with contextlib.suppress(OSError):
+            os.kill(pid, signal.SIGTERM)
+        time.sleep(1.0)
+    return not _alive(pid)
+
+
+def _remove(control: str, folder: Path) -> None:
+    if _quit(control, folder):
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def quit_orphans(control: str, root: Path | None = None) -> list[Path]:
     """Quit the daemons of runs that were killed (their owner process is gone) and remove their folders."""
-    root = Path(root or tempfile.gettempdir())
+    root = _daemon_root(root)
     quit_ = []
     for folder in sorted(root.glob(FOLDER_PREFIX + "*")):
         try:
@@ -108,33 +150,61 @@ def quit_orphans(control: str, root: Path | None = None) -> list[Path]:
             continue
         if _alive(owner):
             continue
-        _quit(control, folder)
-        shutil.rmtree(folder, ignore_errors=True)
+        _remove(control, folder)
         quit_.append(folder)
     return quit_
 
 
+def _daemon_root(root: Path | None) -> Path:
+    """Where daemon folders go: the temp folder, or /tmp when its path would make the sockets' paths too long."""
+    if root is not None:
+        return Path(root)
+    tmp = Path(tempfile.gettempdir())
+    return tmp if len(str(tmp)) + len(FOLDER_PREFIX) + 20 < SOCKET_ROOM else SHORT_TMP
+
+
 def _start(control: str, root: Path | None = None) -> Path:
     """Start a daemon with its own pipe and log folders (kept short: the pipe is a Unix socket path)."""
-    folder = Path(tempfile.mkdtemp(prefix=FOLDER_PREFIX, dir=root))
+    folder = Path(tempfile.mkdtemp(prefix=FOLDER_PREFIX, dir=_daemon_root(root)))
     (folder / "pipe").mkdir()
     (folder / "log").mkdir()
     (folder / OWNER_FILE).write_text(str(os.getpid()))
     env = dict(os.environ, CUDA_MPS_PIPE_DIRECTORY=str(folder / "pipe"), CUDA_MPS_LOG_DIRECTORY=str(folder / "log"))
+    said = folder / "log" / "start.txt"
+    # its output to a file, not a pipe: a daemon that kept a captured pipe open would hold the call until timeout
     try:
-        done = subprocess.run([control, "-d"], env=env, capture_output=True, text=True, timeout=START_TIMEOUT_S)
+        with open(said, "w") as out:
+            done = subprocess.run([control, "-d"], env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=out,
+                                  timeout=START_TIMEOUT_S)
     except (OSError, subprocess.SubprocessError) as e:
-        shutil.rmtree(folder, ignore_errors=True)
+        _remove(control, folder)
         raise MPSError(f"{control} -d could not run: {e}") from None
     deadline = time.monotonic() + START_TIMEOUT_S
     while done.returncode == 0 and not (folder / "pipe" / "control").exists() and time.monotonic() < deadline:
         time.sleep(0.05)
     if done.returncode != 0 or not (folder / "pipe" / "control").exists():
-        why = (done.stderr or done.stdout).strip() or f"exit {done.returncode}, no control pipe"
-        _quit(control, folder)
-        shutil.rmtree(folder, ignore_errors=True)
+        why = said.read_text().strip() or f"exit {done.returncode}, no control pipe"
+        _remove(control, folder)
         raise MPSError(f"{control} -d did not start a daemon: {why}")
     return folder
+
+
+@contextlib.contextmanager
+def _sigterm_as_exit() -> Iterator[None]:
+    """SIGTERM (``timeout``, a scheduler) raises SystemExit for the block, so its cleanup runs; Python's default
+    would end the process without it and leave the daemon running. Only the main thread can set a handler."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum, frame):
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 @contextlib.contextmanager
@@ -152,7 +222,7 @@ def cuda_mps(slots: Sequence[str] | None, visible: Sequence[str], mode: str = "a
         raise MPSError("--cuda-mps on, but the workers have no GPUs (give --gpus-per-worker)")
     pipe = existing_daemon()
     if pipe is not None:
-        say(f"cuda mps: using the daemon already running ({pipe})")
+        say(f"cuda mps: using the daemon already running ({pipe}); the workers' GPU numbers are left as they are")
         yield MPSSession(slots, state="existing")
         return
     control = shutil.which(CONTROL)
@@ -174,11 +244,11 @@ def cuda_mps(slots: Sequence[str] | None, visible: Sequence[str], mode: str = "a
         yield MPSSession(slots, state=f"not used: {e}")
         return
     try:
-        session = MPSSession(renumber(slots, visible),
-                             {"CUDA_MPS_PIPE_DIRECTORY": str(folder / "pipe"),
-                              "CUDA_MPS_LOG_DIRECTORY": str(folder / "log")}, "started")
-        say(f"cuda mps: daemon started for {len(slots)} workers on {len(set(slots))} GPU slot(s)")
-        yield session
+        with _sigterm_as_exit():
+            session = MPSSession(renumber(slots, visible),
+                                 {"CUDA_MPS_PIPE_DIRECTORY": str(folder / "pipe"),
+                                  "CUDA_MPS_LOG_DIRECTORY": str(folder / "log")}, "started")
+            say(f"cuda mps: daemon started for {len(slots)} workers on {len(set(slots))} GPU slot(s)")
+            yield session
     finally:
-        _quit(control, folder)
-        shutil.rmtree(folder, ignore_errors=True)
+        _remove(control, folder)

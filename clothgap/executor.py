@@ -19,10 +19,10 @@ this module knows no stage's summary.
     local     in this process (default; what CPU runs and tests use)
     process   a local pool of spawned processes (Warp, Mitsuba and torch are not
               fork-safe); with ``gpus_per_worker`` one worker per GPU (or per
-              share of one), pinned with CUDA_VISIBLE_DEVICES; workers that share a
-              GPU run under a private CUDA MPS daemon (``cuda_mps``; sim and render
-              by default); a pool broken by a killed worker is rebuilt and the
-              unfinished shards are run again
+              share of one), pinned with CUDA_VISIBLE_DEVICES; render workers that
+              share a GPU run under a private CUDA MPS daemon (``cuda_mps``; sim and
+              training with ``on``); a pool broken by a killed worker is rebuilt and
+              the unfinished shards are run again
     ray       tasks on a Ray cluster (``address``: "auto", "ray://host:10001",
               or None for a fresh local instance); ``gpus_per_worker`` is each
               task's ``num_gpus``; a task whose worker dies is retried
@@ -75,8 +75,8 @@ class ExecutorOptions:
     shard_size: int | None = None       # clip indices per shard; None = an even split over the workers
     retries: int = 2                    # times a shard whose worker died is run again (process, ray)
     progress: bool = True
-    # process workers sharing a GPU: "auto" = under an MPS daemon for sim and render (measured: the render
-    # stage 2.2x), not for training (not measured); "on" = for training too, and an error without MPS
+    # process workers sharing a GPU: "auto" = under an MPS daemon for render (measured: the stage 2.2x), not
+    # for sim or training (not measured under it); "on" = for those too, and an error without MPS
     cuda_mps: str = "auto"
 
     def validate(self) -> "ExecutorOptions":
@@ -172,7 +172,8 @@ def run_stage(run: Run, stage: str, options: ExecutorOptions = ExecutorOptions()
             visible = visible_gpus()
             slots = gpu_slots(visible, options.gpus_per_worker, options.workers)
             workers = len(slots)
-            mps = stack.enter_context(cuda_mps(slots, visible, options.cuda_mps, say=_say))
+            mode = options.cuda_mps if stage == "render" or options.cuda_mps != "auto" else "off"
+            mps = stack.enter_context(cuda_mps(slots, visible, mode, say=_say))
             slots, env, mps_state = mps.slots, mps.env, mps.state
         else:
             slots = None
@@ -281,7 +282,8 @@ def run_train_parallel(run: Run, grid: Sequence[TrainEntry], parallel: int = 1, 
         elif options.executor == "process":
             gpus = visible_gpus()
             slots = gpu_slots(gpus, options.gpus_per_worker, options.workers)
-        with cuda_mps(slots, gpus or [], mps_mode if slots else "off", say=_say) as mps:
+        # (`on` without GPUs is refused by cuda_mps: its workers would have none to share)
+        with cuda_mps(slots, gpus or [], mps_mode if slots or mps_mode == "on" else "off", say=_say) as mps:
             run_shards(train_shard, str(run.root.resolve()), train_jobs(pending),
                        options=dataclasses.replace(options, progress=progress), label="train", gpu_slots=mps.slots,
                        describe=describe_models, worker_env=mps.env)

@@ -1,17 +1,20 @@
 """The private CUDA MPS daemon of workers that share a GPU (clothgap.cuda_mps).
 
 These machines have no GPU and no NVIDIA driver, so the daemon's lifecycle is checked against a stand-in
-``nvidia-cuda-mps-control`` on PATH that does what the real one does to the file system (``-d`` makes the
-control pipe in CUDA_MPS_PIPE_DIRECTORY; ``quit`` on stdin ends it) and records each call. What the real
-daemon does to the renders was measured on H100s (benchmarks/results/render_stage-mps-h100x4-n2592.json).
+``nvidia-cuda-mps-control`` on PATH that does what the real one does to processes and files (``-d`` leaves a
+daemon process running, with the control pipe and its pid file in CUDA_MPS_PIPE_DIRECTORY; ``quit`` on stdin
+ends it) and records each call. What the real daemon does to the renders was measured on H100s
+(benchmarks/results/render_stage-mps-h100x4-n2592.json).
 """
 
 from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -22,17 +25,26 @@ from clothgap.cuda_mps import MPSError, cuda_mps, quit_orphans, renumber, shares
 from clothgap.executor import ExecutorOptions, gpu_slots, run_shards, shard, visible_gpus
 
 FAKE_CONTROL = """#!{python}
-import json, os, pathlib, sys
+import json, os, pathlib, signal, subprocess, sys
 record = os.environ["FAKE_MPS_RECORD"]
 pipe = pathlib.Path(os.environ["CUDA_MPS_PIPE_DIRECTORY"])
 if sys.argv[1:] == ["-d"]:
     if os.environ.get("FAKE_MPS_FAIL"):
         print("An instance of this daemon is already running", file=sys.stderr)
         sys.exit(1)
+    daemon = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(300)"], start_new_session=True,
+                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    (pipe / "{pid_file}").write_text(str(daemon.pid))
     (pipe / "control").write_text("")
     event = {{"start": str(pipe), "visible": os.environ.get("CUDA_VISIBLE_DEVICES")}}
 else:
-    event = {{sys.stdin.read().strip(): str(pipe)}}
+    command = sys.stdin.read().strip()
+    if command == "quit" and not os.environ.get("FAKE_MPS_DEAF"):
+        try:
+            os.kill(int((pipe / "{pid_file}").read_text()), signal.SIGTERM)
+        except (OSError, ValueError):
+            pass
+    event = {{command: str(pipe)}}
 with open(record, "a") as f:
     f.write(json.dumps(event) + "\\n")
 """
@@ -44,19 +56,31 @@ def control(tmp_path, monkeypatch):
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir()
     program = bin_dir / mps_module.CONTROL
-    program.write_text(FAKE_CONTROL.format(python=sys.executable))
+    program.write_text(FAKE_CONTROL.format(python=sys.executable, pid_file=mps_module.DAEMON_PID_FILE))
     program.chmod(0o755)
     record = tmp_path / "calls.jsonl"
     monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
     monkeypatch.setenv("FAKE_MPS_RECORD", str(record))
     monkeypatch.delenv("CUDA_MPS_PIPE_DIRECTORY", raising=False)
     monkeypatch.delenv("FAKE_MPS_FAIL", raising=False)
+    monkeypatch.delenv("FAKE_MPS_DEAF", raising=False)
     monkeypatch.setattr(mps_module, "DEFAULT_PIPE_DIRECTORY", tmp_path / "no-system-daemon")
     return record
 
 
 def calls(record: Path) -> list[dict]:
     return [json.loads(line) for line in record.read_text().splitlines()] if record.exists() else []
+
+
+def daemon_pid(mps) -> int:
+    return int((Path(mps.env["CUDA_MPS_PIPE_DIRECTORY"]) / mps_module.DAEMON_PID_FILE).read_text())
+
+
+def gone(pid: int, within: float = 5.0) -> bool:
+    deadline = time.monotonic() + within
+    while mps_module._alive(pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return not mps_module._alive(pid)
 
 
 def _report_env(run_root: str, indices: list[int]) -> dict:
@@ -87,6 +111,8 @@ def test_workers_sharing_a_gpu_run_under_a_private_daemon_that_is_quit_afterward
         assert mps.state == "started" and mps.slots == ["0", "0", "1", "1"]
         pipe = Path(mps.env["CUDA_MPS_PIPE_DIRECTORY"])
         assert (pipe / "control").exists() and "CUDA_MPS_PIPE_DIRECTORY" not in os.environ   # the parent stays out
+        daemon = daemon_pid(mps)
+        assert mps_module._alive(daemon)
         got = run_shards(_report_env, "/nowhere", shard(range(8), 1),
                          options=ExecutorOptions("process", gpus_per_worker=0.5, progress=False),
                          gpu_slots=mps.slots, worker_env=mps.env)
@@ -94,7 +120,24 @@ def test_workers_sharing_a_gpu_run_under_a_private_daemon_that_is_quit_afterward
     assert {r["gpu"] for r in got} <= {"0", "1"}                    # ... by the daemon's numbers
     # the daemon saw the GPUs the parent sees, and was quit once the workers were done
     assert calls(control) == [{"start": str(pipe), "visible": "3,5"}, {"quit": str(pipe)}]
-    assert not pipe.parent.exists() and any("daemon started" in s for s in said)
+    assert not pipe.parent.exists() and any("daemon started" in s for s in said) and gone(daemon)
+
+
+def test_a_daemon_deaf_to_quit_is_terminated_and_a_stage_stopped_by_sigterm_still_quits_its_daemon(
+        control, tmp_path, monkeypatch):
+    monkeypatch.setenv("FAKE_MPS_DEAF", "1")
+    monkeypatch.setattr(mps_module, "QUIT_TIMEOUT_S", 0.5)
+    with cuda_mps(["0", "0"], ["0"], "on", root=tmp_path, say=lambda m: None) as mps:
+        daemon = daemon_pid(mps)
+    assert gone(daemon) and not list(tmp_path.glob(mps_module.FOLDER_PREFIX + "*"))   # SIGTERM after the wait
+    monkeypatch.delenv("FAKE_MPS_DEAF")
+    with pytest.raises(SystemExit) as stopped:
+        with cuda_mps(["0", "0"], ["0"], "on", root=tmp_path, say=lambda m: None) as mps:
+            daemon = daemon_pid(mps)
+            os.kill(os.getpid(), signal.SIGTERM)          # what `timeout` sends a stage
+            time.sleep(5)
+    assert stopped.value.code == 128 + signal.SIGTERM and gone(daemon)
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL    # the handler is only the block's
 
 
 def test_without_a_shared_gpu_or_with_mps_off_no_daemon_starts(control, tmp_path):
@@ -110,6 +153,19 @@ def test_a_daemon_already_serving_this_process_is_used_as_it_is(control, tmp_pat
     with cuda_mps(["2", "2"], ["2"], "on", root=tmp_path, say=lambda m: None) as mps:
         assert mps.state == "existing" and mps.slots == ["2", "2"] and mps.env == {}
     assert calls(control) == []                                     # neither started nor quit
+
+
+def test_a_control_pipe_left_in_the_default_folder_by_a_daemon_that_is_gone_is_not_trusted(control, tmp_path):
+    default = mps_module.DEFAULT_PIPE_DIRECTORY
+    default.mkdir()
+    (default / "control").write_text("")
+    assert mps_module.existing_daemon({}) is None                   # no pid file: nothing serves it
+    gone_pid = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone_pid.wait()
+    (default / mps_module.DAEMON_PID_FILE).write_text(str(gone_pid.pid))
+    assert mps_module.existing_daemon({}) is None
+    (default / mps_module.DAEMON_PID_FILE).write_text(str(os.getpid()))
+    assert mps_module.existing_daemon({}) == str(default)
 
 
 def test_without_the_control_program_auto_runs_without_mps_and_on_refuses(tmp_path, monkeypatch):
@@ -146,6 +202,26 @@ def test_a_daemon_left_by_a_killed_run_is_quit_and_a_live_runs_daemon_is_not(con
     assert [f.name for f in quit_] == [f"{mps_module.FOLDER_PREFIX}orphan"]
     assert calls(control) == [{"quit": str(tmp_path / f"{mps_module.FOLDER_PREFIX}orphan" / "pipe")}]
     assert not quit_[0].exists() and (tmp_path / f"{mps_module.FOLDER_PREFIX}live").exists()
+
+
+def test_render_workers_sharing_a_gpu_get_the_daemon_and_sim_workers_only_when_asked(control, tmp_path,
+                                                                                     monkeypatch):
+    from clothgap.executor import run_stage
+    from tests.conftest import tiny_sim_run
+
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "0")                  # one "GPU", two workers on it (run on CPU)
+    run = tiny_sim_run(tmp_path / "run", seed=3, classes=(0, 53))
+    auto = run_stage(run, "sim", ExecutorOptions("process", gpus_per_worker=0.5, progress=False))
+    assert auto["simulated"] == 2 and auto["executor"]["cuda_mps"] == "off" and calls(control) == []
+    fresh = tiny_sim_run(tmp_path / "fresh", seed=3, classes=(0, 53))
+    on = run_stage(fresh, "sim", ExecutorOptions("process", gpus_per_worker=0.5, progress=False, cuda_mps="on"))
+    assert on["simulated"] == 2 and on["executor"]["cuda_mps"] == "started"
+    assert [list(c)[0] for c in calls(control)] == ["start", "quit"]
+    with pytest.raises(ConfigError, match="give the render workers their share of a GPU"):
+        run_stage(fresh, "render", ExecutorOptions("process", workers=2, progress=False, cuda_mps="on"))
+    with pytest.raises(MPSError, match="the workers have no GPUs"):
+        with cuda_mps(None, [], "on", root=tmp_path, say=lambda m: None):
+            pass
 
 
 def test_mps_options_are_checked():

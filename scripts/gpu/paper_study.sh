@@ -29,7 +29,7 @@ SETS=(--set sim.motions=${MOTIONS:-wind} --set sim.remeshing=${REMESHING:-unifor
 # Every GPU of the machine: render shards four workers a GPU under MPS,
 # training runs four models at a time per GPU (a model leaves most of an H100 idle). Set to override.
 source "$(dirname "$0")/gpus.sh"
-[ "$ngpu" -ge 1 ] && RENDER_ARGS=${RENDER_ARGS-"--executor process --gpus-per-worker 0.25"}
+[ -n "$gpus" ] && RENDER_ARGS=${RENDER_ARGS-"--executor process --gpus-per-worker 0.25"}
 TRAIN_ARGS=${TRAIN_ARGS-"--parallel $((4 * ngpu))"}
 started=$(date +%s) status=0 fixed_limit=${LIMIT:-}
 for stage in $STAGES; do

@@ -6,8 +6,11 @@ RUN=/tmp/w STAGES=sim SEQ=48 SPP=16 bash scripts/gpu/paper_study.sh > $OUT/sim.l
 for mode in gpw1 gpw025 gpw025-mps; do
   rm -rf /tmp/w/render
   gpw=0.25; [ $mode = gpw1 ] && gpw=1
+  # the first two without MPS (clothgap now starts its own daemon for shared GPUs); the third under the daemon
+  # this script starts (clothgap uses a daemon already running as it is)
+  mps=off; [ $mode = gpw025-mps ] && mps=auto
   if [ $mode = gpw025-mps ]; then export CUDA_MPS_PIPE_DIRECTORY=/tmp/mps-pipe CUDA_MPS_LOG_DIRECTORY=/tmp/mps-log; mkdir -p /tmp/mps-pipe /tmp/mps-log; nvidia-cuda-mps-control -d; fi
-  t0=$(date +%s.%N); timeout 150 python3 -m clothgap render /tmp/w --executor process --gpus-per-worker $gpw > $OUT/render-$mode.log 2>&1; rc=$?; t1=$(date +%s.%N)
+  t0=$(date +%s.%N); timeout 150 python3 -m clothgap render /tmp/w --executor process --gpus-per-worker $gpw --cuda-mps $mps > $OUT/render-$mode.log 2>&1; rc=$?; t1=$(date +%s.%N)
   n=$(ls /tmp/w/render/*/wind-uniform1/*/DONE 2>/dev/null | wc -l)
   echo "$mode rc=$rc seconds=$(python3 -c "print(round($t1-$t0,1))") clips_done=$n" | tee -a $OUT/summary.txt
 done
