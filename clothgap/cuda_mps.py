@@ -33,7 +33,7 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from clothgap.config import ConfigError
+from clothgap.errors import ConfigError
 
 MODES = ("auto", "on", "off")
 CONTROL = "nvidia-cuda-mps-control"

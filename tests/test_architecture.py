@@ -16,7 +16,7 @@ STAGES = ("sim", "render", "learn", "eval")             # in order: each may imp
 GROUND = {"clothgap", "clothgap.errors", "clothgap.checks", "clothgap.seeding", "clothgap.files", "clothgap.settings",
           "clothgap.runs", "clothgap.parallel"}
 # The top floor: it alone knows every stage. ``<package>.__main__`` modules are entry points, top floor too.
-TOP = {"clothgap.config", "clothgap.api", "clothgap.cli", "clothgap.executor", "clothgap.__main__"}
+TOP = {"clothgap.config", "clothgap.api", "clothgap.cli", "clothgap.executor", "clothgap.cuda_mps", "clothgap.__main__"}
 
 
 def modules(root: Path) -> dict[str, Path]:

@@ -44,11 +44,13 @@ def _grid(run, setting: str, variant: str, jobs: list[str]) -> list[tuple]:
 
 
 def _train(args, run) -> None:
-    from clothgap.executor import run_train_parallel
+    from clothgap.executor import ExecutorOptions, run_train_parallel
 
     grid = _grid(run, args.setting, args.variant, args.job)
-    print(f"training {len(grid)} models, {args.parallel} at a time", flush=True)
-    run_train_parallel(run, grid, args.parallel)
+    print(f"training {len(grid)} models, {args.parallel} at a time"
+          f"{' under a CUDA MPS daemon' if args.cuda_mps == 'on' else ''}", flush=True)
+    options = ExecutorOptions("process", workers=args.parallel, cuda_mps="on") if args.cuda_mps == "on" else None
+    run_train_parallel(run, grid, args.parallel, options=options)
 
 
 def _train_with_deadline(args) -> bool | None:
@@ -114,6 +116,8 @@ def main() -> None:
     ap.add_argument("--parallel", type=int, default=4)
     ap.add_argument("--deadline", type=float, default=540.0, help="seconds of training in this call")
     ap.add_argument("--out", default=os.environ.get("OUT"), help="copy the tables here (default: $OUT)")
+    ap.add_argument("--cuda-mps", choices=("off", "on"), default="off",
+                    help="train the models sharing a GPU under a private CUDA MPS daemon (clothgap.cuda_mps)")
     ap.add_argument("--train-only", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
 
