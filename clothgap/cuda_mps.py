@@ -219,7 +219,8 @@ def cuda_mps(slots: Sequence[str] | None, visible: Sequence[str], mode: str = "a
         yield MPSSession(slots, state="off" if mode == "off" else "not used: no GPU is shared by two workers")
         return
     if not slots:
-        raise MPSError("--cuda-mps on, but the workers have no GPUs (give --gpus-per-worker)")
+        raise MPSError("--cuda-mps on, but the workers have no GPUs to share (none is visible, they run on the CPU, "
+                       "or --gpus-per-worker was not given)")
     pipe = existing_daemon()
     if pipe is not None:
         say(f"cuda mps: using the daemon already running ({pipe}); the workers' GPU numbers are left as they are")
