@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from clothgap.errors import ConfigError
+from clothgap.files import process_alive as _alive
 
 MODES = ("auto", "on", "off")
 CONTROL = "nvidia-cuda-mps-control"
@@ -97,20 +98,6 @@ def existing_daemon(environ: dict[str, str] | None = None) -> str | None:
     pid = _daemon_pid(DEFAULT_PIPE_DIRECTORY)
     live = (DEFAULT_PIPE_DIRECTORY / "control").exists() and pid is not None and _alive(pid)
     return str(DEFAULT_PIPE_DIRECTORY) if live else None
-
-
-def _alive(pid: int) -> bool:
-    """Whether ``pid`` runs (a zombie waiting for its parent to reap it does not)."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-    except (OSError, IndexError):
-        return True
 
 
 def _quit(control: str, folder: Path, timeout: float | None = None) -> bool:

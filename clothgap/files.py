@@ -66,18 +66,23 @@ def remove_stale_temps(folder: Path, prefix: str, suffix: str = "") -> None:
     writer left (``kill -9`` runs no cleanup), e.g. a multi-GB frame cache being built."""
     for old in Path(folder).glob(glob.escape(prefix) + "*" + glob.escape(suffix)):
         pid = old.name[len(prefix):len(old.name) - len(suffix)]
-        if pid.isdigit() and int(pid) != os.getpid() and not _alive(int(pid)):
+        if pid.isdigit() and int(pid) != os.getpid() and not process_alive(int(pid)):
             old.unlink(missing_ok=True)
 
 
-def _alive(pid: int) -> bool:
+def process_alive(pid: int) -> bool:
+    """Whether process ``pid`` runs: it exists (perhaps owned by someone else) and is not a zombie waiting for
+    its parent to reap it."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except OSError:
         return True     # exists, owned by someone else
-    return True
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return True     # no /proc here: existing is all we know
 
 
 # Test-only fault injection (tests/test_kill_resume.py); never set in normal use.
