@@ -66,8 +66,8 @@ def _executor_options(fn):
     fn = click.option("--cuda-mps", type=click.Choice(["auto", "on", "off"]), default="auto", show_default=True,
                       help="Process workers sharing a GPU run under a private CUDA MPS daemon, so their kernels "
                            "overlap instead of time-slicing the GPU (render 2.2x on H100s). auto: for render "
-                           "when nvidia-cuda-mps-control exists; on: for sim and `clothgap train` too (not "
-                           "measured there), and an error without MPS; off: never.")(fn)
+                           "when nvidia-cuda-mps-control exists; on: for sim and training too (not measured "
+                           "there), and an error without MPS; off: never.")(fn)
     fn = click.option("--shard-size", type=click.IntRange(min=1), metavar="N",
                       help="Clip indices per shard (default: an even split over the workers).")(fn)
     fn = click.option("--gpus-per-worker", type=click.FloatRange(min=0), default=0.0, metavar="G",
@@ -562,7 +562,11 @@ def pipeline(run_dir, preset_name, out, overrides, config_file, allow_failures, 
     stage("render", lambda r: run_stage(r, "render", opts))
     from clothgap.api import train_all
 
-    stage("train", lambda r: train_all(r, parallel=train_parallel))
+    from clothgap.executor import ExecutorOptions
+
+    # --cuda-mps on serves training's pool too (its models share the GPUs round robin)
+    train_opts = ExecutorOptions("process", workers=train_parallel, cuda_mps="on") if opts.cuda_mps == "on" else None
+    stage("train", lambda r: train_all(r, parallel=train_parallel, options=train_opts))
     from eval.stage import run_eval
 
     stage("eval", run_eval)
