@@ -42,8 +42,9 @@ DEFAULT_PIPE_DIRECTORY = Path("/tmp/nvidia-mps")     # where CUDA looks for a da
 OWNER_FILE = "owner.pid"
 DAEMON_PID_FILE = "nvidia-cuda-mps-control.pid"       # the control daemon writes it into its pipe folder
 FOLDER_PREFIX = "clothgap-mps-"
+DAEMON_NAME = "nvidia-cuda-mps"     # how /proc/<pid>/comm names the control daemon (15 characters kept)
 START_TIMEOUT_S = 20.0
-QUIT_TIMEOUT_S = 30.0
+QUIT_TIMEOUT_S = 8.0      # for the quit call, and again for the daemon to go: within learn_grid's 20 s grace
 SHORT_TMP = Path("/tmp")
 SOCKET_ROOM = 60          # characters a daemon's folder may take: its sockets' paths must stay under ~108
 
@@ -81,10 +82,20 @@ def renumber(slots: Sequence[str], visible: Sequence[str]) -> list[str]:
 
 
 def _daemon_pid(pipe: Path) -> int | None:
+    """The control daemon's pid from its pid file, if that process is still the daemon (a stale file's pid may
+    belong to another process by now, which must never be signalled)."""
     try:
-        return int((pipe / DAEMON_PID_FILE).read_text().strip())
+        pid = int((pipe / DAEMON_PID_FILE).read_text().strip())
     except (OSError, ValueError):
         return None
+    if pid <= 0:
+        return None
+    try:
+        if not Path(f"/proc/{pid}/comm").read_text().startswith(DAEMON_NAME):
+            return None
+    except OSError:
+        return None       # gone (or no /proc: then it is not signalled either)
+    return pid
 
 
 def existing_daemon(environ: dict[str, str] | None = None) -> str | None:
@@ -191,7 +202,7 @@ def _sigterm_as_exit() -> Iterator[None]:
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
 
 
 @contextlib.contextmanager

@@ -401,18 +401,27 @@ def _run_process_pool(fn, run_root, shards, options, label, slots, describe, env
             broken: list[int] = []
             with ProcessPoolExecutor(max_workers=min(workers, len(pending)), mp_context=ctx, **init) as pool:
                 futures = {pool.submit(fn, run_root, shards[i]): i for i in pending}
-                for fut in as_completed(futures):
-                    i = futures[fut]
-                    try:
-                        results[i] = fut.result()
-                    except BrokenProcessPool:
-                        broken.append(i)        # a worker died (killed, out of memory): run it again
-                        continue
-                    except Exception as e:
-                        pool.shutdown(wait=True, cancel_futures=True)     # shards not started are dropped
-                        raise ShardError(f"{label} shard {i} ({describe(shards[i])}) failed: "
-                                         f"{type(e).__name__}: {e}; finished clips are kept") from e
-                    bar.update()
+                try:
+                    for fut in as_completed(futures):
+                        i = futures[fut]
+                        try:
+                            results[i] = fut.result()
+                        except BrokenProcessPool:
+                            broken.append(i)        # a worker died (killed, out of memory): run it again
+                            continue
+                        except Exception as e:
+                            pool.shutdown(wait=True, cancel_futures=True)     # shards not started are dropped
+                            raise ShardError(f"{label} shard {i} ({describe(shards[i])}) failed: "
+                                             f"{type(e).__name__}: {e}; finished clips are kept") from e
+                        bar.update()
+                except (KeyboardInterrupt, SystemExit):
+                    # Stopped (Ctrl-C, or SIGTERM turned into SystemExit while an MPS daemon runs): stop the
+                    # workers now instead of letting the pool's exit run every queued shard first.
+                    processes = list((getattr(pool, "_processes", None) or {}).values())   # shutdown forgets them
+                    pool.shutdown(wait=False, cancel_futures=True)
+                    for process in processes:
+                        process.terminate()
+                    raise
             if not broken:
                 return results
             pending = sorted(broken)

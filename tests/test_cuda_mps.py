@@ -35,13 +35,14 @@ if sys.argv[1:] == ["-d"]:
     daemon = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(300)"], start_new_session=True,
                               stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     (pipe / "{pid_file}").write_text(str(daemon.pid))
+    (pipe / "stand-in.pid").write_text(str(daemon.pid))        # what quit ends: only the process it started
     (pipe / "control").write_text("")
     event = {{"start": str(pipe), "visible": os.environ.get("CUDA_VISIBLE_DEVICES")}}
 else:
     command = sys.stdin.read().strip()
     if command == "quit" and not os.environ.get("FAKE_MPS_DEAF"):
         try:
-            os.kill(int((pipe / "{pid_file}").read_text()), signal.SIGTERM)
+            os.kill(int((pipe / "stand-in.pid").read_text()), signal.SIGTERM)
         except (OSError, ValueError):
             pass
     event = {{command: str(pipe)}}
@@ -65,6 +66,7 @@ def control(tmp_path, monkeypatch):
     monkeypatch.delenv("FAKE_MPS_FAIL", raising=False)
     monkeypatch.delenv("FAKE_MPS_DEAF", raising=False)
     monkeypatch.setattr(mps_module, "DEFAULT_PIPE_DIRECTORY", tmp_path / "no-system-daemon")
+    monkeypatch.setattr(mps_module, "DAEMON_NAME", "python")      # the stand-in's daemon is a Python process
     return record
 
 
@@ -189,6 +191,57 @@ def test_a_daemon_that_does_not_start_is_named(control, tmp_path, monkeypatch):
         with cuda_mps(["0", "0"], ["0"], "on", root=tmp_path, say=lambda m: None):
             pass
     assert not list(tmp_path.glob(mps_module.FOLDER_PREFIX + "*"))  # no folder left behind
+
+
+def test_a_stale_pid_file_never_signals_a_process_that_is_not_the_daemon(control, tmp_path, monkeypatch):
+    monkeypatch.setattr(mps_module, "DAEMON_NAME", "nvidia-cuda-mps")
+    bystander = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        folder = tmp_path / f"{mps_module.FOLDER_PREFIX}stale"
+        (folder / "pipe").mkdir(parents=True)
+        for pid in (str(bystander.pid), "0", "-1", "nonsense"):
+            (folder / "pipe" / mps_module.DAEMON_PID_FILE).write_text(pid)
+            assert mps_module._daemon_pid(folder / "pipe") is None
+            assert mps_module._quit(mps_module.CONTROL, folder, timeout=0.2)   # nothing of ours left to wait for
+        assert bystander.poll() is None                                        # and the bystander lives
+    finally:
+        bystander.kill()
+        bystander.wait()
+
+
+STOPPED_STAGE = """
+import sys, time
+from pathlib import Path
+sys.path.insert(0, {root!r})
+from clothgap import cuda_mps as mps_module
+from clothgap.executor import ExecutorOptions, run_shards, shard
+from tests.test_cuda_mps import _slow_shard
+mps_module.DAEMON_NAME = "python"
+with mps_module.cuda_mps(["0", "0"], ["0"], "on", root=Path({folder!r}), say=lambda m: None) as mps:
+    print(mps_module._daemon_pid(Path(mps.env["CUDA_MPS_PIPE_DIRECTORY"])), flush=True)
+    run_shards(_slow_shard, "/nowhere", shard(range(8), 1), gpu_slots=mps.slots, worker_env=mps.env,
+               options=ExecutorOptions("process", gpus_per_worker=0.5, progress=False))
+"""
+
+
+def _slow_shard(run_root: str, indices: list[int]) -> dict:
+    time.sleep(4)
+    return {}
+
+
+def test_a_stage_sent_sigterm_stops_its_workers_at_once_and_quits_its_daemon(control, tmp_path):
+    """Eight 4 s shards on two workers: SIGTERM to the stage's own process (not its group) ends it within
+    seconds, not after every queued shard, and its daemon goes with it."""
+    root = str(Path(__file__).resolve().parents[1])
+    stage = subprocess.Popen([sys.executable, "-c", STOPPED_STAGE.format(root=root, folder=str(tmp_path))],
+                             stdout=subprocess.PIPE, text=True, env=dict(os.environ, PYTHONPATH=root))
+    daemon = int(stage.stdout.readline())
+    time.sleep(2.5)                                         # the workers are inside their first shards
+    t0 = time.monotonic()
+    stage.send_signal(signal.SIGTERM)
+    assert stage.wait(timeout=30) == 128 + signal.SIGTERM
+    assert time.monotonic() - t0 < 8                        # the whole stage would take 16 s more
+    assert gone(daemon) and not list(tmp_path.glob(mps_module.FOLDER_PREFIX + "*"))
 
 
 def test_a_daemon_left_by_a_killed_run_is_quit_and_a_live_runs_daemon_is_not(control, tmp_path):
