@@ -81,6 +81,11 @@ def renumber(slots: Sequence[str], visible: Sequence[str]) -> list[str]:
         raise ConfigError(f"GPU slot {e.args[0]!r} is not among the visible GPUs {', '.join(visible)}") from None
 
 
+def _daemon_env(folder: Path) -> dict[str, str]:
+    """The variables that point a client (or the control program) at the daemon of ``folder``."""
+    return {"CUDA_MPS_PIPE_DIRECTORY": str(folder / "pipe"), "CUDA_MPS_LOG_DIRECTORY": str(folder / "log")}
+
+
 def _daemon_pid(pipe: Path) -> int | None:
     """The control daemon's pid from its pid file, if that process is still the daemon (a stale file's pid may
     belong to another process by now, which must never be signalled)."""
@@ -116,10 +121,9 @@ def _quit(control: str, folder: Path, timeout: float | None = None) -> bool:
     A daemon that outlives this keeps its folder, so the next start finds it as an orphan and tries again."""
     timeout = QUIT_TIMEOUT_S if timeout is None else timeout
     pid = _daemon_pid(folder / "pipe")
-    env = dict(os.environ, CUDA_MPS_PIPE_DIRECTORY=str(folder / "pipe"), CUDA_MPS_LOG_DIRECTORY=str(folder / "log"))
     with contextlib.suppress(OSError, subprocess.SubprocessError):
-        subprocess.run([control], input="quit\n", text=True, env=env, stdout=subprocess.DEVNULL,
-                       stderr=subprocess.DEVNULL, timeout=timeout)
+        subprocess.run([control], input="quit\n", text=True, env={**os.environ, **_daemon_env(folder)},
+                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=timeout)
     if pid is None:
         return True
     deadline = time.monotonic() + timeout
@@ -167,13 +171,12 @@ def _start(control: str, root: Path | None = None) -> Path:
     (folder / "pipe").mkdir()
     (folder / "log").mkdir()
     (folder / OWNER_FILE).write_text(str(os.getpid()))
-    env = dict(os.environ, CUDA_MPS_PIPE_DIRECTORY=str(folder / "pipe"), CUDA_MPS_LOG_DIRECTORY=str(folder / "log"))
     said = folder / "log" / "start.txt"
     # its output to a file, not a pipe: a daemon that kept a captured pipe open would hold the call until timeout
     try:
         with open(said, "w") as out:
-            done = subprocess.run([control, "-d"], env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=out,
-                                  timeout=START_TIMEOUT_S)
+            done = subprocess.run([control, "-d"], env={**os.environ, **_daemon_env(folder)},
+                                  stdin=subprocess.DEVNULL, stdout=out, stderr=out, timeout=START_TIMEOUT_S)
     except (OSError, subprocess.SubprocessError) as e:
         _remove(control, folder)
         raise MPSError(f"{control} -d could not run: {e}") from None
@@ -244,9 +247,7 @@ def cuda_mps(slots: Sequence[str] | None, visible: Sequence[str], mode: str = "a
         return
     try:
         with _sigterm_as_exit():
-            session = MPSSession(renumber(slots, visible),
-                                 {"CUDA_MPS_PIPE_DIRECTORY": str(folder / "pipe"),
-                                  "CUDA_MPS_LOG_DIRECTORY": str(folder / "log")}, "started")
+            session = MPSSession(renumber(slots, visible), _daemon_env(folder), "started")
             say(f"cuda mps: daemon started for {len(slots)} workers on {len(set(slots))} GPU slot(s)")
             yield session
     finally:

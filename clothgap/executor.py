@@ -55,6 +55,7 @@ from clothgap.parallel import HOST_PROCESSES_ENV, host_processes, share_of_host
 from clothgap.runs import Run
 
 EXECUTORS = ("local", "process", "ray")
+MPS_AUTO_STAGES = ("render",)       # measured faster under MPS (the stage 2.2x); sim and training not measured
 STAGES = ("sim", "render")
 ShardFn = Callable[[str, list[int]], dict]
 RAY_MISSING = "the ray executor needs Ray: pip install 'clothgap[ray]' (or pip install 'ray[default]')"
@@ -75,8 +76,8 @@ class ExecutorOptions:
     shard_size: int | None = None       # clip indices per shard; None = an even split over the workers
     retries: int = 2                    # times a shard whose worker died is run again (process, ray)
     progress: bool = True
-    # process workers sharing a GPU: "auto" = under an MPS daemon for render (measured: the stage 2.2x), not
-    # for sim or training (not measured under it); "on" = for those too, and an error without MPS
+    # process workers sharing a GPU: "auto" = under an MPS daemon for MPS_AUTO_STAGES; "on" = for every stage
+    # and training, and an error without MPS
     cuda_mps: str = "auto"
 
     def validate(self) -> "ExecutorOptions":
@@ -172,8 +173,7 @@ def run_stage(run: Run, stage: str, options: ExecutorOptions = ExecutorOptions()
             visible = visible_gpus()
             slots = gpu_slots(visible, options.gpus_per_worker, options.workers)
             workers = len(slots)
-            mode = options.cuda_mps if stage == "render" or options.cuda_mps != "auto" else "off"
-            mps = stack.enter_context(cuda_mps(slots, visible, mode, say=_say))
+            mps = stack.enter_context(cuda_mps(slots, visible, mps_mode(options, stage), say=_say))
             slots, env, mps_state = mps.slots, mps.env, mps.state
         else:
             slots = None
@@ -188,6 +188,14 @@ def run_stage(run: Run, stage: str, options: ExecutorOptions = ExecutorOptions()
                            **({"gpus_per_worker": options.gpus_per_worker} if options.gpus_per_worker else {}),
                            **({"cuda_mps": mps_state} if mps_state else {})}
     return summary
+
+
+def mps_mode(options: ExecutorOptions | None, stage: str) -> str:
+    """The ``cuda_mps`` mode a stage's (or training's, ``"train"``) process workers get: ``auto`` serves only the
+    stages measured faster under MPS."""
+    if options is None or (options.cuda_mps == "auto" and stage not in MPS_AUTO_STAGES):
+        return "off"
+    return options.cuda_mps
 
 
 def _say(message: str) -> None:
@@ -271,8 +279,7 @@ def run_train_parallel(run: Run, grid: Sequence[TrainEntry], parallel: int = 1, 
         configs = [settings[e][0] for e in pending]
         prepare_shared_inputs(run, [e[:4] for e in pending], progress, configs=configs)
         slots = gpus = None
-        # MPS for training only when asked for: several models a GPU were not measured under it
-        mps_mode = "on" if options is not None and options.cuda_mps == "on" else "off"
+        mode = mps_mode(options, "train")       # before the default path replaces the options
         if options is None or (options.executor == "process" and not options.gpus_per_worker):
             workers = (options and options.workers) or parallel
             devices = {resolve_device(c.device).type for c in configs}
@@ -283,7 +290,7 @@ def run_train_parallel(run: Run, grid: Sequence[TrainEntry], parallel: int = 1, 
             gpus = visible_gpus()
             slots = gpu_slots(gpus, options.gpus_per_worker, options.workers)
         # (`on` without GPUs is refused by cuda_mps: its workers would have none to share)
-        with cuda_mps(slots, gpus or [], mps_mode if slots or mps_mode == "on" else "off", say=_say) as mps:
+        with cuda_mps(slots, gpus or [], mode, say=_say) as mps:
             run_shards(train_shard, str(run.root.resolve()), train_jobs(pending),
                        options=dataclasses.replace(options, progress=progress), label="train", gpu_slots=mps.slots,
                        describe=describe_models, worker_env=mps.env)

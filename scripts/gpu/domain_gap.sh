@@ -59,8 +59,7 @@ fi
 # to the run: rendered, trained and tested beside the others, which are reused.
 [ -n "${COMBINED:-}" ] && VARIANTS="$VARIANTS,$COMBINED" && RUN_SETS="--set render.variants=$VARIANTS ${RUN_SETS:-}"
 nvariants=$(echo "$VARIANTS" | tr ',' '\n' | grep -c .)
-# four render workers a GPU under clothgap's private MPS daemon (paper_study.sh says why)
-render_args="--executor process --gpus-per-worker 0.25"; [ -n "${gpus:-}" ] || render_args=""
+render_args=$gpu_render_args
 for v in ${TEST_VARIANTS//,/ }; do render_args+=" --test-variant $v"; done
 RUN=$RUN EXTRA="--set sim.sequences_per_class=$N --set sim.batch_size=$((N * 54))
   --set render.variants=$VARIANTS --set train.models=lrcn --set eval.sim_analysis= ${EXTRA:-}" SPP=${SPP:-16} \

@@ -6,3 +6,7 @@
 gpus=$("${PYTHON:-python3}" -c 'from clothgap.executor import visible_gpus; print(",".join(visible_gpus()))') ||
   { echo "gpus.sh: ${PYTHON:-python3} cannot import clothgap.executor (is the project on PYTHONPATH?)" >&2; exit 2; }
 ngpu=$(echo "$gpus" | tr ',' '\n' | grep -c . || true); [ "${ngpu:-0}" -ge 1 ] || ngpu=1
+# gpu_render_args: how the scripts render where there are GPUs, four workers a GPU under clothgap's private CUDA MPS
+# daemon (--cuda-mps auto): 2.2x one worker a GPU on four H100s (benchmarks/results/render_stage-mps-h100x4-n2592.json),
+# where four a GPU without MPS gained nothing; empty without GPUs (a CPU dry run renders in one process).
+gpu_render_args=; [ -n "$gpus" ] && gpu_render_args="--executor process --gpus-per-worker 0.25"

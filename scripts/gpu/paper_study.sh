@@ -2,9 +2,7 @@
 # GPU: one setting of the paper's study at full size through the real CLI, stage by stage.
 #   STAGES="sim render" bash scripts/gpu/paper_study.sh     (then "train", then "eval report")
 #   SEQ=48 simulates the paper's 48 sequences per class instead of the preset's 96 (half the render time).
-#   RENDER_ARGS: the default on any GPU machine is "--executor process --gpus-per-worker 0.25", four workers a
-#   GPU under the private CUDA MPS daemon clothgap starts for them (--cuda-mps auto): 2.2x one worker a GPU on
-#   four H100s (benchmarks/results/render_stage-mps-h100x4-n2592.json); without MPS four a GPU gain nothing.
+#   RENDER_ARGS: the default is gpus.sh's gpu_render_args (four workers a GPU under clothgap's MPS daemon).
 #   TRAIN_ARGS (default "--parallel <4 x GPUs>") trains that many models at once over the machine's GPUs.
 #   SIM_ARGS="--executor process --workers 2 --gpus-per-worker 0.5" simulates two shards on one GPU, so one's
 #   host work (an adaptive setting's health, remesh and rebuild: a third of its stage) overlaps the other's steps.
@@ -29,7 +27,7 @@ SETS=(--set sim.motions=${MOTIONS:-wind} --set sim.remeshing=${REMESHING:-unifor
 # Every GPU of the machine: render shards four workers a GPU under MPS,
 # training runs four models at a time per GPU (a model leaves most of an H100 idle). Set to override.
 source "$(dirname "$0")/gpus.sh"
-[ -n "$gpus" ] && RENDER_ARGS=${RENDER_ARGS-"--executor process --gpus-per-worker 0.25"}
+RENDER_ARGS=${RENDER_ARGS-$gpu_render_args}
 TRAIN_ARGS=${TRAIN_ARGS-"--parallel $((4 * ngpu))"}
 started=$(date +%s) status=0 fixed_limit=${LIMIT:-}
 for stage in $STAGES; do
