@@ -549,8 +549,9 @@ def train_selected(run: Run, settings: Iterable[str] | None = None, variants: It
     if everything:
         index = train_all(run, progress=progress, parallel=parallel, options=options)
         return [run.root / e["dir"] for e in index["entries"]]
-    # A model that needs another (base2 freezes base1's CNN of the same setting, variant and seed) comes after it.
-    grid = [(s, v, m, seed) for s, v in chosen for seed in seeds for m in training_order(models)]
+    # A model that needs another (base2 freezes base1's CNN of the same setting, variant and seed; with
+    # train.shared_regressor every model reads that one's) comes after it.
+    grid = [(s, v, m, seed) for s, v in chosen for seed in seeds for m in training_order(models, cfg.train.shared_regressor)]
     if parallel != 1 or options is not None:
         from clothgap.executor import run_train_parallel
 

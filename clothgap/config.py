@@ -241,7 +241,8 @@ DEFAULT_KEEPS_OLD_BEHAVIOUR = frozenset({"sim.self_collision", "sim.collision_th
                                          "train.bottleneck_noise", "train.reader_truth", "train.conv5_pool",
                                          "train.geometry_window", "train.augment_crop", "train.aux_geometry",
                                          "train.label_smoothing", "sim.arm_nuisance",
-                                         "render.frames_in_flight", "train.compile_mode", "train.augment_camera"})
+                                         "render.frames_in_flight", "train.compile_mode", "train.augment_camera",
+                                         "train.shared_regressor"})
 # Lists a resumed run may extend: an item more is more work downstream, nothing finished changes.
 GROWING_SETTINGS = frozenset({"sim.motions", "sim.remeshing", "render.variants", "train.models", "train.seeds"})
 

@@ -207,21 +207,24 @@ def _say(message: str) -> None:
 TrainEntry = tuple   # (setting, variant, model, seed), or with a fifth item: an eval.ablation recipe
 
 
-def train_jobs(grid: Sequence[TrainEntry]) -> list[list[TrainEntry]]:
+def train_jobs(grid: Sequence[TrainEntry], shared_regressor: Callable[[TrainEntry], str] = lambda entry: ""
+               ) -> list[list[TrainEntry]]:
     """The training grid cut into jobs that may run at once: a model and the model it needs (base1, then base2,
-    which freezes base1's CNN, of the same setting, variant, seed and recipe) form one job, in grid order;
-    every other entry is a job of its own."""
-    from learn.registry import get_model_entry
+    which freezes base1's CNN, of the same setting, variant, seed and recipe; with ``train.shared_regressor``,
+    given per entry by ``shared_regressor``, that model and every other) form one job, in grid order; every
+    other entry is a job of its own."""
+    from learn.registry import model_needs
 
-    def root(model: str) -> str:
-        while get_model_entry(model).needs:
-            model = get_model_entry(model).needs
+    def root(model: str, shared: str) -> str:
+        while model_needs(model, shared):
+            model = model_needs(model, shared)
         return model
 
     jobs: dict[tuple, list] = {}
     for entry in grid:
         setting, variant, model, seed, *recipe = entry
-        jobs.setdefault((setting, variant, seed, root(model), *recipe), []).append(tuple(entry))
+        jobs.setdefault((setting, variant, seed, root(model, shared_regressor(entry)), *recipe),
+                        []).append(tuple(entry))
     return list(jobs.values())
 
 
@@ -290,8 +293,9 @@ def run_train_parallel(run: Run, grid: Sequence[TrainEntry], parallel: int = 1, 
             gpus = visible_gpus()
             slots = gpu_slots(gpus, options.gpus_per_worker, options.workers)
         # (`on` without GPUs is refused by cuda_mps: its workers would have none to share)
+        jobs = train_jobs(pending, lambda e: settings[e][0].shared_regressor)
         with cuda_mps(slots, gpus or [], mode, say=_say) as mps:
-            run_shards(train_shard, str(run.root.resolve()), train_jobs(pending),
+            run_shards(train_shard, str(run.root.resolve()), jobs,
                        options=dataclasses.replace(options, progress=progress), label="train", gpu_slots=mps.slots,
                        describe=describe_models, worker_env=mps.env)
     return folders

@@ -83,9 +83,12 @@ def ablation_grid(run: Run, setting: str, variant: str, recipes: list[str], mode
     starts from: what ``clothgap.executor.run_train_parallel`` trains side by side before the scoring."""
     from learn.registry import training_order
 
-    ordered = training_order(models or run.config.train.models)
-    return [(setting, variant, model, seed, recipe) for recipe in recipes
-            for seed in _recipe_seeds(recipe_config(run.config, recipe), seeds) for model in ordered]
+    grid = []
+    for recipe in recipes:
+        cfg = recipe_config(run.config, recipe)
+        ordered = training_order(models or run.config.train.models, cfg.shared_regressor)
+        grid += [(setting, variant, model, seed, recipe) for seed in _recipe_seeds(cfg, seeds) for model in ordered]
+    return grid
 
 
 def _curves(folder: Path) -> list[dict]:

@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from clothgap import checks
-from learn.registry import MODEL_NAMES
+from learn.registry import MODEL_NAMES, get_model_entry
 
 READOUTS = ("mean", "last")
 SCHEDULES = ("cosine", "step")
@@ -70,6 +70,9 @@ class TrainConfig:
     geometry_window: int = 1                # frames the lattice head reads (odd; 1: its own frame only)
     reader_truth: float = 0.0               # weight of the bottleneck readers' class loss on the simulation's
                                             # own lattice (noised by bottleneck_noise), beside the predicted one
+    shared_regressor: str = ""              # a model whose trained CNN and lattice head every other model takes,
+                                            # frozen: their readers train on its predicted lattices, computed
+                                            # once (bottleneck only; "": each model trains its own CNN)
     train_fraction: float = 1.0             # share of each class's training sequences used (a nested, seeded
                                             # draw; validation and test unchanged): the data-size learning curve
     geometry_centre: str = "median"         # lattice targets from the median shape of all frames, or "frame":
@@ -131,6 +134,16 @@ class TrainConfig:
                        "frames before it as after it)")
         if self.reader_truth and not self.bottleneck:
             out.append("train.reader_truth is set but train.bottleneck is off; set train.bottleneck=true")
+        if self.shared_regressor:
+            if self.shared_regressor not in MODEL_NAMES:
+                out.append(f"train.shared_regressor={self.shared_regressor!r}: must be one of the models "
+                           f"({', '.join(MODEL_NAMES)}) or empty")
+            elif get_model_entry(self.shared_regressor).needs:
+                out.append(f"train.shared_regressor={self.shared_regressor!r}: that model starts from "
+                           f"{get_model_entry(self.shared_regressor).needs}'s CNN; name a model that trains its own")
+            if not self.bottleneck:
+                out.append("train.shared_regressor is set but train.bottleneck is off: only a bottleneck model's "
+                           "classes read nothing of the CNN but its lattice; set train.bottleneck=true")
         if self.keep == "best" and self.val_fraction <= 0:
             out.append("train.keep=best needs validation clips: set train.val_fraction > 0")
         return out

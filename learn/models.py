@@ -166,24 +166,34 @@ class ClipClassifier(nn.Module):
 
         ``lattice``, the simulation's own (B, T, geometry_dim) lattice, is read by the bottleneck's
         readers as well while training (``truth_logits``, weighed by ``train.reader_truth``)."""
+        feats = self._features(x)
+        geometry = self.head_geometry(feats) if self.geometry_dim else None
+        out = self.read_shape(geometry, lattice) if self.bottleneck else self._classify(feats)
+        if geometry is not None:
+            out["geometry"] = geometry
+        return out
+
+    def _features(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, T, 3, H, W) -> the CNN's (B, T, fc6) features of every frame."""
         b, t = x.shape[:2]
         if self.motion:
             x = torch.cat([x, x - torch.cat([x[:, :1], x[:, :-1]], dim=1)], dim=2)
         frames = x.flatten(0, 1)
         if self.channels_last:
             frames = frames.contiguous(memory_format=torch.channels_last)
-        feats = self.cnn(frames).unflatten(0, (b, t))
-        geometry = self.head_geometry(feats) if self.geometry_dim else None
-        if self.bottleneck:
-            out = self.read_lattice(self._noised(geometry.detach().float()))
-            if self.training and lattice is not None:
-                # The readers also learn from the true shape, which carries the material more
-                # precisely than any prediction, noised like the predicted one.
-                out["truth_logits"] = self.read_lattice(self._noised(lattice.float()))["logits"]
-        else:
-            out = self._classify(feats)
-        if geometry is not None:
-            out["geometry"] = geometry
+        return self.cnn(frames).unflatten(0, (b, t))
+
+    def predicted_shape(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, T, 3, H, W) -> the lattice head's (B, T, geometry_dim) shape of every frame."""
+        return self.head_geometry(self._features(x))
+
+    def read_shape(self, geometry: torch.Tensor, lattice: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """The bottleneck's outputs from a predicted (B, T, geometry_dim) shape; gradients stop at the shape."""
+        out = self.read_lattice(self._noised(geometry.detach().float()))
+        if self.training and lattice is not None:
+            # The readers also learn from the true shape, which carries the material more
+            # precisely than any prediction, noised like the predicted one.
+            out["truth_logits"] = self.read_lattice(self._noised(lattice.float()))["logits"]
         return out
 
     def _noised(self, shape: torch.Tensor) -> torch.Tensor:
@@ -235,6 +245,20 @@ class ClipClassifier(nn.Module):
         return self._steps(out["logits"]).float().softmax(-1).mean(1)
 
 
+class ShapeReader(nn.Module):
+    """A bottleneck model's readers alone: (B, T, geometry_dim) predicted shapes in, the model's outputs out.
+    What trains when the CNN and lattice head are another model's, frozen (``train.shared_regressor``)."""
+
+    def __init__(self, model: ClipClassifier):
+        super().__init__()
+        if not model.bottleneck:
+            raise ValueError("only a bottleneck model's readers read a shape alone")
+        self.model = model
+
+    def forward(self, shape: torch.Tensor, lattice: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        return self.model.read_shape(shape, lattice)
+
+
 # ---------------------------------------------------------------- built by name
 
 def build_model(name: str, *, image_size: int, width: int, fc6: int, hidden: int, dropout: float = 0.5,
@@ -264,6 +288,22 @@ def model_args(cfg) -> dict:
     if cfg.geometry_window != 1:
         args.update(geometry_window=cfg.geometry_window)
     return args
+
+
+def take_regressor(model: ClipClassifier, checkpoint: Path | str) -> None:
+    """Put a trained bottleneck model's CNN and lattice head into ``model`` and freeze both: what every model
+    but the named one starts from under ``train.shared_regressor``."""
+    path = Path(checkpoint)
+    if not path.is_file():
+        raise MissingInputError(f"the shared regressor's checkpoint {path} does not exist")
+    state = torch.load(path, map_location="cpu", weights_only=True)["model"]
+    load_cnn_weights(model, state)
+    head = {k[len("head_geometry."):]: v for k, v in state.items() if k.startswith("head_geometry.")}
+    if not model.geometry_dim or not head:
+        raise ValueError(f"{path}: a shared regressor needs a lattice head in both models (train.bottleneck=true)")
+    model.head_geometry.load_state_dict(head)
+    model.cnn.requires_grad_(False)
+    model.head_geometry.requires_grad_(False)
 
 
 def load_cnn_weights(model: ClipClassifier, source: Path | str | dict) -> None:

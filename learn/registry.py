@@ -46,15 +46,24 @@ def get_model_entry(name: str) -> ModelEntry:
     return MODELS[name]
 
 
-def _depth(name: str) -> int:
+def model_needs(name: str, shared_regressor: str = "") -> str | None:
+    """The model whose trained checkpoint ``name`` starts from: its entry's ``needs``, or, with
+    ``train.shared_regressor`` naming a model, that model for every other one (whose readers then read its
+    frozen CNN's lattice, ``learn.train``)."""
+    if shared_regressor and name != shared_regressor:
+        return shared_regressor
+    return get_model_entry(name).needs
+
+
+def _depth(name: str, shared_regressor: str = "") -> int:
     """How many models must be trained before ``name`` (the length of its ``needs`` chain)."""
-    needs = MODELS[name].needs
-    return 0 if needs is None else 1 + _depth(needs)
+    needs = model_needs(name, shared_regressor)
+    return 0 if needs is None else 1 + _depth(needs, shared_regressor)
 
 
-def training_order(names: Iterable[str]) -> list[str]:
+def training_order(names: Iterable[str], shared_regressor: str = "") -> list[str]:
     """``names`` sorted so that every model comes after the model it needs, else in registry order."""
-    return sorted(names, key=lambda m: (_depth(m), MODEL_NAMES.index(m)))
+    return sorted(names, key=lambda m: (_depth(m, shared_regressor), MODEL_NAMES.index(m)))
 
 
 def training_grid(cfg, settings: Iterable[str] | None = None, variants: Iterable[str] | None = None,
@@ -68,7 +77,8 @@ def training_grid(cfg, settings: Iterable[str] | None = None, variants: Iterable
         return [v for v in values if wanted is None or v in wanted]
 
     settings_kept, variants_kept = set(kept(cfg.sim.settings(), settings)), set(kept(cfg.render.variants, variants))
-    seeds_kept, models_kept = kept(cfg.train.seeds, seeds), training_order(kept(cfg.train.models, models))
+    seeds_kept = kept(cfg.train.seeds, seeds)
+    models_kept = training_order(kept(cfg.train.models, models), cfg.train.shared_regressor)
     return [(setting, variant, model, seed)
             for setting, variant in cfg.pairs() if setting in settings_kept and variant in variants_kept
             for seed in seeds_kept

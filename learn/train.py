@@ -24,6 +24,10 @@ run with ``TrainingDiverged`` before anything is marked done. A network that giv
 every validation window the same output (a dead layer: it cannot learn again) is
 trained again from a new start drawn from its seed, at most ``DEAD_NETWORK_RESTARTS``
 times (``restarts`` in config.json and DONE), then stopped with ``TrainingDead``.
+
+With ``train.shared_regressor`` the named model trains as above and every other model of the same
+(setting, variant, seed) takes its CNN and lattice head, frozen: those train their readers alone on the
+shapes the regressor predicts, computed once (``learn.shapes``), not the CNN over every frame each epoch.
 """
 
 from __future__ import annotations
@@ -48,9 +52,11 @@ from clothgap.runs import Run, atomic_write_json, atomic_write_text, fresh_dir, 
 from learn.config import SCHEDULES, TrainConfig
 from learn.dataset import build_cache
 from learn.geometry import geometry_targets
-from learn.models import NUM_CLASSES, ClipClassifier, build_model, load_cnn_weights, model_args
+from learn.models import (NUM_CLASSES, ClipClassifier, ShapeReader, build_model, load_cnn_weights, model_args,
+                          take_regressor)
 from learn import predictions
-from learn.registry import get_model_entry
+from learn.registry import model_needs
+from learn.shapes import ShapeSet
 from learn.split import PARTS, get_or_make_split, part_clips, part_windows, training_subset
 from learn.windows import WindowSet
 
@@ -236,20 +242,34 @@ def _cnn_init(run: Run, setting: str, variant: str, model_name: str, seed: int, 
               cfg: TrainConfig, root: Path | None) -> str:
     """Where the CNN's starting weights come from: a file path, or "random".
 
-    A model whose registry entry ``needs`` another (base2 freezes base1's CNN) starts from that model's
-    checkpoint of the same (setting, variant, seed) beside it, trained first when missing, unless the config
-    names ``train.pretrained`` weights, which are then used instead of training it. The other models start
-    from ``train.pretrained`` when given.
+    A model whose registry entry ``needs`` another (base2 freezes base1's CNN), or every model but the
+    ``train.shared_regressor``, starts from that model's checkpoint of the same (setting, variant, seed) beside
+    it, trained first when missing, unless the config names ``train.pretrained`` weights, which are then used
+    instead of training it (never for a shared regressor, whose lattice head they lack). The other models
+    start from ``train.pretrained`` when given.
     """
-    needs = get_model_entry(model_name).needs
+    needs = model_needs(model_name, cfg.shared_regressor)
     if needs is None:
         return cfg.pretrained or "random"
     first = train_folder(run, setting, variant, needs, seed, root)
     if is_done(first):
         return str(first / "checkpoint.pt")
-    if cfg.pretrained:
+    if cfg.pretrained and not reads_shared_regressor(cfg, model_name):
         return cfg.pretrained
     return str(train_one(run, setting, variant, needs, seed, progress, config=cfg, root=root) / "checkpoint.pt")
+
+
+def reads_shared_regressor(cfg: TrainConfig, model_name: str) -> bool:
+    """Whether ``model_name`` trains its readers alone on another model's frozen regressor."""
+    return bool(cfg.shared_regressor) and model_name != cfg.shared_regressor
+
+
+def shape_sets(resolved: dict, train_set: WindowSet, val_set: WindowSet, cfg: TrainConfig,
+               device: torch.device) -> tuple[ShapeSet, ShapeSet]:
+    """The train and validation windows as the shared regressor's predicted shapes (``learn.shapes``)."""
+    regressor = build_training_model(resolved, device)
+    amp = cfg.amp and device.type == "cuda"
+    return (ShapeSet(train_set, regressor, cfg.batch_size, amp), ShapeSet(val_set, regressor, cfg.batch_size, amp))
 
 
 def train_folder(run: Run, setting: str, variant: str, model_name: str, seed: int, root: Path | None = None) -> Path:
@@ -320,8 +340,8 @@ class TrainingDead(TrainingDiverged):
 DEAD_NETWORK_RESTARTS = 2
 
 
-def network_is_dead(model: ClipClassifier, windows: WindowSet, batch_size: int) -> bool:
-    """True when ``model`` gives a batch of ``windows`` spread over the set (two windows at least) one and the same
+def network_is_dead(model: torch.nn.Module, windows: WindowSet | ShapeSet, batch_size: int) -> bool:
+    """True when ``model`` (or a ``ShapeReader`` on a ``ShapeSet``) gives a batch of ``windows`` spread over the set (two windows at least) one and the same
     output. Under torchrun the ranks' answers are combined (any rank's yes is every rank's), so that all restart."""
     dead = False
     if len(windows) >= 2:
@@ -367,7 +387,7 @@ def _restart_dead(t: Training, epoch: int) -> Training:
     resolved = dict(t.resolved)
     restarts = resolved.get("restarts", 0) + 1
     where = f"{t.out}: the network gives every validation window the same output after epoch {epoch}"
-    if t.model.freeze_cnn:
+    if t.model.freeze_cnn and not t.reads_shapes:
         raise TrainingDead(f"{where}, and its CNN is frozen (from {resolved['cnn_init']}): a new start cannot "
                            "change it; retrain the model it comes from")
     if restarts > DEAD_NETWORK_RESTARTS:
@@ -392,8 +412,8 @@ class Training:
     cfg: TrainConfig
     device: torch.device
     resolved: dict                  # config.json: the settings that decide the weights, and the data sizes
-    train_set: WindowSet
-    val_set: WindowSet
+    train_set: WindowSet | ShapeSet   # ShapeSet: the readers alone train, on a shared regressor's shapes
+    val_set: WindowSet | ShapeSet
     model: ClipClassifier
     net: torch.nn.Module            # what runs the forward pass: the model, or it wrapped by DDP / torch.compile
     optimizer: torch.optim.Optimizer
@@ -402,6 +422,16 @@ class Training:
     best: dict | None               # {"epoch", "val_acc", "model"}: the best epoch so far (train.keep=best)
     start_epoch: int                # the first epoch still to train
     writer: object | None = None    # TensorBoard's SummaryWriter, in the process that writes files
+
+    @property
+    def reads_shapes(self) -> bool:
+        """Whether the data are a shared regressor's shapes (``learn.shapes``), read by the readers alone."""
+        return isinstance(self.train_set, ShapeSet)
+
+    @property
+    def evaluator(self) -> torch.nn.Module:
+        """What validation runs: the model, or its readers alone on shapes."""
+        return ShapeReader(self.model) if self.reads_shapes else self.model
 
     @property
     def amp(self) -> bool:
@@ -437,6 +467,8 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
     cnn_init = _cnn_init(run, setting, variant, model_name, seed, progress, cfg, root)
     train_set, val_set = window_sets(run, setting, variant, cfg, device, progress)
     resolved = _resolved_settings(run, setting, variant, model_name, seed, cfg, cnn_init, device, train_set, val_set)
+    if reads_shared_regressor(cfg, model_name):
+        train_set, val_set = shape_sets(resolved, train_set, val_set, cfg, device)   # the frames are let go
     _adopt_restarts(out, resolved)
     t = _start(out, cfg, device, resolved, train_set, val_set)
 
@@ -453,7 +485,7 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
                "val_acc": val_acc, "lr": lr, "seconds": time.perf_counter() - started,
                "train_shape": train_shape, "val_shape": val_shape}
         # Before the epoch is saved: a dead network is never in last.pt, so no resume finishes one.
-        if network_is_dead(t.model, t.val_set if len(t.val_set) >= 2 else t.train_set, cfg.batch_size):
+        if network_is_dead(t.evaluator, t.val_set if len(t.val_set) >= 2 else t.train_set, cfg.batch_size):
             t = _restart_dead(t, epoch)
             epoch = t.start_epoch
             bar.reset()
@@ -486,8 +518,8 @@ def _resolved_settings(run: Run, setting: str, variant: str, model_name: str, se
             "frames_on_device": train_set.resident}
 
 
-def _start(out: Path, cfg: TrainConfig, device: torch.device, resolved: dict, train_set: WindowSet,
-           val_set: WindowSet) -> Training:
+def _start(out: Path, cfg: TrainConfig, device: torch.device, resolved: dict, train_set: WindowSet | ShapeSet,
+           val_set: WindowSet | ShapeSet) -> Training:
     """The folder opened (resumed from ``last.pt``, or cleared), the model and optimiser built, and the
     training state at the first epoch still to train."""
     state = _resumable_state(out, resolved)
@@ -502,7 +534,7 @@ def _start(out: Path, cfg: TrainConfig, device: torch.device, resolved: dict, tr
                  metrics=[], best=None, start_epoch=0)
     if state is not None:
         _resume(t, state)
-    t.net = forward_net(model, cfg, device)
+    t.net = forward_net(ShapeReader(model) if t.reads_shapes else model, cfg, device)
     if is_main():
         # Imported here: TensorBoard is slow to import and only training needs it.
         from torch.utils.tensorboard import SummaryWriter
@@ -516,7 +548,10 @@ def build_training_model(resolved: dict, device: torch.device) -> ClipClassifier
     CNN from ``cnn_init``), on ``device`` in the layout training runs it in."""
     seed_everything(resolved["torch_seed"])
     model = build_model(resolved["model"], **resolved["model_args"])
-    if resolved["cnn_init"] != "random":
+    shared = resolved.get("train", {}).get("shared_regressor", "")
+    if shared and resolved["model"] != shared:
+        take_regressor(model, resolved["cnn_init"])
+    elif resolved["cnn_init"] != "random":
         load_cnn_weights(model, resolved["cnn_init"])
     model.to(device)
     if device.type == "cuda":
@@ -563,12 +598,16 @@ def train_epoch(t: Training, epoch: int, progress: bool = False) -> tuple[float,
     cfg = t.cfg
     torch_seed = t.resolved["torch_seed"]
     order = t.train_set.order(torch_seed, epoch, _rank(), _world_size())
-    augment = t.train_set.augment_table(torch_seed, epoch) if cfg.augment else None
-    camera = t.train_set.camera_table(torch_seed, epoch) if cfg.augment_camera else None
     steps = len(order) // cfg.batch_size if len(order) >= cfg.batch_size else 1
-    batches = t.train_set.batches(cfg.batch_size, order=order, augment=augment, drop_last=True,
-                                  crop=cfg.augment_crop, camera=camera,
-                                  camera_noise_seed=t.train_set.camera_noise_seed(torch_seed, epoch, _rank()))
+    if t.reads_shapes:
+        # The frames' augmentations trained the regressor; its readers read the shapes it predicts unaugmented.
+        batches = t.train_set.batches(cfg.batch_size, order=order, drop_last=True)
+    else:
+        augment = t.train_set.augment_table(torch_seed, epoch) if cfg.augment else None
+        camera = t.train_set.camera_table(torch_seed, epoch) if cfg.augment_camera else None
+        batches = t.train_set.batches(cfg.batch_size, order=order, augment=augment, drop_last=True,
+                                      crop=cfg.augment_crop, camera=camera,
+                                      camera_noise_seed=t.train_set.camera_noise_seed(torch_seed, epoch, _rank()))
     sums = run_epoch(t.net, t.model, batches, t.device, t.optimizer, t.amp, progress, f"epoch {epoch}", steps,
                      cfg.geometry_weight, cfg.label_smoothing, cfg.reader_truth)
     scores = _epoch_scores(sums, all_ranks=True)
@@ -582,7 +621,8 @@ def validate(t: Training) -> tuple[float, float, float]:
     Every process scores the whole (small) validation set with its own copy of the same weights."""
     if not len(t.val_set):
         return math.nan, math.nan, math.nan
-    return _epoch_scores(run_epoch(t.model, t.model, t.val_set.batches(t.cfg.batch_size), t.device, None, t.amp))
+    return _epoch_scores(run_epoch(t.evaluator, t.model, t.val_set.batches(t.cfg.batch_size), t.device, None,
+                                   t.amp))
 
 
 def _end_epoch(t: Training, row: dict) -> None:

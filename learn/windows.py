@@ -139,13 +139,7 @@ class WindowSet:
 
     def order(self, seed: int, epoch: int, rank: int = 0, world: int = 1) -> torch.Tensor:
         """This rank's share of the epoch's shuffled window order (padded so every rank gets as many)."""
-        gen = torch.Generator().manual_seed(seeding.derive_int(seed, 0, seeding.TRAIN, "order", epoch))
-        perm = torch.randperm(len(self), generator=gen)
-        if world > 1:
-            pad = (-len(perm)) % world
-            perm = torch.cat([perm, perm[:pad]])
-            perm = perm[rank::world]
-        return perm
+        return epoch_order(len(self), seed, epoch, rank, world)
 
     @torch.no_grad()
     def predict(self, model, batch_size: int = 256, amp: bool | None = None) -> pd.DataFrame:
@@ -200,6 +194,18 @@ class WindowSet:
                 x = camera_augment_batch(x, self._on(camera[idx]), noise)
             target = self.targets[self._on(rows)] if self.targets is not None else None
             yield x, self._on(self._labels_ix[idx]), target
+
+
+def epoch_order(n: int, seed: int, epoch: int, rank: int = 0, world: int = 1) -> torch.Tensor:
+    """This rank's share of an epoch's shuffled order of ``n`` windows, drawn from (seed, epoch) alone (padded so
+    that every rank gets as many)."""
+    gen = torch.Generator().manual_seed(seeding.derive_int(seed, 0, seeding.TRAIN, "order", epoch))
+    perm = torch.randperm(n, generator=gen)
+    if world > 1:
+        pad = (-len(perm)) % world
+        perm = torch.cat([perm, perm[:pad]])
+        perm = perm[rank::world]
+    return perm
 
 
 def augment_batch(x: torch.Tensor, params: torch.Tensor, crop: bool = True) -> torch.Tensor:

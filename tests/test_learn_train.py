@@ -414,3 +414,68 @@ def test_a_dead_network_in_its_last_epoch_is_never_finished_by_a_resume(tmp_path
     out = train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)   # it trains; it does not finish a dead one
     assert is_done(out) and not learn.train.network_is_dead(load_model(out), learn.train.window_sets(
         run, SETTING, VARIANT, run.config.train, torch.device("cpu"), False)[1], 8)
+
+
+def test_a_shared_regressor_is_taken_frozen_and_its_readers_train_on_its_shapes(tmp_path, monkeypatch):
+    """Every model but the named one keeps that model's CNN and lattice head bit for bit and trains its readers
+    on the shapes they predict: what it predicts from the frames is what it was scored with on the shapes, and
+    a killed reader training resumes to the same weights."""
+    from learn.dataset import build_cache
+    from learn.split import part_windows
+    from learn.windows import WindowSet
+
+    cfg = tiny_train_config(bottleneck=True, dropout=0.0, reader_truth=1.0, bottleneck_noise=0.2, epochs=2,
+                            models=("lrcn", "base3"), shared_regressor="lrcn")
+    runs = {}
+    for name in ("whole", "killed"):
+        runs[name] = synthetic_run(tmp_path / name, cfg)
+        _sim_clips_for(runs[name], cfg.sim.frames)
+    out = train_one(runs["whole"], SETTING, VARIANT, "base3", 0, progress=False)      # trains lrcn first
+    source = runs["whole"].train_dir(SETTING, VARIANT, "lrcn", 0)
+    assert is_done(source)
+    assert json.loads((out / "config.json").read_text())["cnn_init"] == str(source / "checkpoint.pt")
+    regressor = torch.load(source / "checkpoint.pt", weights_only=True)["model"]
+    reader = torch.load(out / "checkpoint.pt", weights_only=True)["model"]
+    frozen = [k for k in regressor if k.startswith(("cnn.", "head_geometry."))]
+    assert frozen and all(torch.equal(reader[k], regressor[k]) for k in frozen)
+    assert "temporal.weight_hh_l0" in reader          # base3's own RNN, trained on the shapes
+    metrics = pd.read_csv(out / "metrics.csv")
+    assert metrics.train_loss.notna().all() and "train_shape" not in metrics   # no lattice loss: frozen
+
+    # The whole model from its checkpoint on the validation frames gives the probabilities written from shapes.
+    model = load_model(out)
+    split = get_or_make_split(runs["whole"], SETTING)
+    cache = build_cache(runs["whole"], VARIANT, SETTING, cfg.train.image_size, progress=False)
+    frames = WindowSet(cache, part_windows(split, "val"), cfg.train.clip_len, cfg.train.clip_stride)
+    from_frames = frames.predict(model, cfg.train.batch_size)
+    from_shapes = pd.read_csv(out / "val_predictions.csv", dtype={"clip_id": str})
+    columns = [f"prob_{i:02d}" for i in range(54)]
+    assert list(from_shapes.clip_id) == list(from_frames.clip_id)
+    assert abs(from_shapes[columns].to_numpy() - pd.DataFrame(from_frames.probs.tolist()).to_numpy()).max() < 1e-5
+
+    kill_train = learn.train._save_state
+
+    def save_then_die(path, state):
+        kill_train(path, state)
+        if "base3" in str(path):
+            raise SimulatedKill
+
+    monkeypatch.setattr(learn.train, "_save_state", save_then_die)
+    with pytest.raises(SimulatedKill):
+        train_one(runs["killed"], SETTING, VARIANT, "base3", 0, progress=False)
+    monkeypatch.setattr(learn.train, "_save_state", kill_train)
+    resumed = torch.load(train_one(runs["killed"], SETTING, VARIANT, "base3", 0, progress=False) / "checkpoint.pt",
+                         weights_only=True)["model"]
+    assert all(torch.equal(resumed[k], v) for k, v in reader.items())
+
+
+def test_a_shared_regressor_needs_the_bottleneck_and_a_model_that_trains_its_own_cnn(tmp_path):
+    def problems(**train) -> str:
+        return " | ".join(tiny_train_config(**train).train.problems())
+
+    assert "train.shared_regressor is set but train.bottleneck is off" in problems(shared_regressor="lrcn")
+    assert "starts from base1's CNN" in problems(shared_regressor="base2", bottleneck=True)
+    assert "must be one of the models" in problems(shared_regressor="alexnet", bottleneck=True)
+    assert problems(shared_regressor="base1", bottleneck=True) == ""
+    with pytest.raises(ConfigError, match="shared_regressor"):
+        synthetic_run(tmp_path / "run", tiny_train_config(shared_regressor="lrcn"))

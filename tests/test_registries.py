@@ -133,3 +133,14 @@ def test_cli_lists_each_registry(stage, flag, describe, names):
     assert r.stdout == describe() + "\n"
     for name in names:
         assert f"{name}: " in r.stdout
+
+
+def test_a_shared_regressor_is_trained_before_every_other_model_and_shares_their_job():
+    from clothgap.executor import train_jobs
+    from learn.registry import model_needs
+
+    assert model_needs("base2") == "base1" and model_needs("lrcn") is None
+    assert [model_needs(m, "lrcn") for m in ("lrcn", "base1", "base2", "base3")] == [None, "lrcn", "lrcn", "lrcn"]
+    assert training_order(["base2", "base3", "lrcn", "base1"], "base3") == ["base3", "lrcn", "base1", "base2"]
+    grid = [("w", "p", m, 0) for m in ("lrcn", "base1", "base3", "base2")] + [("w", "p", "lrcn", 1)]
+    assert train_jobs(grid, lambda entry: "lrcn") == [grid[:4], grid[4:]]
