@@ -34,6 +34,9 @@ if sys.argv[1:] == ["-d"]:
         sys.exit(1)
     daemon = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(300)"], start_new_session=True,
                               stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    # named "python" in /proc only once its exec is through (Popen may return before): as a real daemon is
+    while not pathlib.Path(f"/proc/{{daemon.pid}}/comm").read_text().startswith("python"):
+        pass
     (pipe / "{pid_file}").write_text(str(daemon.pid))
     (pipe / "stand-in.pid").write_text(str(daemon.pid))        # what quit ends: only the process it started
     (pipe / "control").write_text("")
@@ -68,6 +71,15 @@ def control(tmp_path, monkeypatch):
     monkeypatch.setattr(mps_module, "DEFAULT_PIPE_DIRECTORY", tmp_path / "no-system-daemon")
     monkeypatch.setattr(mps_module, "DAEMON_NAME", "python")      # the stand-in's daemon is a Python process
     return record
+
+
+def wait_for_name(pid: int, name: str, timeout: float = 10.0) -> None:
+    """Until /proc names ``pid`` ``name``: Linux lets a vfork parent (Popen) go on before the exec'd child's comm
+    is set, so for a moment the child still carries its parent's name."""
+    deadline = time.monotonic() + timeout
+    while not Path(f"/proc/{pid}/comm").read_text().startswith(name):
+        assert time.monotonic() < deadline, f"process {pid} is not named {name!r} after {timeout} s"
+        time.sleep(0.01)
 
 
 def calls(record: Path) -> list[dict]:
@@ -170,6 +182,7 @@ def test_a_control_pipe_left_in_the_default_folder_by_a_daemon_that_is_gone_is_n
     # /proc comm is "pytest" when the suite runs through the pytest script
     live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
     try:
+        wait_for_name(live.pid, "python")
         (default / mps_module.DAEMON_PID_FILE).write_text(str(live.pid))
         assert mps_module.existing_daemon({}) == str(default)
     finally:
