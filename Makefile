@@ -32,5 +32,11 @@ $(STAMP): pyproject.toml scripts/install-system-deps.sh
 	$(PY) -c "import clothgap, sim, render, learn, eval; print('clothgap environment ready')"
 	touch $(STAMP)
 
+# The GPU machine's packages in parts (../shared/gpu/README.md) and the simulation's Warp kernels compiled for
+# it ahead of time (.gpu/warp-aot: carry it with the last part's call).
+gpu-bundle: $(STAMP)
+	bash ../shared/gpu/bundle.sh av==16.0.1
+	$(PY) scripts/gpu/warp_aot.py
+
 clean-env:
 	rm -rf $(VENV)

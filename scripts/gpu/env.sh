@@ -5,6 +5,11 @@ if ls .whl/*.whl >/dev/null 2>&1 && [ ! -d /tmp/site/av ]; then
   python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl
 fi
 export PYTHONPATH=$PYTHONPATH:/tmp/site
+# Warp's kernel cache in one place for every call on this machine, seeded with the simulation's kernels compiled
+# ahead of time (scripts/gpu/warp_aot.py, carried as .gpu/warp-aot): a fresh machine then compiles none of them.
+export WARP_CACHE_PATH=/tmp/warp-cache
+mkdir -p "$WARP_CACHE_PATH"
+[ -d .gpu/warp-aot ] && cp -rn .gpu/warp-aot/. "$WARP_CACHE_PATH/"
 export OUT=${OUT:-/tmp/out}
 # NVLink multicast stays off on machines of several GPUs: a program that uses it can take the host's
 # shared GPUs out of service (the device tool's KINDS.md); child processes inherit these.
