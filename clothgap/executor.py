@@ -209,22 +209,26 @@ TrainEntry = tuple   # (setting, variant, model, seed), or with a fifth item: an
 
 def train_jobs(grid: Sequence[TrainEntry], shared_regressor: Callable[[TrainEntry], str] = lambda entry: ""
                ) -> list[list[TrainEntry]]:
-    """The training grid cut into jobs that may run at once: a model and the model it needs (base1, then base2,
-    which freezes base1's CNN, of the same setting, variant, seed and recipe; with ``train.shared_regressor``,
-    given per entry by ``shared_regressor``, that model and every other) form one job, in grid order; every
-    other entry is a job of its own."""
+    """The training grid cut into jobs that may run at once: a model and the model it needs when both are in
+    ``grid`` (base1, then base2, which freezes base1's CNN, of the same setting, variant, seed and recipe; with
+    ``train.shared_regressor``, given per entry by ``shared_regressor``, that model and every other) form one
+    job, in grid order; every other entry is a job of its own (a model whose model is trained already, outside
+    ``grid``, needs no other)."""
     from learn.registry import model_needs
 
-    def root(model: str, shared: str) -> str:
-        while model_needs(model, shared):
-            model = model_needs(model, shared)
+    present = {tuple(entry) for entry in grid}
+
+    def root(entry: tuple) -> str:
+        setting, variant, model, seed, *recipe = entry
+        shared = shared_regressor(entry)
+        while (needs := model_needs(model, shared)) and (setting, variant, needs, seed, *recipe) in present:
+            model = needs
         return model
 
     jobs: dict[tuple, list] = {}
-    for entry in grid:
+    for entry in map(tuple, grid):
         setting, variant, model, seed, *recipe = entry
-        jobs.setdefault((setting, variant, seed, root(model, shared_regressor(entry)), *recipe),
-                        []).append(tuple(entry))
+        jobs.setdefault((setting, variant, seed, root(entry), *recipe), []).append(entry)
     return list(jobs.values())
 
 

@@ -97,13 +97,15 @@ def _curves(folder: Path) -> list[dict]:
 
 
 def training_speed(folder: Path) -> dict:
-    """Training seconds and windows/s (epochs after the first, which includes compilation)."""
+    """Training seconds (a shared regressor's pass over the windows included) and windows/s (epochs after the
+    first, which includes compilation)."""
     curves = _curves(folder)
     config = json.loads((folder / "config.json").read_text())
     windows = config["train_subsequences"]
     steady = [r["seconds"] for r in curves[1:]] or [r["seconds"] for r in curves]
     done = json.loads((folder / "DONE").read_text())
-    return {"train_seconds": round(sum(r["seconds"] for r in curves), 2),
+    shapes = {"shape_seconds": done["shape_seconds"]} if done.get("shape_seconds") is not None else {}
+    return {"train_seconds": round(sum(r["seconds"] for r in curves) + shapes.get("shape_seconds", 0.0), 2), **shapes,
             "first_epoch_seconds": round(curves[0]["seconds"], 2) if curves else None,
             "windows_per_s": round(windows / (sum(steady) / len(steady)), 1) if steady else None,
             "train_windows": windows, "kept_epoch": done.get("kept_epoch"),

@@ -48,7 +48,7 @@ from tqdm import tqdm
 from clothgap import seeding
 from clothgap.errors import ConfigError, UserError
 from clothgap.files import atomic_path
-from clothgap.runs import Run, atomic_write_json, atomic_write_text, fresh_dir, is_done, mark_done
+from clothgap.runs import Run, atomic_write_json, atomic_write_text, file_sha256, fresh_dir, is_done, mark_done
 from learn.config import SCHEDULES, TrainConfig
 from learn.dataset import build_cache
 from learn.geometry import geometry_targets
@@ -226,7 +226,7 @@ def _resumable_state(out: Path, resolved: dict) -> dict | None:
     except (OSError, ValueError):
         return None
     wanted = json.loads(json.dumps(resolved))   # tuples read back as lists
-    if any(stored.get(k) != wanted[k] for k in ("train", "model_args", "torch_seed", "cnn_init")):
+    if any(stored.get(k) != wanted.get(k) for k in ("train", "model_args", "torch_seed", "cnn_init", "regressor_sha256")):
         return None
     try:
         return torch.load(last, map_location="cpu", weights_only=True)
@@ -422,6 +422,7 @@ class Training:
     best: dict | None               # {"epoch", "val_acc", "model"}: the best epoch so far (train.keep=best)
     start_epoch: int                # the first epoch still to train
     writer: object | None = None    # TensorBoard's SummaryWriter, in the process that writes files
+    shape_seconds: float | None = None   # the shared regressor's pass over the windows, in this process
 
     @property
     def reads_shapes(self) -> bool:
@@ -467,10 +468,17 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
     cnn_init = _cnn_init(run, setting, variant, model_name, seed, progress, cfg, root)
     train_set, val_set = window_sets(run, setting, variant, cfg, device, progress)
     resolved = _resolved_settings(run, setting, variant, model_name, seed, cfg, cnn_init, device, train_set, val_set)
+    shape_seconds = None
     if reads_shared_regressor(cfg, model_name):
+        # The regressor's bytes, so that a last.pt whose frozen parts came from another training of it (retrained
+        # at the same path) is not resumed with shapes from this one.
+        resolved["regressor_sha256"] = file_sha256(cnn_init)
+        started = time.perf_counter()
         train_set, val_set = shape_sets(resolved, train_set, val_set, cfg, device)   # the frames are let go
+        shape_seconds = time.perf_counter() - started
     _adopt_restarts(out, resolved)
     t = _start(out, cfg, device, resolved, train_set, val_set)
+    t.shape_seconds = shape_seconds
 
     bar = tqdm(desc=f"{model_name} {setting}/{variant} s{seed}", disable=not progress, initial=t.start_epoch,
                total=cfg.epochs)
@@ -666,8 +674,9 @@ def _finish(t: Training) -> None:
     summary = {k: final.get(k) for k in METRIC_COLUMNS[1:5]}
     kept_epoch = kept["epoch"] if kept else (final.get("epoch") if metrics else None)
     restarts = {"restarts": resolved["restarts"]} if resolved.get("restarts") else {}
+    shapes = {"shape_seconds": round(t.shape_seconds, 3)} if t.shape_seconds is not None else {}
     mark_done(t.out, {"epochs": cfg.epochs, "seconds": sum(r["seconds"] for r in metrics),
-                      "kept_epoch": kept_epoch, **restarts,
+                      "kept_epoch": kept_epoch, **restarts, **shapes,
                       **{k: None if v is None or math.isnan(v) else v for k, v in summary.items()}})
 
 

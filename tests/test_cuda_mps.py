@@ -35,8 +35,9 @@ if sys.argv[1:] == ["-d"]:
     daemon = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(300)"], start_new_session=True,
                               stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     # named "python" in /proc only once its exec is through (Popen may return before): as a real daemon is
-    while not pathlib.Path(f"/proc/{{daemon.pid}}/comm").read_text().startswith("python"):
-        pass
+    for _ in range(100000):
+        if pathlib.Path(f"/proc/{{daemon.pid}}/comm").read_text().startswith("python"):
+            break
     (pipe / "{pid_file}").write_text(str(daemon.pid))
     (pipe / "stand-in.pid").write_text(str(daemon.pid))        # what quit ends: only the process it started
     (pipe / "control").write_text("")

@@ -441,6 +441,11 @@ def test_a_shared_regressor_is_taken_frozen_and_its_readers_train_on_its_shapes(
     assert "temporal.weight_hh_l0" in reader          # base3's own RNN, trained on the shapes
     metrics = pd.read_csv(out / "metrics.csv")
     assert metrics.train_loss.notna().all() and "train_shape" not in metrics   # no lattice loss: frozen
+    from eval.ablation import training_speed
+    shape_seconds = json.loads((out / "DONE").read_text())["shape_seconds"]
+    speed = training_speed(out)
+    assert shape_seconds > 0 and speed["shape_seconds"] == shape_seconds       # the shapes' pass is counted
+    assert speed["train_seconds"] == pytest.approx(metrics.seconds.sum() + shape_seconds, abs=0.01)
 
     # The whole model from its checkpoint on the validation frames gives the probabilities written from shapes.
     model = load_model(out)
@@ -467,6 +472,22 @@ def test_a_shared_regressor_is_taken_frozen_and_its_readers_train_on_its_shapes(
     resumed = torch.load(train_one(runs["killed"], SETTING, VARIANT, "base3", 0, progress=False) / "checkpoint.pt",
                          weights_only=True)["model"]
     assert all(torch.equal(resumed[k], v) for k, v in reader.items())
+
+    # A regressor trained again at the same path while a reader was unfinished: the reader starts over on it
+    # rather than resuming a last.pt whose frozen parts are the old regressor's.
+    monkeypatch.setattr(learn.train, "_save_state", save_then_die)
+    runs["retrained"] = synthetic_run(tmp_path / "retrained", cfg)
+    _sim_clips_for(runs["retrained"], cfg.sim.frames)
+    with pytest.raises(SimulatedKill):
+        train_one(runs["retrained"], SETTING, VARIANT, "base3", 0, progress=False)
+    monkeypatch.setattr(learn.train, "_save_state", kill_train)
+    path = runs["retrained"].train_dir(SETTING, VARIANT, "lrcn", 0) / "checkpoint.pt"
+    checkpoint = torch.load(path, weights_only=True)
+    checkpoint["model"]["head_geometry.weight"] += 0.01
+    torch.save(checkpoint, path)
+    redone = torch.load(train_one(runs["retrained"], SETTING, VARIANT, "base3", 0, progress=False) / "checkpoint.pt",
+                        weights_only=True)["model"]
+    assert torch.equal(redone["head_geometry.weight"], checkpoint["model"]["head_geometry.weight"])
 
 
 def test_a_shared_regressor_needs_the_bottleneck_and_a_model_that_trains_its_own_cnn(tmp_path):

@@ -24,13 +24,26 @@ case $step in
           [ "$recipe" = baseline ] || [ "$model" = lrcn ] || continue
           to=$run/ablation/$recipe/$setting/paper/$model/s$s
           [ -f "$to/DONE" ] && continue
-          rm -rf "$to" && mkdir -p "$(dirname "$to")" && cp -al "$from" "$to" || exit 1
+          # linked beside, then renamed: a link cut short never looks finished
+          rm -rf "$to" "$to.partial" && mkdir -p "$(dirname "$to")" && cp -al "$from" "$to.partial" \
+            && mv "$to.partial" "$to" || exit 1
         done
       done
     done ;;
   train)
+    # Only readers train here: every model of the reference and the regressor must be linked first (a missing
+    # lrcn would otherwise be trained from scratch under the recipe, and a missing reference never tabled).
+    for model in lrcn base1 base2 base3; do
+      for s in 0 1; do
+        for recipe in baseline shared_regressor=lrcn; do
+          [ "$recipe" = baseline ] || [ "$model" = lrcn ] || continue
+          [ -f "$run/ablation/$recipe/$setting/paper/$model/s$s/DONE" ] \
+            || { echo "$recipe $model s$s is not linked: run the link step first" >&2; exit 1; }
+        done
+      done
+    done
     timeout $((budget - 20)) python3 "$(dirname "$0")/learn_grid.py" "$run" --setting "$setting" --variant paper \
-      --parallel 6 --deadline $((budget - 90)) --job shared_regressor=lrcn:lrcn,base1,base2,base3 \
+      --parallel 6 --deadline $((budget - 90)) --job shared_regressor=lrcn:base1,base2,base3 \
       --table "shared-regressor-$setting=baseline,shared_regressor=lrcn:lrcn,base1,base2,base3" \
       > "$out/shared-regressor.log" 2>&1
     rc=$?
