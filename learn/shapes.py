@@ -12,13 +12,11 @@ from __future__ import annotations
 
 from typing import Iterator
 
-import numpy as np
 import pandas as pd
 import torch
 
-from learn import predictions
 from learn.models import ClipClassifier, ShapeReader
-from learn.windows import WindowSet, epoch_order
+from learn.windows import WindowSet, epoch_order, prediction_frame
 
 
 class ShapeSet:
@@ -69,11 +67,4 @@ class ShapeSet:
     def predict(self, model: ClipClassifier, batch_size: int = 256, amp: bool | None = None) -> pd.DataFrame:
         """``model``'s readers' prediction frame (``learn.predictions``) on every window, in order, in eval mode:
         what the whole model predicts from the frames, the shapes being its frozen regressor's."""
-        reader = ShapeReader(model).eval()
-        amp = self.device.type == "cuda" if amp is None else amp
-        out = []
-        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=amp):
-            for shape, _, _ in self.batches(batch_size):
-                out.append(model.probs(reader(shape)).float().cpu().numpy())
-        probs = np.concatenate(out) if out else np.empty((0, predictions.NUM_CLASSES), np.float32)
-        return predictions.frame(self.clip_ids, self.starts.numpy(), self.labels.numpy(), probs)
+        return prediction_frame(self, ShapeReader(model).eval(), model.probs, batch_size, amp)

@@ -145,14 +145,7 @@ class WindowSet:
     def predict(self, model, batch_size: int = 256, amp: bool | None = None) -> pd.DataFrame:
         """``model``'s prediction frame (``learn.predictions``) on every window, in order, unaugmented, in eval
         mode (bf16 autocast on CUDA unless ``amp`` says otherwise)."""
-        model.eval()
-        amp = self.device.type == "cuda" if amp is None else amp
-        out = []
-        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=amp):
-            for x, _, _ in self.batches(batch_size):
-                out.append(model.probs(model(x)).float().cpu().numpy())
-        probs = np.concatenate(out) if out else np.empty((0, predictions.NUM_CLASSES), np.float32)
-        return predictions.frame(self.clip_ids, self.starts.numpy(), self.labels.numpy(), probs)
+        return prediction_frame(self, model.eval(), model.probs, batch_size, amp)
 
     def batches(self, batch_size: int, *, order: torch.Tensor | None = None, augment: torch.Tensor | None = None,
                 drop_last: bool = False, crop: bool = True, camera: torch.Tensor | None = None,
@@ -194,6 +187,18 @@ class WindowSet:
                 x = camera_augment_batch(x, self._on(camera[idx]), noise)
             target = self.targets[self._on(rows)] if self.targets is not None else None
             yield x, self._on(self._labels_ix[idx]), target
+
+
+def prediction_frame(windows, forward, probs, batch_size: int, amp: bool | None) -> pd.DataFrame:
+    """The prediction frame (``learn.predictions``) of ``probs(forward(x))`` on every batch of ``windows`` (a
+    ``WindowSet`` or a ``learn.shapes.ShapeSet``), in order; bf16 autocast on CUDA unless ``amp`` says otherwise."""
+    amp = windows.device.type == "cuda" if amp is None else amp
+    out = []
+    with torch.no_grad(), torch.autocast(windows.device.type, dtype=torch.bfloat16, enabled=amp):
+        for x, _, _ in windows.batches(batch_size):
+            out.append(probs(forward(x)).float().cpu().numpy())
+    table = np.concatenate(out) if out else np.empty((0, predictions.NUM_CLASSES), np.float32)
+    return predictions.frame(windows.clip_ids, windows.starts.numpy(), windows.labels.numpy(), table)
 
 
 def epoch_order(n: int, seed: int, epoch: int, rank: int = 0, world: int = 1) -> torch.Tensor:
