@@ -73,6 +73,9 @@ class TrainConfig:
     shared_regressor: str = ""              # a model whose trained CNN and lattice head every other model takes,
                                             # frozen: their readers train on its predicted lattices, computed
                                             # once (bottleneck only; "": each model trains its own CNN)
+    reader_epochs: int = 0                  # epochs of the models that read a shared regressor (0: train.epochs):
+                                            # a reader's epoch costs little, and readers on noisy shapes learn
+                                            # for longer (docs/learning.md)
     train_fraction: float = 1.0             # share of each class's training sequences used (a nested, seeded
                                             # draw; validation and test unchanged): the data-size learning curve
     geometry_centre: str = "median"         # lattice targets from the median shape of all frames, or "frame":
@@ -144,6 +147,10 @@ class TrainConfig:
             if not self.bottleneck:
                 out.append("train.shared_regressor is set but train.bottleneck is off: only a bottleneck model's "
                            "classes read nothing of the CNN but its lattice; set train.bottleneck=true")
+        out += checks.number("train.reader_epochs", self.reader_epochs, 0)
+        if self.reader_epochs and not self.shared_regressor:
+            out.append("train.reader_epochs is set but train.shared_regressor is not: only readers on a shared "
+                       "regressor train apart from their CNN")
         if self.keep == "best" and self.val_fraction <= 0:
             out.append("train.keep=best needs validation clips: set train.val_fraction > 0")
         return out

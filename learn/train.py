@@ -466,6 +466,8 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
     device = _setup_process(cfg)
     progress = progress and is_main()
     cnn_init = _cnn_init(run, setting, variant, model_name, seed, progress, cfg, root)
+    if reads_shared_regressor(cfg, model_name) and cfg.reader_epochs:
+        cfg = dataclasses.replace(cfg, epochs=cfg.reader_epochs)     # (after the regressor, which keeps its own)
     train_set, val_set = window_sets(run, setting, variant, cfg, device, progress)
     resolved = _resolved_settings(run, setting, variant, model_name, seed, cfg, cnn_init, device, train_set, val_set)
     shape_seconds = None

@@ -15,6 +15,7 @@ folders' recipe names (`RUN/ablation/RECIPE/SETTING/VARIANT/lrcn/sSEED`). --look
 variant's test clips, --look V on the same clips rendered as V (`eval ablation --test-variant V`), --look val on
 the validation windows (the kept weights' val_predictions.csv that training writes: choose recipes there). --b-run takes
 the reference from another run of the same simulations (the same seed and clips, e.g. rendered at another size).
+--b-model compares with another model of the reference (default: --model's).
 --a-ensemble (--b-ensemble) scores that side's seeds as one model instead: each window's class probabilities
 averaged over the seeds, the most probable class its prediction (what N seeds trained and kept together give).
 """
@@ -89,6 +90,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("run", type=Path)
     parser.add_argument("--setting", required=True)
     parser.add_argument("--model", default="lrcn")
+    parser.add_argument("--b-model", help="the reference's model, if another (e.g. a reader on a shared regressor "
+                                          "against lrcn itself): default --model")
     parser.add_argument("--look", default="own", help="own (test clips), val (validation windows), or a test-only "
                                                       "variant such as heldout")
     parser.add_argument("--a", required=True, help="VARIANT:RECIPE@SEED,... (the side whose gain is reported)")
@@ -99,13 +102,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--b-ensemble", action="store_true", help="score --b's seeds as one averaged model")
     args = parser.parse_args(argv)
     a_scores, a_windows = _scores(args.run, args.setting, args.model, args.look, args.a, args.a_ensemble)
-    b_scores, b_windows = _scores(args.b_run or args.run, args.setting, args.model, args.look, args.b,
+    b_model = args.b_model or args.model
+    b_scores, b_windows = _scores(args.b_run or args.run, args.setting, b_model, args.look, args.b,
                                   args.b_ensemble)
     if not a_windows.equals(b_windows):
         raise SystemExit("--a and --b were scored on different windows: no paired comparison")
     clips = a_windows["clip_id"].to_numpy()    # resampled by clip: a clip's windows go together
     out = {"run": str(args.run), "b_run": str(args.b_run or args.run), "setting": args.setting,
-           "model": args.model, "look": args.look, "a": args.a, "b": args.b, "a_ensemble": args.a_ensemble,
+           "model": args.model, "b_model": b_model, "look": args.look, "a": args.a, "b": args.b, "a_ensemble": args.a_ensemble,
            "b_ensemble": args.b_ensemble, "test_windows": len(a_windows),
            "test_clips": len(set(clips))}
     for name in SCORES:

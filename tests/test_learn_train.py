@@ -490,6 +490,19 @@ def test_a_shared_regressor_is_taken_frozen_and_its_readers_train_on_its_shapes(
     assert torch.equal(redone["head_geometry.weight"], checkpoint["model"]["head_geometry.weight"])
 
 
+def test_readers_on_a_shared_regressor_train_their_own_number_of_epochs(tmp_path):
+    cfg = tiny_train_config(bottleneck=True, dropout=0.0, epochs=2, models=("lrcn", "base1"),
+                            shared_regressor="lrcn", reader_epochs=5)
+    run = synthetic_run(tmp_path / "run", cfg)
+    _sim_clips_for(run, cfg.sim.frames)
+    reader = train_one(run, SETTING, VARIANT, "base1", 0, progress=False)
+    regressor = run.train_dir(SETTING, VARIANT, "lrcn", 0)
+    assert len(pd.read_csv(regressor / "metrics.csv")) == 2 and len(pd.read_csv(reader / "metrics.csv")) == 5
+    assert json.loads((reader / "DONE").read_text())["epochs"] == 5
+    assert "train.reader_epochs is set but train.shared_regressor is not" in " ".join(
+        tiny_train_config(bottleneck=True, reader_epochs=5).train.problems())
+
+
 def test_a_shared_regressor_needs_the_bottleneck_and_a_model_that_trains_its_own_cnn(tmp_path):
     def problems(**train) -> str:
         return " | ".join(tiny_train_config(**train).train.problems())

@@ -46,6 +46,13 @@ def test_pooling_averages_seeds_per_clip_and_pairs_the_clips(tmp_path):
     other = json.loads(_run(tmp_path, "--look", "heldout", "--a", "paper:base@0", "--b", "paper:base@0",
                             "--b-run", str(tmp_path / "other")).stdout)
     assert other["b_acc"] == 1.0 and other["acc_a_minus_b"] == -1.0 and other["b_run"] == str(tmp_path / "other")
+    # the reference's another model: base2 reading a shared regressor against lrcn itself
+    base2 = tmp_path / "ablation" / "shared" / "wind-uniform1" / "paper" / "base2" / "s0"
+    _write(tmp_path, "shared", 0, truth, truth, "heldout")
+    (tmp_path / "ablation" / "shared" / "wind-uniform1" / "paper" / "lrcn").rename(base2.parent)
+    models = json.loads(_run(tmp_path, "--look", "heldout", "--model", "base2", "--a", "paper:shared@0",
+                             "--b", "paper:base@0", "--b-model", "lrcn").stdout)
+    assert models["a_acc"] == 1.0 and models["b_acc"] == 0.0 and models["b_model"] == "lrcn"
 
 
 def test_a_missing_look_and_other_clips_are_refused_by_name(tmp_path):

@@ -3,10 +3,13 @@
 # whose four models are trained with seeds 0 and 1 (a Table 3 run: table3-ensemble-{wind,arm}.plan).
 #   bash scripts/gpu/shared_regressor.sh link RUN       the run's models as the `baseline` recipe, its lrcn as the
 #                                                       `shared_regressor=lrcn` recipe's (hard links, nothing retrained)
-#   bash scripts/gpu/shared_regressor.sh train RUN      base1, base2 and base3 of seeds 0 and 1 on lrcn's shapes, then
-#                                                       the table of both recipes (RUN/eval/shared-regressor-SETTING.*)
-#   bash scripts/gpu/shared_regressor.sh compare RUN    each model's two seeds against its own-CNN seeds, pooled per
-#                                                       clip, on validation windows (the choice) and test clips
+#   bash scripts/gpu/shared_regressor.sh train RUN      base1, base2 and base3 of seeds 0 and 1 on lrcn's shapes, and
+#                                                       base2 again with READER_EPOCHS (default 240) epochs, then the
+#                                                       tables (RUN/eval/shared-regressor-SETTING.*, and
+#                                                       shared-reader-epochs-SETTING.*)
+#   bash scripts/gpu/shared_regressor.sh compare RUN    each model's two seeds against its own-CNN seeds, and the long
+#                                                       readers against lrcn itself, pooled per clip, on validation
+#                                                       windows (the choice) and test clips
 # The setting is RUN's name after "t3" (t3wind: wind-uniform1); the variant is `paper`. BUDGET (seconds) bounds
 # `train`, which resumes when called again (exit status 75 until its table exists). Outputs go to $OUT.
 set -uo pipefail
@@ -14,13 +17,14 @@ step=$1 run=$2
 setting=$(basename "$run" | sed 's/^t3//')-uniform1
 out=${OUT:-/tmp}
 budget=${BUDGET:-560}
+long=shared_regressor=lrcn+reader_epochs=${READER_EPOCHS:-240}
 case $step in
   link)
     for model in lrcn base1 base2 base3; do
       for s in 0 1; do
         from=$run/train/$setting/paper/$model/s$s
         [ -f "$from/DONE" ] || { echo "$from is not trained" >&2; exit 1; }
-        for recipe in baseline shared_regressor=lrcn; do
+        for recipe in baseline shared_regressor=lrcn $long; do
           [ "$recipe" = baseline ] || [ "$model" = lrcn ] || continue
           to=$run/ablation/$recipe/$setting/paper/$model/s$s
           [ -f "$to/DONE" ] && continue
@@ -35,7 +39,7 @@ case $step in
     # lrcn would otherwise be trained from scratch under the recipe, and a missing reference never tabled).
     for model in lrcn base1 base2 base3; do
       for s in 0 1; do
-        for recipe in baseline shared_regressor=lrcn; do
+        for recipe in baseline shared_regressor=lrcn $long; do
           [ "$recipe" = baseline ] || [ "$model" = lrcn ] || continue
           [ -f "$run/ablation/$recipe/$setting/paper/$model/s$s/DONE" ] \
             || { echo "$recipe $model s$s is not linked: run the link step first" >&2; exit 1; }
@@ -43,14 +47,14 @@ case $step in
       done
     done
     timeout $((budget - 20)) python3 "$(dirname "$0")/learn_grid.py" "$run" --setting "$setting" --variant paper \
-      --parallel 6 --deadline $((budget - 90)) --job shared_regressor=lrcn:base1,base2,base3 \
+      --parallel 8 --deadline $((budget - 90)) --job "$long:base2" --job shared_regressor=lrcn:base1,base2,base3 \
       --table "shared-regressor-$setting=baseline,shared_regressor=lrcn:lrcn,base1,base2,base3" \
-      > "$out/shared-regressor.log" 2>&1
+      --table "shared-reader-epochs-$setting=shared_regressor=lrcn,$long:base2" > "$out/shared-regressor.log" 2>&1
     rc=$?
     grep -v UserWarning "$out/shared-regressor.log" | grep -e '|' -e 'training call' -e Error
     case $rc in 0|124|137) ;; *) exit 1 ;; esac
-    [ -f "$run/eval/shared-regressor-$setting.json" ] || exit 75
-    cp "$run/eval/shared-regressor-$setting".* "$out/" ;;
+    [ -f "$run/eval/shared-regressor-$setting.json" ] && [ -f "$run/eval/shared-reader-epochs-$setting.json" ] || exit 75
+    cp "$run/eval/shared-regressor-$setting".* "$run/eval/shared-reader-epochs-$setting".* "$out/" ;;
   compare)
     failed=0
     for model in base1 base2 base3; do
@@ -60,6 +64,12 @@ case $step in
           --a paper:shared_regressor=lrcn@0,shared_regressor=lrcn@1 --b paper:baseline@0,baseline@1 \
           > "$out/shared-$model-$look.json" || failed=1
       done
+    done
+    for look in val own; do
+      echo "base2 reading lrcn's shapes for ${READER_EPOCHS:-240} epochs against lrcn itself, $look:"
+      python3 "$(dirname "$0")/../pooled_recipes.py" "$run" --setting "$setting" --model base2 --b-model lrcn \
+        --look "$look" --a "paper:$long@0,$long@1" --b paper:baseline@0,baseline@1 > "$out/long-reader-$look.json" \
+        || failed=1
     done
     [ $failed = 0 ] ;;
   *) echo "usage: bash scripts/gpu/shared_regressor.sh link|train|compare RUN" >&2; exit 2 ;;
