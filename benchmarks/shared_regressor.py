@@ -91,11 +91,14 @@ def main(argv: list[str] | None = None) -> dict:
     reader_s = epoch_seconds(forward_net(ShapeReader(reader_model), cfg, device), reader_model,
                              lambda: shapes[0].batches(cfg.batch_size, order=order, drop_last=True))
 
-    windows = len(order) - len(order) % cfg.batch_size
+    windows = len(order) - len(order) % cfg.batch_size       # an epoch's full batches (drop_last, as training)
+    if not windows:
+        raise SystemExit(f"{len(order)} training windows, fewer than one batch of {cfg.batch_size}")
     result = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
               "torch": torch.__version__, "run": str(args.run), "setting": args.setting, "variant": args.variant,
               "model": args.model, "regressor": args.regressor, "seed": args.seed, "image_size": cfg.image_size,
-              "clip_len": cfg.clip_len, "batch_size": cfg.batch_size, "train_windows": windows,
+              "clip_len": cfg.clip_len, "batch_size": cfg.batch_size, "train_windows": len(train_set),
+              "windows_an_epoch": windows,
               "val_windows": len(val_set), "frames_on_device": train_set.resident,
               "own_cnn": {"epoch_s": round(own_s, 4), "windows_per_s": round(windows / own_s, 1)},
               "shapes_pass_s": round(shape_s, 4),

@@ -207,21 +207,23 @@ def _say(message: str) -> None:
 TrainEntry = tuple   # (setting, variant, model, seed), or with a fifth item: an eval.ablation recipe
 
 
-def train_jobs(grid: Sequence[TrainEntry], shared_regressor: Callable[[TrainEntry], str] = lambda entry: ""
-               ) -> list[list[TrainEntry]]:
-    """The training grid cut into jobs that may run at once: a model and the model it needs when both are in
-    ``grid`` (base1, then base2, which freezes base1's CNN, of the same setting, variant, seed and recipe; with
-    ``train.shared_regressor``, given per entry by ``shared_regressor``, that model and every other) form one
-    job, in grid order; every other entry is a job of its own (a model whose model is trained already, outside
-    ``grid``, needs no other)."""
+def train_jobs(grid: Sequence[TrainEntry], shared_regressor: Callable[[TrainEntry], str] = lambda entry: "",
+               trained: Callable[[TrainEntry], bool] | None = None) -> list[list[TrainEntry]]:
+    """The training grid cut into jobs that may run at once: a model and the untrained model it needs (base1, then
+    base2, which freezes base1's CNN, of the same setting, variant, seed and recipe; with
+    ``train.shared_regressor``, given per entry by ``shared_regressor``, that model and every other) form one job,
+    in grid order, so that no two jobs train the model they need; every other entry is a job of its own.
+    ``trained`` says whether an entry is trained already (default: whether it is outside ``grid``); a needed
+    model that is neither trained nor in ``grid`` is trained inside the job of the models that need it."""
     from learn.registry import model_needs
 
     present = {tuple(entry) for entry in grid}
+    is_trained = trained or (lambda entry: entry not in present)
 
     def root(entry: tuple) -> str:
         setting, variant, model, seed, *recipe = entry
         shared = shared_regressor(entry)
-        while (needs := model_needs(model, shared)) and (setting, variant, needs, seed, *recipe) in present:
+        while (needs := model_needs(model, shared)) and not is_trained((setting, variant, needs, seed, *recipe)):
             model = needs
         return model
 
@@ -297,7 +299,10 @@ def run_train_parallel(run: Run, grid: Sequence[TrainEntry], parallel: int = 1, 
             gpus = visible_gpus()
             slots = gpu_slots(gpus, options.gpus_per_worker, options.workers)
         # (`on` without GPUs is refused by cuda_mps: its workers would have none to share)
-        jobs = train_jobs(pending, lambda e: settings[e][0].shared_regressor)
+        def trained(entry: TrainEntry) -> bool:
+            return (train_folder(run, *entry[:4], root=_entry_config(run, entry)[1]) / "DONE").is_file()
+
+        jobs = train_jobs(pending, lambda e: settings[e][0].shared_regressor, trained)
         with cuda_mps(slots, gpus or [], mode, say=_say) as mps:
             run_shards(train_shard, str(run.root.resolve()), jobs,
                        options=dataclasses.replace(options, progress=progress), label="train", gpu_slots=mps.slots,

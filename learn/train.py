@@ -212,6 +212,17 @@ def _set_rng_states(states: dict) -> None:
         torch.cuda.set_rng_state_all(states["cuda"])
 
 
+def _same_settings(stored: dict, resolved: dict, keys: tuple[str, ...]) -> bool:
+    """Whether a folder's ``config.json`` (``stored``) has ``resolved``'s values at ``keys``. A train setting the
+    stored one lacks was added since it was written, and counts as its default: what the code did before."""
+    wanted = json.loads(json.dumps(resolved))   # tuples read back as lists
+    stored = dict(stored)
+    if isinstance(stored.get("train"), dict):
+        defaults = json.loads(json.dumps(dataclasses.asdict(TrainConfig())))
+        stored["train"] = {**{k: v for k, v in defaults.items() if k not in stored["train"]}, **stored["train"]}
+    return all(stored.get(k) == wanted.get(k) for k in keys)
+
+
 def _resumable_state(out: Path, resolved: dict) -> dict | None:
     """``last.pt`` of an unfinished run with the same settings, else None (the folder is then redone).
 
@@ -225,8 +236,7 @@ def _resumable_state(out: Path, resolved: dict) -> dict | None:
         stored = json.loads(config.read_text())
     except (OSError, ValueError):
         return None
-    wanted = json.loads(json.dumps(resolved))   # tuples read back as lists
-    if any(stored.get(k) != wanted.get(k) for k in ("train", "model_args", "torch_seed", "cnn_init", "regressor_sha256")):
+    if not _same_settings(stored, resolved, ("train", "model_args", "torch_seed", "cnn_init", "regressor_sha256")):
         return None
     try:
         return torch.load(last, map_location="cpu", weights_only=True)
@@ -374,10 +384,9 @@ def _adopt_restarts(out: Path, resolved: dict) -> None:
     except (OSError, ValueError):
         return
     restarts = stored.get("restarts", 0)
-    wanted = json.loads(json.dumps(resolved))
     if (isinstance(restarts, int) and 0 < restarts <= DEAD_NETWORK_RESTARTS
             and stored.get("torch_seed") == restart_seed(resolved["torch_seed"], restarts)
-            and all(stored.get(k) == wanted[k] for k in ("train", "model_args", "cnn_init"))):
+            and _same_settings(stored, resolved, ("train", "model_args", "cnn_init", "regressor_sha256"))):
         resolved.update(restarts=restarts, first_torch_seed=resolved["torch_seed"], torch_seed=stored["torch_seed"])
 
 
@@ -497,6 +506,7 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
         # Before the epoch is saved: a dead network is never in last.pt, so no resume finishes one.
         if network_is_dead(t.evaluator, t.val_set if len(t.val_set) >= 2 else t.train_set, cfg.batch_size):
             t = _restart_dead(t, epoch)
+            t.shape_seconds = shape_seconds
             epoch = t.start_epoch
             bar.reset()
             continue

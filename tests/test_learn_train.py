@@ -513,3 +513,18 @@ def test_a_shared_regressor_needs_the_bottleneck_and_a_model_that_trains_its_own
     assert problems(shared_regressor="base1", bottleneck=True) == ""
     with pytest.raises(ConfigError, match="shared_regressor"):
         synthetic_run(tmp_path / "run", tiny_train_config(shared_regressor="lrcn"))
+
+
+def test_an_unfinished_folder_written_before_a_setting_existed_resumes(tmp_path, monkeypatch):
+    """A train setting added since a folder's config.json was written counts as its default (the old behaviour):
+    the folder resumes from its last epoch instead of starting over."""
+    run = synthetic_run(tmp_path / "run", tiny_train_config())
+    kill_after_first_epoch(run, monkeypatch)
+    out = run.train_dir(SETTING, VARIANT, "lrcn", 0)
+    config = json.loads((out / "config.json").read_text())
+    for key in ("shared_regressor", "reader_epochs"):
+        del config["train"][key]
+    (out / "config.json").write_text(json.dumps(config))
+    before = pd.read_csv(out / "metrics.csv")
+    train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
+    assert pd.read_csv(out / "metrics.csv").seconds[0] == before.seconds[0]      # epoch 0 kept, not redone

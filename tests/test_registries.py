@@ -144,7 +144,9 @@ def test_a_shared_regressor_is_trained_before_every_other_model_and_shares_their
     assert training_order(["base2", "base3", "lrcn", "base1"], "base3") == ["base3", "lrcn", "base1", "base2"]
     grid = [("w", "p", m, 0) for m in ("lrcn", "base1", "base3", "base2")] + [("w", "p", "lrcn", 1)]
     assert train_jobs(grid, lambda entry: "lrcn") == [grid[:4], grid[4:]]
-    # with the regressor trained already (not in the grid), every reader is a job of its own
+    # with the regressor trained already, every reader is a job of its own; untrained and left out of the grid,
+    # it is trained once, in the one job of its readers
     readers = [e for e in grid if e[2] != "lrcn"]
     assert train_jobs(readers, lambda entry: "lrcn") == [[e] for e in readers]
+    assert train_jobs(readers, lambda entry: "lrcn", trained=lambda entry: False) == [readers]
     assert train_jobs([("w", "p", "base2", 0)]) == [[("w", "p", "base2", 0)]]

@@ -7,8 +7,8 @@ A fresh GPU machine otherwise compiles them on its first simulation: 18.5 s of a
     python scripts/gpu/warp_aot.py --check                               on the GPU machine (scripts/gpu/env.sh)
 
 The first writes, in the layout of Warp's kernel cache (``OUT/<warp version>/wp_<module>_<hash>/``), every
-module of the ``sim`` package that defines kernels as a cubin for each ``--arch`` (90: the H100 and H200) and as
-PTX for the architecture Warp would compile PTX for there; the runtime takes the one its driver calls for. Carry OUT with the last staging call
+module of the ``sim`` package that defines kernels as a cubin and as PTX for each ``--arch`` (90: the H100 and
+H200); the runtime takes the one its driver calls for (a cubin when the driver is older than Warp's toolkit). Carry OUT with the last staging call
 (``carry: [".gpu/p4", ".gpu/warp-aot"]``); ``scripts/gpu/env.sh`` copies it into the machine's kernel cache
 (WARP_CACHE_PATH). A module whose hash differs there (another Warp version, a kernel changed since) is
 compiled as before, so a stale cache costs nothing but its transfer. ``--check`` loads each module on the
@@ -52,14 +52,12 @@ def build(out: Path, archs: list[int]) -> None:
     wp.config.quiet = True
     wp.init()
     # What a GPU loads (Device.get_cuda_compile_arch): with a driver older than Warp's CUDA toolkit a cubin of the
-    # GPU's own architecture, else PTX of the lower of that and Warp's default PTX architecture.
-    from warp._src.context import runtime
-
-    ptx_archs = sorted({min(a, wp.config.ptx_target_arch or runtime.default_ptx_arch) for a in archs})
+    # GPU's own architecture, else PTX of the lower of that and the lowest architecture among the machine's GPUs
+    # (Warp's default PTX architecture there): the GPU's own on a machine of one kind of GPU.
     for module in kernel_modules():
-        for use_ptx, targets in ((False, archs), (True, ptx_archs)):
+        for use_ptx in (False, True):
             started = time.perf_counter()
-            paths = wp.compile_aot_module(module, arch=targets, use_ptx=use_ptx)
+            paths = wp.compile_aot_module(module, arch=archs, use_ptx=use_ptx)
             print(f"{module.__name__}: {', '.join(Path(p).name for p in paths)} "
                   f"({time.perf_counter() - started:.1f} s)", flush=True)
     cache = Path(wp.config.kernel_cache_dir)
@@ -77,15 +75,20 @@ def check() -> int:
     if not wp.is_cuda_available():
         print("no CUDA device: --check runs on the GPU machine", file=sys.stderr)
         return 2
+    device = wp.get_device("cuda:0")
     compiled = 0
     for module in kernel_modules():
-        name = wp.get_module(module.__name__).get_module_identifier(block_dim=256)
-        had = (Path(wp.config.kernel_cache_dir) / name).is_dir()
+        warp_module = wp.get_module(module.__name__)
+        folder = Path(wp.config.kernel_cache_dir) / warp_module.get_module_identifier(block_dim=256)
+        # the binary this GPU and driver load (cubin or PTX, and its architecture): Warp's own naming
+        binary = folder / warp_module._get_compile_output_name(device, block_dim=256)
+        had = binary.is_file()
         started = time.perf_counter()
-        wp.load_module(module, device="cuda:0")
+        wp.load_module(module, device=device)
         took = time.perf_counter() - started
         compiled += not had
-        print(f"{module.__name__}: {'from the cache' if had else 'compiled'}, {took:.2f} s", flush=True)
+        print(f"{module.__name__}: {binary.name} {'from the cache' if had else 'compiled'}, {took:.2f} s",
+              flush=True)
     return 1 if compiled else 0
 
 
