@@ -9,7 +9,10 @@ export PYTHONPATH=$PYTHONPATH:/tmp/site
 # ahead of time (scripts/gpu/warp_aot.py, carried as .gpu/warp-aot): a fresh machine then compiles none of them.
 export WARP_CACHE_PATH=/tmp/warp-cache
 mkdir -p "$WARP_CACHE_PATH"
-[ -d .gpu/warp-aot ] && cp -rn .gpu/warp-aot/. "$WARP_CACHE_PATH/"
+# (once a machine, before anything has compiled into the cache)
+if [ -d .gpu/warp-aot ] && [ ! -f "$WARP_CACHE_PATH/.aot-copied" ]; then
+  cp -r .gpu/warp-aot/. "$WARP_CACHE_PATH/" && touch "$WARP_CACHE_PATH/.aot-copied"
+fi
 export OUT=${OUT:-/tmp/out}
 # NVLink multicast stays off on machines of several GPUs: a program that uses it can take the host's
 # shared GPUs out of service (the device tool's KINDS.md); child processes inherit these.
