@@ -27,7 +27,8 @@ times (``restarts`` in config.json and DONE), then stopped with ``TrainingDead``
 
 With ``train.shared_regressor`` the named model trains as above and every other model of the same
 (setting, variant, seed) takes its CNN and lattice head, frozen: those train their readers alone on the
-shapes the regressor predicts, computed once (``learn.shapes``), not the CNN over every frame each epoch.
+shapes the regressor predicts, computed once a training (``learn.shapes``), not the CNN over every frame
+each epoch.
 """
 
 from __future__ import annotations
@@ -351,8 +352,9 @@ DEAD_NETWORK_RESTARTS = 2
 
 
 def network_is_dead(model: torch.nn.Module, windows: WindowSet | ShapeSet, batch_size: int) -> bool:
-    """True when ``model`` (or a ``ShapeReader`` on a ``ShapeSet``) gives a batch of ``windows`` spread over the set (two windows at least) one and the same
-    output. Under torchrun the ranks' answers are combined (any rank's yes is every rank's), so that all restart."""
+    """True when ``model`` (or a ``ShapeReader`` on a ``ShapeSet``) gives a batch of ``windows`` spread over the set
+    (two windows at least) one and the same output. Under torchrun the ranks' answers are combined (any rank's yes
+    is every rank's), so that all restart."""
     dead = False
     if len(windows) >= 2:
         n = min(max(batch_size, 2), len(windows))

@@ -8,9 +8,9 @@ A fresh GPU machine otherwise compiles them on its first simulation: 18.5 s of a
 
 The first writes, in the layout of Warp's kernel cache (``OUT/<warp version>/wp_<module>_<hash>/``), every
 module of the ``sim`` package that defines kernels as a cubin and as PTX for each ``--arch`` (90: the H100 and
-H200); the runtime takes the one its driver calls for (a cubin when the driver is older than Warp's toolkit). Carry OUT with the last staging call
-(``carry: [".gpu/p4", ".gpu/warp-aot"]``); ``scripts/gpu/env.sh`` copies it into the machine's kernel cache
-(WARP_CACHE_PATH). A module whose hash differs there (another Warp version, a kernel changed since) is
+H200); the runtime takes the one its driver calls for (a cubin when the driver is older than Warp's toolkit).
+Carry OUT with the last staging call (``carry: [".gpu/p4", ".gpu/warp-aot"]``); ``scripts/gpu/env.sh`` copies it
+into the machine's kernel cache (WARP_CACHE_PATH). A module whose hash differs there (another Warp version, a kernel changed since) is
 compiled as before, so a stale cache costs nothing but its transfer. ``--check`` loads each module on the
 first GPU and says whether it came from the cache and how long it took; run it before anything simulates on
 the machine (a simulation puts what it compiles in the same cache).
