@@ -3,8 +3,8 @@
 The `train.bottleneck` model reads classes only from the lattice its CNN predicts (learn.models). This
 trains the same model's reader (``ClipClassifier.read_lattice``: per-frame MLP on the shape and its change,
 LSTM, per-step heads; its loss and readout) on the simulator's own 8 x 8 lattices of a run's sim clips, split
-by sequence with the run's seed, and prints top-1, within-one-bin, stretching and bending class accuracy on
-the test windows. ``--noise`` adds Gaussian noise (standardised units) to train and test lattices: what white
+by sequence with the run's seed, and prints top-1 on the validation windows (where a choice is made) and
+top-1, within-one-bin, stretching and bending class accuracy on the test windows. ``--noise`` adds Gaussian noise (standardised units) to train and test lattices: what white
 regression error of that size alone costs.
 
     python scripts/reader_ceiling.py RUN_DIR --setting wind-uniform1 [--noise 0.18] [--per-coordinate]
@@ -115,6 +115,7 @@ def main(argv=None):
              float(np.sqrt(np.median([((t - centre[:len(t)]) ** 2).mean() for t in train]))))
     xtr, ytr = windows(lattices, labels, split["train"], centre, scale, args.clip_len, args.stride)
     xte, yte = windows(lattices, labels, split["test"], centre, scale, args.clip_len, args.stride)
+    xva, yva = windows(lattices, labels, split["val"], centre, scale, args.clip_len, args.stride)
     torch.manual_seed(args.seed)
     # The run's lrcn with the bottleneck on (its CNN is built but never used here).
     model = build_model("lrcn", **model_args(dataclasses.replace(run.config.train, bottleneck=True)))
@@ -133,13 +134,17 @@ def main(argv=None):
     model.eval()
     with torch.no_grad():
         pred = model.probs(model.read_lattice(xte + args.noise * torch.randn_like(xte))).argmax(1).numpy()
+        val_pred = (model.probs(model.read_lattice(xva + args.noise * torch.randn_like(xva))).argmax(1).numpy()
+                    if len(yva) else np.zeros(0, int))
     truth = yte.numpy()
+    val_top1 = round(float((val_pred == yva.numpy()).mean()), 4) if len(yva) else None
     measured = (read_measured(run, args.setting, model, args.measured, centre, scale, args.clip_len, args.stride)
                 if args.measured else None)
     print(json.dumps({"run": str(run.root), "setting": args.setting, "clips": len(ids),
                       "test_sequences": len(split["test"]), "test_windows": int(len(truth)),
                       "noise": args.noise, "per_coordinate": args.per_coordinate, "epochs": args.epochs,
                       "clip_len": args.clip_len, "stride": args.stride, "centre": args.centre,
+                      "val_windows": int(len(yva)), "val_top1": val_top1,
                       "top1": round(float((pred == truth).mean()), 4),
                       "within_one": round(float(metrics.within_one_bin(truth, pred).mean()), 4),
                       "stretching": round(float(metrics.stretch_correct(truth, pred).mean()), 4),
