@@ -4,6 +4,7 @@ scripts/gpu/together.sh, commands at once (both run on the GPU machine; their lo
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 import tarfile
@@ -152,3 +153,12 @@ def test_lanes_refuse_a_bad_plan_before_any_lane_starts(tmp_path):
         r = subprocess.run(["bash", str(LANES), *lanes], capture_output=True, text=True, env=env, timeout=60)
         assert r.returncode == 2 and message in r.stderr and "no lane started" in r.stderr
         assert not started.exists()                     # not even the good lane ran
+
+
+@pytest.mark.parametrize("plan", sorted((ROOT / "scripts" / "gpu" / "plans").glob("*.plan")), ids=lambda p: p.name)
+def test_every_committed_plan_reads_as_a_plan_and_its_scripts_exist(plan):
+    check = subprocess.run(["bash", str(QUEUE), "--check", str(plan)], capture_output=True, text=True, timeout=60)
+    assert check.returncode == 0, check.stderr
+    # every project script a step names is there (a renamed script would fail only on the GPU machine)
+    for script in re.findall(r"(?:scripts|benchmarks)/[\w/.-]+\.(?:sh|py|plan)", plan.read_text()):
+        assert (ROOT / script).is_file(), f"{plan.name} names {script}, which does not exist"
