@@ -29,9 +29,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from common import RESULTS, write_result  # noqa: E402  (benchmarks/common.py)
 from clothgap.runs import Run  # noqa: E402
 from learn.models import ShapeReader, model_args  # noqa: E402
-from learn.shapes import ShapeSet  # noqa: E402
 from learn.train import (build_training_model, forward_net, make_optimizer, resolve_device, run_epoch,  # noqa: E402
-                         window_sets)
+                         shape_sets, window_sets)
 
 
 def _sync(device: torch.device) -> None:
@@ -63,6 +62,9 @@ def main(argv: list[str] | None = None) -> dict:
     amp = cfg.amp and device.type == "cuda"
     train_set, val_set = window_sets(run, args.setting, args.variant, cfg, device, progress=False)
     order = train_set.order(0, 0)
+    windows = len(order) - len(order) % cfg.batch_size       # an epoch's full batches (drop_last, as training)
+    if not windows:
+        raise SystemExit(f"{len(order)} training windows, fewer than one batch of {cfg.batch_size}")
     common = dict(geometry_weight=cfg.geometry_weight, label_smoothing=cfg.label_smoothing,
                   truth_weight=cfg.reader_truth)
 
@@ -81,19 +83,15 @@ def main(argv: list[str] | None = None) -> dict:
     del own
 
     shared = {**resolved, "cnn_init": str(source), "train": {"shared_regressor": args.regressor}}
-    regressor = build_training_model(shared, device)
     _sync(device)
     started = time.perf_counter()
-    shapes = ShapeSet(train_set, regressor, cfg.batch_size, amp), ShapeSet(val_set, regressor, cfg.batch_size, amp)
+    shapes = shape_sets(shared, train_set, val_set, cfg, device)        # what a reader's training does first
     _sync(device)
     shape_s = time.perf_counter() - started
     reader_model = build_training_model(shared, device)
     reader_s = epoch_seconds(forward_net(ShapeReader(reader_model), cfg, device), reader_model,
                              lambda: shapes[0].batches(cfg.batch_size, order=order, drop_last=True))
 
-    windows = len(order) - len(order) % cfg.batch_size       # an epoch's full batches (drop_last, as training)
-    if not windows:
-        raise SystemExit(f"{len(order)} training windows, fewer than one batch of {cfg.batch_size}")
     result = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
               "torch": torch.__version__, "run": str(args.run), "setting": args.setting, "variant": args.variant,
               "model": args.model, "regressor": args.regressor, "seed": args.seed, "image_size": cfg.image_size,

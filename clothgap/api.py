@@ -551,7 +551,8 @@ def train_selected(run: Run, settings: Iterable[str] | None = None, variants: It
         return [run.root / e["dir"] for e in index["entries"]]
     # A model that needs another (base2 freezes base1's CNN of the same setting, variant and seed; with
     # train.shared_regressor every model reads that one's) comes after it.
-    grid = [(s, v, m, seed) for s, v in chosen for seed in seeds for m in training_order(models, cfg.train.shared_regressor)]
+    ordered = training_order(models, cfg.train.shared_regressor)
+    grid = [(s, v, m, seed) for s, v in chosen for seed in seeds for m in ordered]
     if parallel != 1 or options is not None:
         from clothgap.executor import run_train_parallel
 

@@ -298,11 +298,11 @@ def run_train_parallel(run: Run, grid: Sequence[TrainEntry], parallel: int = 1, 
         elif options.executor == "process":
             gpus = visible_gpus()
             slots = gpu_slots(gpus, options.gpus_per_worker, options.workers)
-        # (`on` without GPUs is refused by cuda_mps: its workers would have none to share)
         def trained(entry: TrainEntry) -> bool:
             return (train_folder(run, *entry[:4], root=_entry_config(run, entry)[1]) / "DONE").is_file()
 
         jobs = train_jobs(pending, lambda e: settings[e][0].shared_regressor, trained)
+        # (`on` without GPUs is refused by cuda_mps: its workers would have none to share)
         with cuda_mps(slots, gpus or [], mode, say=_say) as mps:
             run_shards(train_shard, str(run.root.resolve()), jobs,
                        options=dataclasses.replace(options, progress=progress), label="train", gpu_slots=mps.slots,

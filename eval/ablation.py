@@ -104,8 +104,9 @@ def training_speed(folder: Path) -> dict:
     windows = config["train_subsequences"]
     steady = [r["seconds"] for r in curves[1:]] or [r["seconds"] for r in curves]
     done = json.loads((folder / "DONE").read_text())
-    shapes = {"shape_seconds": done["shape_seconds"]} if done.get("shape_seconds") is not None else {}
-    return {"train_seconds": round(sum(r["seconds"] for r in curves) + shapes.get("shape_seconds", 0.0), 2), **shapes,
+    shape_seconds = done.get("shape_seconds")      # readers on a shared regressor: its pass over their windows
+    shapes = {"shape_seconds": shape_seconds} if shape_seconds is not None else {}
+    return {"train_seconds": round(sum(r["seconds"] for r in curves) + (shape_seconds or 0.0), 2), **shapes,
             "first_epoch_seconds": round(curves[0]["seconds"], 2) if curves else None,
             "windows_per_s": round(windows / (sum(steady) / len(steady)), 1) if steady else None,
             "train_windows": windows, "kept_epoch": done.get("kept_epoch"),

@@ -141,9 +141,9 @@ class TrainConfig:
             if self.shared_regressor not in MODEL_NAMES:
                 out.append(f"train.shared_regressor={self.shared_regressor!r}: must be one of the models "
                            f"({', '.join(MODEL_NAMES)}) or empty")
-            elif get_model_entry(self.shared_regressor).needs:
+            elif needs := get_model_entry(self.shared_regressor).needs:
                 out.append(f"train.shared_regressor={self.shared_regressor!r}: that model starts from "
-                           f"{get_model_entry(self.shared_regressor).needs}'s CNN; name a model that trains its own")
+                           f"{needs}'s CNN; name a model that trains its own")
             if not self.bottleneck:
                 out.append("train.shared_regressor is set but train.bottleneck is off: only a bottleneck model's "
                            "classes read nothing of the CNN but its lattice; set train.bottleneck=true")

@@ -63,7 +63,6 @@ class ShapeSet:
             idx = order[lo:lo + batch_size]
             yield self.shapes[idx], self._labels[idx], self.targets[idx]
 
-    @torch.no_grad()
     def predict(self, model: ClipClassifier, batch_size: int = 256, amp: bool | None = None) -> pd.DataFrame:
         """``model``'s readers' prediction frame (``learn.predictions``) on every window, in order, in eval mode:
         what the whole model predicts from the frames, the shapes being its frozen regressor's."""

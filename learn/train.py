@@ -265,14 +265,15 @@ def _cnn_init(run: Run, setting: str, variant: str, model_name: str, seed: int, 
     first = train_folder(run, setting, variant, needs, seed, root)
     if is_done(first):
         return str(first / "checkpoint.pt")
-    if cfg.pretrained and not reads_shared_regressor(cfg, model_name):
+    if cfg.pretrained and not reads_shared_regressor(cfg.shared_regressor, model_name):
         return cfg.pretrained
     return str(train_one(run, setting, variant, needs, seed, progress, config=cfg, root=root) / "checkpoint.pt")
 
 
-def reads_shared_regressor(cfg: TrainConfig, model_name: str) -> bool:
-    """Whether ``model_name`` trains its readers alone on another model's frozen regressor."""
-    return bool(cfg.shared_regressor) and model_name != cfg.shared_regressor
+def reads_shared_regressor(shared_regressor: str, model_name: str) -> bool:
+    """Whether ``model_name`` trains its readers alone on another model's frozen regressor
+    (``train.shared_regressor``)."""
+    return bool(shared_regressor) and model_name != shared_regressor
 
 
 def shape_sets(resolved: dict, train_set: WindowSet, val_set: WindowSet, cfg: TrainConfig,
@@ -477,12 +478,12 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
     device = _setup_process(cfg)
     progress = progress and is_main()
     cnn_init = _cnn_init(run, setting, variant, model_name, seed, progress, cfg, root)
-    if reads_shared_regressor(cfg, model_name) and cfg.reader_epochs:
+    if reads_shared_regressor(cfg.shared_regressor, model_name) and cfg.reader_epochs:
         cfg = dataclasses.replace(cfg, epochs=cfg.reader_epochs)     # (after the regressor, which keeps its own)
     train_set, val_set = window_sets(run, setting, variant, cfg, device, progress)
     resolved = _resolved_settings(run, setting, variant, model_name, seed, cfg, cnn_init, device, train_set, val_set)
     shape_seconds = None
-    if reads_shared_regressor(cfg, model_name):
+    if reads_shared_regressor(cfg.shared_regressor, model_name):
         # The regressor's bytes, so that a last.pt whose frozen parts came from another training of it (retrained
         # at the same path) is not resumed with shapes from this one.
         resolved["regressor_sha256"] = file_sha256(cnn_init)
@@ -570,8 +571,7 @@ def build_training_model(resolved: dict, device: torch.device) -> ClipClassifier
     CNN from ``cnn_init``), on ``device`` in the layout training runs it in."""
     seed_everything(resolved["torch_seed"])
     model = build_model(resolved["model"], **resolved["model_args"])
-    shared = resolved.get("train", {}).get("shared_regressor", "")
-    if shared and resolved["model"] != shared:
+    if reads_shared_regressor(resolved.get("train", {}).get("shared_regressor", ""), resolved["model"]):
         take_regressor(model, resolved["cnn_init"])
     elif resolved["cnn_init"] != "random":
         load_cnn_weights(model, resolved["cnn_init"])

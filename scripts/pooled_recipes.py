@@ -109,8 +109,8 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("--a and --b were scored on different windows: no paired comparison")
     clips = a_windows["clip_id"].to_numpy()    # resampled by clip: a clip's windows go together
     out = {"run": str(args.run), "b_run": str(args.b_run or args.run), "setting": args.setting,
-           "model": args.model, "b_model": b_model, "look": args.look, "a": args.a, "b": args.b, "a_ensemble": args.a_ensemble,
-           "b_ensemble": args.b_ensemble, "test_windows": len(a_windows),
+           "model": args.model, "b_model": b_model, "look": args.look, "a": args.a, "b": args.b,
+           "a_ensemble": args.a_ensemble, "b_ensemble": args.b_ensemble, "test_windows": len(a_windows),
            "test_clips": len(set(clips))}
     for name in SCORES:
         a, b = a_scores[name], b_scores[name]

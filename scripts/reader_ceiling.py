@@ -4,8 +4,9 @@ The `train.bottleneck` model reads classes only from the lattice its CNN predict
 trains the same model's reader (``ClipClassifier.read_lattice``: per-frame MLP on the shape and its change,
 LSTM, per-step heads; its loss and readout) on the simulator's own 8 x 8 lattices of a run's sim clips, split
 by sequence with the run's seed, and prints top-1 on the validation windows (where a choice is made) and
-top-1, within-one-bin, stretching and bending class accuracy on the test windows. ``--noise`` adds Gaussian noise (standardised units) to train and test lattices: what white
-regression error of that size alone costs.
+top-1, within-one-bin, stretching and bending class accuracy on the test windows. ``--noise`` adds Gaussian
+noise (standardised units) to train, validation and test lattices: what white regression error of that size
+alone costs.
 
     python scripts/reader_ceiling.py RUN_DIR --setting wind-uniform1 [--noise 0.18] [--per-coordinate]
                                      [--clip-len 10 --stride 5] [--centre median|frame]

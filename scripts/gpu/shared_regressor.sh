@@ -18,34 +18,33 @@ setting=$(basename "$run" | sed 's/^t3//')-uniform1
 out=${OUT:-/tmp}
 budget=${BUDGET:-560}
 long=shared_regressor=lrcn+reader_epochs=${READER_EPOCHS:-240}
+# "model seed recipe" of every link: the run's four models as the reference, its lrcn as each shared recipe's regressor
+links() {
+  for model in lrcn base1 base2 base3; do
+    for s in 0 1; do
+      for recipe in baseline shared_regressor=lrcn $long; do
+        { [ "$recipe" = baseline ] || [ "$model" = lrcn ]; } && echo "$model $s $recipe"
+      done
+    done
+  done
+}
 case $step in
   link)
-    for model in lrcn base1 base2 base3; do
-      for s in 0 1; do
-        from=$run/train/$setting/paper/$model/s$s
-        [ -f "$from/DONE" ] || { echo "$from is not trained" >&2; exit 1; }
-        for recipe in baseline shared_regressor=lrcn $long; do
-          [ "$recipe" = baseline ] || [ "$model" = lrcn ] || continue
-          to=$run/ablation/$recipe/$setting/paper/$model/s$s
-          [ -f "$to/DONE" ] && continue
-          # linked beside, then renamed: a link cut short never looks finished
-          rm -rf "$to" "$to.partial" && mkdir -p "$(dirname "$to")" && cp -al "$from" "$to.partial" \
-            && mv "$to.partial" "$to" || exit 1
-        done
-      done
-    done ;;
+    while read -r model s recipe; do
+      from=$run/train/$setting/paper/$model/s$s to=$run/ablation/$recipe/$setting/paper/$model/s$s
+      [ -f "$from/DONE" ] || { echo "$from is not trained" >&2; exit 1; }
+      [ -f "$to/DONE" ] && continue
+      # linked beside, then renamed: a link cut short never looks finished
+      rm -rf "$to" "$to.partial" && mkdir -p "$(dirname "$to")" && cp -al "$from" "$to.partial" \
+        && mv "$to.partial" "$to" || exit 1
+    done < <(links) ;;
   train)
     # Only readers train here: every model of the reference and the regressor must be linked first (a missing
     # lrcn would otherwise be trained from scratch under the recipe, and a missing reference never tabled).
-    for model in lrcn base1 base2 base3; do
-      for s in 0 1; do
-        for recipe in baseline shared_regressor=lrcn $long; do
-          [ "$recipe" = baseline ] || [ "$model" = lrcn ] || continue
-          [ -f "$run/ablation/$recipe/$setting/paper/$model/s$s/DONE" ] \
-            || { echo "$recipe $model s$s is not linked: run the link step first" >&2; exit 1; }
-        done
-      done
-    done
+    while read -r model s recipe; do
+      [ -f "$run/ablation/$recipe/$setting/paper/$model/s$s/DONE" ] \
+        || { echo "$recipe $model s$s is not linked: run the link step first" >&2; exit 1; }
+    done < <(links)
     timeout $((budget - 20)) python3 "$(dirname "$0")/learn_grid.py" "$run" --setting "$setting" --variant paper \
       --parallel 8 --deadline $((budget - 90)) --job "$long:base2" --job shared_regressor=lrcn:base1,base2,base3 \
       --table "shared-regressor-$setting=baseline,shared_regressor=lrcn:lrcn,base1,base2,base3" \
