@@ -1,0 +1,80 @@
+#!/usr/bin/env bash
+# GPU: one Table 3 row (a motion's uniform1 setting, the `paper` preset, all four models, seeds 0 and 1, each model
+# also scored as its two seeds' ensemble) with the models' lattice regressor shared: lrcn trains its CNN, and
+# base1, base2 and base3 train their readers alone on lrcn's frozen CNN (train.shared_regressor=lrcn). In the
+# bottleneck recipe the class loss never reaches the CNN, so the four models train the same pixels -> lattice
+# regressor: a row costs two CNN trainings instead of about seven, which fits one GPU and a session.
+#   bash scripts/gpu/table3_shared.sh data RUN     simulate and render (the run is made on first use)
+#   bash scripts/gpu/table3_shared.sh train RUN    lrcn seeds 0 and 1, then the readers; with OWN=1 also base1
+#                                                  with its own CNN and base2 on that CNN (seed 0, recipe
+#                                                  `shared_regressor=base1+seeds=0`) beside them, for `own`
+#   bash scripts/gpu/table3_shared.sh eval RUN     eval and report: RUN/eval/table3.md
+#   bash scripts/gpu/table3_shared.sh own RUN      base1 and base2 of seed 0 reading lrcn's regressor against the
+#                                                  same models on their own CNN, paired by clip, on validation
+#                                                  windows (the choice) and test clips (pooled_recipes.py)
+# RUN's name after "t3" is the motion (/tmp/t3wind: wind-uniform1). BUDGET (seconds) bounds a step; every step
+# resumes when called again. Exit status: 0 done, 75 call again, 1 failed. PLAN_SETS adds settings to the run
+# (a CPU dry run: sim.device=cpu, ...). Outputs go to $OUT.
+set -uo pipefail
+[ $# -eq 2 ] || { echo "usage: bash scripts/gpu/table3_shared.sh data|train|eval|own RUN" >&2; exit 2; }
+step=$1 run=$2
+here=$(cd "$(dirname "$0")" && pwd)
+motion=$(basename "$run" | sed 's/^t3//')
+setting=$motion-uniform1
+out=${OUT:-/tmp}
+budget=${BUDGET:-560}
+own=shared_regressor=base1+seeds=0
+export RUN=$run MOTIONS=$motion SPP=16
+export EXTRA="--set train.seeds=0,1 --set eval.seed_ensemble=true --set eval.measured_sequences=0 --set train.shared_regressor=lrcn ${PLAN_SETS:-}"
+case $step in
+  data) STAGES="sim render" bash "$here/paper_study.sh" ;;
+  train)
+    pid=
+    if [ "${OWN:-0}" = 1 ]; then
+      # beside the row's training, once its frame cache is built (else both would pack the same frames)
+      ( for _ in $(seq 120); do ls "$run"/cache/paper/"$setting"/*.json > /dev/null 2>&1 && break; sleep 2; done
+        timeout $((budget - 20)) python3 "$here/learn_grid.py" "$run" --setting "$setting" --variant paper \
+          --parallel 2 --deadline $((budget - 60)) --job "$own:base1,base2" > "$out/own-cnn.log" 2>&1
+        echo $? > /tmp/own-cnn-$motion.rc ) &
+      pid=$!
+    fi
+    STAGES=train bash "$here/paper_study.sh"
+    rc=$?
+    if [ -n "$pid" ]; then
+      wait $pid
+      grep -v UserWarning "$out/own-cnn.log" | grep -e 'training call' -e Error
+      case $(cat /tmp/own-cnn-$motion.rc) in 0|124|137) ;; *) exit 1 ;; esac
+      for model in base1 base2; do
+        [ -f "$run/ablation/$own/$setting/paper/$model/s0/DONE" ] || { [ $rc = 0 ] && rc=75; }
+      done
+    fi
+    exit $rc ;;
+  eval) STAGES="eval report" bash "$here/paper_study.sh" && head -20 "$run/eval/table3.md" ;;
+  own)
+    # the row's readers as the `baseline` recipe (hard links, nothing retrained), then both recipes scored on
+    # the test clips (learn_grid's table: each model's test predictions) and compared
+    for model in base1 base2; do
+      [ -f "$run/ablation/$own/$setting/paper/$model/s0/DONE" ] || { echo "$own $model is not trained" >&2; exit 1; }
+      for s in 0 1; do
+        from=$run/train/$setting/paper/$model/s$s to=$run/ablation/baseline/$setting/paper/$model/s$s
+        [ -f "$from/DONE" ] || { echo "$from is not trained" >&2; exit 1; }
+        [ -f "$to/DONE" ] && continue
+        rm -rf "$to" "$to.partial" && mkdir -p "$(dirname "$to")" && cp -al "$from" "$to.partial" \
+          && mv "$to.partial" "$to" || exit 1
+      done
+    done
+    python3 "$here/learn_grid.py" "$run" --setting "$setting" --variant paper \
+      --table "own-cnn-$setting=baseline,$own:base1,base2" > "$out/own-cnn-table.log" 2>&1 || exit 1
+    grep -v UserWarning "$out/own-cnn-table.log" | grep -e '|' -e Error
+    [ -f "$run/eval/own-cnn-$setting.json" ] || exit 1
+    failed=0
+    for model in base1 base2; do
+      for look in val own; do
+        echo "$model on lrcn's regressor against its own CNN, seed 0, $look:"
+        python3 "$here/../pooled_recipes.py" "$run" --setting "$setting" --model "$model" --look "$look" \
+          --a paper:baseline@0 --b "paper:$own@0" > "$out/own-$motion-$model-$look.json" || failed=1
+      done
+    done
+    [ $failed = 0 ] ;;
+  *) echo "usage: bash scripts/gpu/table3_shared.sh data|train|eval|own RUN" >&2; exit 2 ;;
+esac
