@@ -148,7 +148,11 @@ def _paper() -> StudyConfig:
     # [+2.6, +7.0]; on test clips +4.0 and +6.5): at 40 the network still underfits (arm ends at 51-64 %
     # training accuracy, wind at 87-88 %); weight decay 0.01 and no lattice noise were not chosen. Self-collision
     # on: at 1.13x the GPU time of a setting it removes every intersecting triangle pair, which 71 of
-    # 2,592 wind clips had (docs/simulation.md).
+    # 2,592 wind clips had (docs/simulation.md). One lattice regressor a (setting, variant, seed): the class
+    # loss never reaches the CNN, so lrcn trains it and base1-3 train their readers on its frozen shapes
+    # (train.shared_regressor), a Table 3 row in two CNN trainings instead of about seven; on wind's
+    # validation windows base1 and base2 read +5.9 [+1.9, +9.6] and +4.6 [+0.6, +8.5] points more that way
+    # than on their own CNN (seed 0; benchmarks/results/table3-shared-wind-arm-h100x2-n5184.json).
     return StudyConfig(
         name="paper",
         sim=SimConfig(motions=("wind", "arm"), remeshing=("uniform1", "uniform2", "uniform3", "adaptive"),
@@ -160,7 +164,7 @@ def _paper() -> StudyConfig:
         train=TrainConfig(models=("lrcn", "base1", "base2", "base3"), image_size=112, epochs=80,
                           batch_size=16, clip_len=40, weight_decay=0.05, width=64, fc6=512, hidden=256, device="cuda",
                           motion=True, keep="best", bottleneck=True, dropout=0.0, reader_truth=1.0,
-                          bottleneck_noise=0.2),
+                          bottleneck_noise=0.2, shared_regressor="lrcn"),
         eval=EvalConfig(measured_sequences=4, sim_analysis=("table2", "sensitivity")),
     )
 

@@ -234,6 +234,31 @@ def train_jobs(grid: Sequence[TrainEntry], shared_regressor: Callable[[TrainEntr
     return list(jobs.values())
 
 
+def train_waves(jobs: list[list[TrainEntry]], shared_regressor: Callable[[TrainEntry], str] = lambda entry: ""
+                ) -> list[list[list[TrainEntry]]]:
+    """``train_jobs``'s jobs in the waves that run one after another: first every job with the readers of a shared
+    regressor trained in it taken out, then those readers, each a job of its own. A reader trains in a minute or
+    two where its regressor takes several, so once the regressors are trained their readers run side by side
+    instead of one after another behind each regressor. A wave left empty is dropped."""
+    from learn.registry import model_needs
+
+    first: list[list[TrainEntry]] = []
+    readers: list[list[TrainEntry]] = []
+    for job in jobs:
+        in_job = {tuple(entry) for entry in job}
+        kept = []
+        for entry in job:
+            setting, variant, model, seed, *recipe = entry
+            shared = shared_regressor(entry)
+            if shared and model != shared and model_needs(model, shared) == shared \
+                    and (setting, variant, shared, seed, *recipe) in in_job:
+                readers.append([entry])
+            else:
+                kept.append(entry)
+        first.append(kept)
+    return [wave for wave in (first, readers) if wave]
+
+
 def _entry_config(run: Run, entry: TrainEntry):
     """The train settings and train root of an entry: the run's, or its recipe's (``eval.ablation``)."""
     if len(entry) < 5:
@@ -301,12 +326,14 @@ def run_train_parallel(run: Run, grid: Sequence[TrainEntry], parallel: int = 1, 
         def trained(entry: TrainEntry) -> bool:
             return (train_folder(run, *entry[:4], root=_entry_config(run, entry)[1]) / "DONE").is_file()
 
-        jobs = train_jobs(pending, lambda e: settings[e][0].shared_regressor, trained)
+        shared_of = lambda e: settings[e][0].shared_regressor   # noqa: E731
+        waves = train_waves(train_jobs(pending, shared_of, trained), shared_of)
         # (`on` without GPUs is refused by cuda_mps: its workers would have none to share)
         with cuda_mps(slots, gpus or [], mode, say=_say) as mps:
-            run_shards(train_shard, str(run.root.resolve()), jobs,
-                       options=dataclasses.replace(options, progress=progress), label="train", gpu_slots=mps.slots,
-                       describe=describe_models, worker_env=mps.env)
+            for wave in waves:
+                run_shards(train_shard, str(run.root.resolve()), wave,
+                           options=dataclasses.replace(options, progress=progress), label="train",
+                           gpu_slots=mps.slots, describe=describe_models, worker_env=mps.env)
     return folders
 
 

@@ -150,3 +150,25 @@ def test_a_shared_regressor_is_trained_before_every_other_model_and_shares_their
     assert train_jobs(readers, lambda entry: "lrcn") == [[e] for e in readers]
     assert train_jobs(readers, lambda entry: "lrcn", trained=lambda entry: False) == [readers]
     assert train_jobs([("w", "p", "base2", 0)]) == [[("w", "p", "base2", 0)]]
+
+
+def test_readers_of_a_regressor_trained_in_the_same_call_wait_for_it_and_then_run_side_by_side():
+    from clothgap.executor import train_jobs, train_waves
+
+    shared = lambda entry: "lrcn"   # noqa: E731
+    grid = [("w", "p", m, s) for s in (0, 1) for m in ("lrcn", "base1", "base2", "base3")]
+    first, readers = train_waves(train_jobs(grid, shared), shared)
+    assert first == [[("w", "p", "lrcn", 0)], [("w", "p", "lrcn", 1)]]
+    assert readers == [[e] for e in grid if e[2] != "lrcn"]
+    # no shared regressor: base2 stays behind its base1 in one job, a single wave
+    plain = [("w", "p", m, 0) for m in ("lrcn", "base1", "base2")]
+    assert train_waves(train_jobs(plain)) == [train_jobs(plain)]
+    # a regressor trained in no job of this call (trained before, or trained inside its readers' job because the
+    # grid leaves it out): nothing to wait for, one wave as train_jobs cut it
+    readers_only = [e for e in grid if e[2] != "lrcn"]
+    for trained in (None, lambda entry: False):
+        jobs = train_jobs(readers_only, shared, trained)
+        assert train_waves(jobs, shared) == [jobs]
+    # a regressor of another recipe with its own readers: each recipe's readers wait in the second wave
+    mixed = [("w", "p", "lrcn", 0, "a"), ("w", "p", "base1", 0, "a"), ("w", "p", "lrcn", 0, "b")]
+    assert train_waves(train_jobs(mixed, shared), shared) == [[[mixed[0]], [mixed[2]]], [[mixed[1]]]]
