@@ -151,8 +151,9 @@ def _paper() -> StudyConfig:
     # 2,592 wind clips had (docs/simulation.md). One lattice regressor a (setting, variant, seed): the class
     # loss never reaches the CNN, so lrcn trains it and base1-3 train their readers on its frozen shapes
     # (train.shared_regressor), a Table 3 row in two CNN trainings instead of about seven; on wind's
-    # validation windows base1 and base2 read +5.9 [+1.9, +9.6] and +4.6 [+0.6, +8.5] points more that way
-    # than on their own CNN (seed 0; benchmarks/results/table3-shared-wind-arm-h100x2-n5184.json).
+    # validation windows base1 and base2 lost nothing that way against their own CNN (+5.9 [+1.9, +9.6] and
+    # +4.6 [+0.6, +8.5] points, one seed: one draw of the regressors' spread;
+    # benchmarks/results/table3-shared-wind-arm-h100x2-n5184.json).
     return StudyConfig(
         name="paper",
         sim=SimConfig(motions=("wind", "arm"), remeshing=("uniform1", "uniform2", "uniform3", "adaptive"),

@@ -239,7 +239,9 @@ def train_waves(jobs: list[list[TrainEntry]], shared_regressor: Callable[[TrainE
     """``train_jobs``'s jobs in the waves that run one after another: first every job with the readers of a shared
     regressor trained in it taken out, then those readers, each a job of its own. A reader trains in a minute or
     two where its regressor takes several, so once the regressors are trained their readers run side by side
-    instead of one after another behind each regressor. A wave left empty is dropped."""
+    instead of one after another behind each regressor. A wave left empty is dropped. The second wave starts when
+    the whole first has finished (every regressor of the call, and any other model in it), and a failure in the
+    first stops the call before it, as a failing job stops the queued ones."""
     from learn.registry import model_needs
 
     first: list[list[TrainEntry]] = []
@@ -308,7 +310,8 @@ def run_train_parallel(run: Run, grid: Sequence[TrainEntry], parallel: int = 1, 
     grid = [tuple(e) for e in grid]
     settings = {e: _entry_config(run, e) for e in grid}                 # (train settings, train root)
     folders = [train_folder(run, *e[:4], root=settings[e][1]) for e in grid]
-    pending = [e for e, folder in zip(grid, folders) if not (folder / "DONE").is_file()]
+    # once each: a grid may name a model twice (a seed or recipe given twice), and two jobs must never train one folder
+    pending = list(dict.fromkeys(e for e, folder in zip(grid, folders) if not (folder / "DONE").is_file()))
     if pending:
         configs = [settings[e][0] for e in pending]
         prepare_shared_inputs(run, [e[:4] for e in pending], progress, configs=configs)

@@ -146,7 +146,8 @@ class TrainConfig:
                            f"{needs}'s CNN; name a model that trains its own")
             if not self.bottleneck:
                 out.append("train.shared_regressor is set but train.bottleneck is off: only a bottleneck model's "
-                           "classes read nothing of the CNN but its lattice; set train.bottleneck=true")
+                           "classes read nothing of the CNN but its lattice; set train.bottleneck=true, or "
+                           "train.shared_regressor= (empty: every model its own CNN; the paper preset sets lrcn)")
         out += checks.number("train.reader_epochs", self.reader_epochs, 0)
         if self.reader_epochs and not self.shared_regressor:
             out.append("train.reader_epochs is set but train.shared_regressor is not: only readers on a shared "

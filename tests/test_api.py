@@ -141,8 +141,12 @@ def test_settings_change_freely_until_their_stage_has_finished_work(tmp_path):
     # the render stage has no finished clip: its settings may still change, and execution settings always
     assert Run.create_or_resume(root, apply_overrides(changed, ["render.spp=2", "sim.device=cpu"])).config.render.spp == 2
     mark_done(root / "train" / "wind-uniform1" / "paper" / "lrcn" / "s0")
-    with pytest.raises(ConfigError, match=r"render.spp 2 -> 4 \(train work is done\)"):
+    with pytest.raises(ConfigError, match=r"render.spp 2 -> 4 \(train work is done\)") as refused:
         Run.create_or_resume(root, apply_overrides(Run.open(root).config, ["render.spp=4"]))
+    # and says how to keep the run's value (a preset's default that changed since the run was made)
+    assert "`--set render.spp=2` keeps the run's" in str(refused.value)
+    keep = apply_overrides(Run.open(root).config, ["render.spp=4", "render.spp=2"])
+    assert Run.create_or_resume(root, keep).config.render.spp == 2
     # lists may grow (more models, seeds, variants) and eval settings change at any time
     grown = apply_overrides(Run.open(root).config, ["train.models=lrcn,base1", "train.seeds=0,1",
                                                     "render.variants=paper,grid", "eval.bootstrap=10"])

@@ -31,19 +31,26 @@ case $step in
   train)
     pid=
     if [ "${OWN:-0}" = 1 ]; then
-      # beside the row's training, once its frame cache is built (else both would pack the same frames)
+      # beside the row's training, once its frame cache is built (else both would pack the same frames), within
+      # what the wait left of the step's budget
       ( for _ in $(seq 120); do ls "$run"/cache/paper/"$setting"/*.json > /dev/null 2>&1 && break; sleep 2; done
-        timeout $((budget - 20)) python3 "$here/learn_grid.py" "$run" --setting "$setting" --variant paper \
-          --parallel 2 --deadline $((budget - 60)) --job "$own:base1,base2" > "$out/own-cnn.log" 2>&1
-        echo $? > /tmp/own-cnn-$motion.rc ) &
+        left=$((budget - SECONDS))
+        if [ $left -gt 90 ]; then
+          timeout $((left - 20)) python3 "$here/learn_grid.py" "$run" --setting "$setting" --variant paper \
+            --parallel 2 --deadline $((left - 60)) --job "$own:base1,base2" > "$out/own-cnn.log" 2>&1
+          echo $? > "$out/own-cnn.rc"
+        else
+          echo 124 > "$out/own-cnn.rc"
+        fi ) &
       pid=$!
     fi
     STAGES=train bash "$here/paper_study.sh"
     rc=$?
     if [ -n "$pid" ]; then
       wait $pid
-      grep -v UserWarning "$out/own-cnn.log" | grep -e 'training call' -e Error
-      case $(cat /tmp/own-cnn-$motion.rc) in 0|124|137) ;; *) exit 1 ;; esac
+      grep -v UserWarning "$out/own-cnn.log" 2>/dev/null | grep -e 'training call' -e Error
+      # the own-CNN models are the `own` step's check, not the row: their failure fails that step, not this one
+      case $(cat "$out/own-cnn.rc") in 0|124|137) ;; *) echo "the own-CNN models failed: $out/own-cnn.log" ;; esac
       for model in base1 base2; do
         [ -f "$run/ablation/$own/$setting/paper/$model/s0/DONE" ] || { [ $rc = 0 ] && rc=75; }
       done
@@ -51,20 +58,20 @@ case $step in
     exit $rc ;;
   eval) STAGES="eval report" bash "$here/paper_study.sh" && head -20 "$run/eval/table3.md" ;;
   own)
-    # the row's readers as the `baseline` recipe (hard links, nothing retrained), then both recipes scored on
-    # the test clips (learn_grid's table: each model's test predictions) and compared
+    # the row's seed-0 readers as the `seeds=0` recipe (the run's recipe with seed 0 alone: hard links, nothing
+    # retrained), then both recipes scored on the test clips (learn_grid's table: each model's test predictions)
+    # and compared
+    ref=seeds=0
     for model in base1 base2; do
       [ -f "$run/ablation/$own/$setting/paper/$model/s0/DONE" ] || { echo "$own $model is not trained" >&2; exit 1; }
-      for s in 0 1; do
-        from=$run/train/$setting/paper/$model/s$s to=$run/ablation/baseline/$setting/paper/$model/s$s
-        [ -f "$from/DONE" ] || { echo "$from is not trained" >&2; exit 1; }
-        [ -f "$to/DONE" ] && continue
-        rm -rf "$to" "$to.partial" && mkdir -p "$(dirname "$to")" && cp -al "$from" "$to.partial" \
-          && mv "$to.partial" "$to" || exit 1
-      done
+      from=$run/train/$setting/paper/$model/s0 to=$run/ablation/$ref/$setting/paper/$model/s0
+      [ -f "$from/DONE" ] || { echo "$from is not trained" >&2; exit 1; }
+      [ -f "$to/DONE" ] && continue
+      rm -rf "$to" "$to.partial" && mkdir -p "$(dirname "$to")" && cp -al "$from" "$to.partial" \
+        && mv "$to.partial" "$to" || exit 1
     done
     python3 "$here/learn_grid.py" "$run" --setting "$setting" --variant paper \
-      --table "own-cnn-$setting=baseline,$own:base1,base2" > "$out/own-cnn-table.log" 2>&1 || exit 1
+      --table "own-cnn-$setting=$ref,$own:base1,base2" > "$out/own-cnn-table.log" 2>&1 || exit 1
     grep -v UserWarning "$out/own-cnn-table.log" | grep -e '|' -e Error
     [ -f "$run/eval/own-cnn-$setting.json" ] || exit 1
     failed=0
@@ -72,7 +79,7 @@ case $step in
       for look in val own; do
         echo "$model on lrcn's regressor against its own CNN, seed 0, $look:"
         python3 "$here/../pooled_recipes.py" "$run" --setting "$setting" --model "$model" --look "$look" \
-          --a paper:baseline@0 --b "paper:$own@0" > "$out/own-$motion-$model-$look.json" || failed=1
+          --a "paper:$ref@0" --b "paper:$own@0" > "$out/own-$motion-$model-$look.json" || failed=1
       done
     done
     [ $failed = 0 ] ;;
