@@ -242,7 +242,7 @@ def train_waves(jobs: list[list[TrainEntry]], shared_regressor: Callable[[TrainE
     instead of one after another behind each regressor. A wave left empty is dropped. The second wave starts when
     the whole first has finished (every regressor of the call, and any other model in it), and a failure in the
     first stops the call before it, as a failing job stops the queued ones."""
-    from learn.registry import model_needs
+    from learn.registry import reads_shared_regressor
 
     first: list[list[TrainEntry]] = []
     readers: list[list[TrainEntry]] = []
@@ -252,8 +252,7 @@ def train_waves(jobs: list[list[TrainEntry]], shared_regressor: Callable[[TrainE
         for entry in job:
             setting, variant, model, seed, *recipe = entry
             shared = shared_regressor(entry)
-            if shared and model != shared and model_needs(model, shared) == shared \
-                    and (setting, variant, shared, seed, *recipe) in in_job:
+            if reads_shared_regressor(shared, model) and (setting, variant, shared, seed, *recipe) in in_job:
                 readers.append([entry])
             else:
                 kept.append(entry)

@@ -253,7 +253,7 @@ class Run:
                 named = "; ".join(f"{key} {shown(changes[key][0])} -> {shown(changes[key][1])} "
                                   f"({', '.join(s for s in stages[stages.index(stage):] if s in done)} work is done)"
                                   for key, stage in blocked.items())
-                keep = " ".join(f"--set {key}={_cli_value(changes[key][0])}" for key in blocked)
+                keep = " ".join(f"--set {key}={shown(changes[key][0])}" for key in blocked)
                 raise ConfigError(
                     f"{root} already holds a run whose finished work this config would invalidate or leave out: {named}. "
                     "A run may gain settings, variants, models and seeds, and change eval settings, at any time; "
@@ -350,11 +350,3 @@ class Run:
             return []
         return sorted(p.name for p in folder.iterdir() if p.is_dir() and is_done(p))
 
-
-def _cli_value(value) -> str:
-    """``value`` as ``--set KEY=VALUE`` reads it back."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (tuple, list)):
-        return ",".join(map(str, value))
-    return str(value)

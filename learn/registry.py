@@ -50,9 +50,15 @@ def model_needs(name: str, shared_regressor: str = "") -> str | None:
     """The model whose trained checkpoint ``name`` starts from: its entry's ``needs``, or, with
     ``train.shared_regressor`` naming a model, that model for every other one (whose readers then read its
     frozen CNN's lattice, ``learn.train``)."""
-    if shared_regressor and name != shared_regressor:
+    if reads_shared_regressor(shared_regressor, name):
         return shared_regressor
     return get_model_entry(name).needs
+
+
+def reads_shared_regressor(shared_regressor: str, model_name: str) -> bool:
+    """Whether ``model_name`` trains its readers alone on another model's frozen regressor
+    (``train.shared_regressor``)."""
+    return bool(shared_regressor) and model_name != shared_regressor
 
 
 def _depth(name: str, shared_regressor: str = "") -> int:

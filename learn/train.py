@@ -56,7 +56,7 @@ from learn.geometry import geometry_targets
 from learn.models import (NUM_CLASSES, ClipClassifier, ShapeReader, build_model, load_cnn_weights, model_args,
                           take_regressor)
 from learn import predictions
-from learn.registry import model_needs
+from learn.registry import model_needs, reads_shared_regressor
 from learn.shapes import ShapeSet
 from learn.split import PARTS, get_or_make_split, part_clips, part_windows, training_subset
 from learn.windows import WindowSet
@@ -268,12 +268,6 @@ def _cnn_init(run: Run, setting: str, variant: str, model_name: str, seed: int, 
     if cfg.pretrained and not reads_shared_regressor(cfg.shared_regressor, model_name):
         return cfg.pretrained
     return str(train_one(run, setting, variant, needs, seed, progress, config=cfg, root=root) / "checkpoint.pt")
-
-
-def reads_shared_regressor(shared_regressor: str, model_name: str) -> bool:
-    """Whether ``model_name`` trains its readers alone on another model's frozen regressor
-    (``train.shared_regressor``)."""
-    return bool(shared_regressor) and model_name != shared_regressor
 
 
 def shape_sets(resolved: dict, train_set: WindowSet, val_set: WindowSet, cfg: TrainConfig,

@@ -16,22 +16,14 @@ set -uo pipefail
 step=$1 run=$2; shift 2
 levers=("$@")
 here=$(cd "$(dirname "$0")" && pwd)
-motion=$(basename "$run" | sed 's/^t3//')
-setting=$motion-uniform1
+source "$here/t3run.sh"
 out=${OUT:-/tmp}
 budget=${BUDGET:-560}
-link() {   # MODEL SEED RECIPE: the run's model as the recipe's
-  local from=$run/train/$setting/paper/$1/s$2 to=$run/ablation/$3/$setting/paper/$1/s$2
-  [ -f "$from/DONE" ] || { echo "$from is not trained" >&2; return 1; }
-  [ -f "$to/DONE" ] && return 0
-  # linked beside, then renamed: a link cut short never looks finished
-  rm -rf "$to" "$to.partial" && mkdir -p "$(dirname "$to")" && cp -al "$from" "$to.partial" && mv "$to.partial" "$to"
-}
 case $step in
   train)
     for s in 0 1; do
-      link base2 $s baseline && link lrcn $s baseline || exit 1
-      for lever in "${levers[@]}"; do link lrcn $s "$lever" || exit 1; done
+      link_trained base2 $s baseline && link_trained lrcn $s baseline || exit 1
+      for lever in "${levers[@]}"; do link_trained lrcn $s "$lever" || exit 1; done
     done
     recipes=$(IFS=,; echo "${levers[*]}")
     timeout $((budget - 20)) python3 "$here/learn_grid.py" "$run" --setting "$setting" --variant paper \

@@ -14,7 +14,7 @@
 # `train`, which resumes when called again (exit status 75 until its table exists). Outputs go to $OUT.
 set -uo pipefail
 step=$1 run=$2
-setting=$(basename "$run" | sed 's/^t3//')-uniform1
+source "$(dirname "$0")/t3run.sh"
 out=${OUT:-/tmp}
 budget=${BUDGET:-560}
 long=shared_regressor=lrcn+reader_epochs=${READER_EPOCHS:-240}
@@ -31,12 +31,7 @@ links() {
 case $step in
   link)
     while read -r model s recipe; do
-      from=$run/train/$setting/paper/$model/s$s to=$run/ablation/$recipe/$setting/paper/$model/s$s
-      [ -f "$from/DONE" ] || { echo "$from is not trained" >&2; exit 1; }
-      [ -f "$to/DONE" ] && continue
-      # linked beside, then renamed: a link cut short never looks finished
-      rm -rf "$to" "$to.partial" && mkdir -p "$(dirname "$to")" && cp -al "$from" "$to.partial" \
-        && mv "$to.partial" "$to" || exit 1
+      link_trained "$model" "$s" "$recipe" || exit 1
     done < <(links) ;;
   train)
     # Only readers train here: every model of the reference and the regressor must be linked first (a missing

@@ -19,8 +19,7 @@ set -uo pipefail
 [ $# -eq 2 ] || { echo "usage: bash scripts/gpu/table3_shared.sh data|train|eval|own RUN" >&2; exit 2; }
 step=$1 run=$2
 here=$(cd "$(dirname "$0")" && pwd)
-motion=$(basename "$run" | sed 's/^t3//')
-setting=$motion-uniform1
+source "$here/t3run.sh"
 out=${OUT:-/tmp}
 budget=${BUDGET:-560}
 own=shared_regressor=base1+seeds=0
@@ -64,11 +63,7 @@ case $step in
     ref=seeds=0
     for model in base1 base2; do
       [ -f "$run/ablation/$own/$setting/paper/$model/s0/DONE" ] || { echo "$own $model is not trained" >&2; exit 1; }
-      from=$run/train/$setting/paper/$model/s0 to=$run/ablation/$ref/$setting/paper/$model/s0
-      [ -f "$from/DONE" ] || { echo "$from is not trained" >&2; exit 1; }
-      [ -f "$to/DONE" ] && continue
-      rm -rf "$to" "$to.partial" && mkdir -p "$(dirname "$to")" && cp -al "$from" "$to.partial" \
-        && mv "$to.partial" "$to" || exit 1
+      link_trained "$model" 0 "$ref" || exit 1
     done
     python3 "$here/learn_grid.py" "$run" --setting "$setting" --variant paper \
       --table "own-cnn-$setting=$ref,$own:base1,base2" > "$out/own-cnn-table.log" 2>&1 || exit 1
