@@ -46,7 +46,7 @@ from eval import predictions as preds
 from eval.trained import TrainedModel, checkpoint_sha256, finished_models
 from sim.phases import timed
 
-# (train_dir, clip_dirs) -> predict_clips-shaped frame; the default calls learn.predict.
+# (train_dir, clip_dirs) -> predict_clips-shaped frame; the default is learn.predict.CachedPredictor.
 Predictor = Callable[[Path, list[Path]], pd.DataFrame]
 
 # Keys of a rendered clip's ``render`` meta that are per-clip draws, seeds or quality, not
@@ -55,10 +55,11 @@ _NOT_AXES = {"resolution", "spp", "backend", "write_hdr", "name", "description",
              "seed_streams", "sampler_seed", "run_seed", "seed", "seeds"}
 
 
-def _default_predictor(train_dir: Path, clip_dirs: list[Path]) -> pd.DataFrame:
-    from learn.predict import predict_clips
+def _default_predictor() -> Predictor:
+    """``learn.predict.predict_clips`` reading each test variant's frames once for a setting's models."""
+    from learn.predict import CachedPredictor
 
-    return predict_clips(train_dir, clip_dirs)
+    return CachedPredictor()
 
 
 def rendered_variants(run: Run, setting: str) -> list[str]:
@@ -208,30 +209,49 @@ def predict_all(run: Run, models: list[TrainedModel], predictor: Predictor,
     deleted first and computed again, so a changed or corrupt checkpoint can never stand
     behind old numbers. Also returns every test clip that has no prediction (not rendered,
     or unreadable), one row per (model, test variant, clip).
+
+    Models are predicted setting by setting and, within a setting, test variant by test variant,
+    so that a caching predictor reads each test variant's frames once for all of them; the cells
+    and the clips left out are gathered in ``models``' order.
     """
-    cells: dict[tuple, tables.Cell] = {}
+    by_setting: dict[str, list[int]] = {}
+    for i, m in enumerate(models):
+        by_setting.setdefault(m.setting, []).append(i)
     counts = {"predicted": 0, "reused": 0, "no_test_clips": 0}
-    left_out: list[dict] = []
-    for m in models:
-        windows = test_windows(run, m.setting)
+    variants_of: dict[str, list[str]] = {}
+    done: dict[tuple[int, str], tuple[pd.DataFrame | None, list[dict]]] = {}   # (model, test variant) -> ...
+    for setting, members in by_setting.items():
+        windows = test_windows(run, setting)
         test_ids = sorted(windows)
-        sha = checkpoint_sha256(m)
-        for test_variant in rendered_variants(run, m.setting):
-            where = {"setting": m.setting, "train_variant": m.variant, "model": m.model, "seed": m.seed,
-                     "test_variant": test_variant}
-            folder = run.render_dir(test_variant, m.setting)
+        shas = {i: checkpoint_sha256(models[i]) for i in members}
+        variants_of[setting] = rendered_variants(run, setting)
+        for test_variant in variants_of[setting]:
+            folder = run.render_dir(test_variant, setting)
             missing = [{"clip_id": c, "reason": f"not rendered ({folder / c} has no DONE)"}
                        for c in test_ids if not is_done(folder / c)]
-            frame, dropped = _model_predictions(run, m, test_variant, test_ids, sha, predictor, progress, counts)
+            for i in members:
+                m = models[i]
+                frame, dropped = _model_predictions(run, m, test_variant, test_ids, shas[i], predictor, progress,
+                                                    counts)
+                if frame is None:
+                    done[i, test_variant] = None, missing
+                    continue
+                for item in missing + dropped:
+                    if progress:
+                        print(f"[eval] left out {test_variant}/{m.setting}/{item['clip_id']} for "
+                              f"{_rel(run, m.folder)}: {item['reason']}", file=sys.stderr, flush=True)
+                done[i, test_variant] = only_windows(frame, windows).assign(seed=m.seed), missing + dropped
+
+    cells: dict[tuple, tables.Cell] = {}
+    left_out: list[dict] = []
+    for i, m in enumerate(models):
+        for test_variant in variants_of[m.setting]:
+            frame, items = done[i, test_variant]
+            where = {"setting": m.setting, "train_variant": m.variant, "model": m.model, "seed": m.seed,
+                     "test_variant": test_variant}
+            left_out += [{**where, **x} for x in items]
             if frame is None:
-                left_out += [{**where, **x} for x in missing]
                 continue
-            for item in missing + dropped:
-                left_out.append({**where, **item})
-                if progress:
-                    print(f"[eval] left out {test_variant}/{m.setting}/{item['clip_id']} for "
-                          f"{_rel(run, m.folder)}: {item['reason']}", file=sys.stderr, flush=True)
-            frame = only_windows(frame, windows).assign(seed=m.seed)
             key = (m.setting, m.variant, m.model, test_variant)
             if key in cells:
                 cells[key].frame = pd.concat([cells[key].frame, frame], ignore_index=True)
@@ -352,7 +372,7 @@ def run_eval(run: Run, progress: bool = True, predictor: Predictor | None = None
     # byte): where a study's eval time goes.
     seconds: dict[str, float] = {}
     with timed(seconds, "predict"):
-        cells, counts, left_out = predict_all(run, models, predictor or _default_predictor, progress)
+        cells, counts, left_out = predict_all(run, models, predictor or _default_predictor(), progress)
         if cfg.eval.seed_ensemble:
             cells.update({c.key: c for c in tables.ensemble_cells(list(cells.values()))})
     if not cells:

@@ -1,8 +1,9 @@
 """Predictions of a trained model on rendered clips of any variant (for eval).
 
-Frames are read straight from the clip folders (no cache), resized to the
-model's image size, and cut into the sub-sequences the model was trained on
-(``clip_len`` frames every ``clip_stride``, no augmentation).
+Frames are read straight from the clip folders (not the training frame cache),
+resized to the model's image size, and cut into the sub-sequences the model was
+trained on (``clip_len`` frames every ``clip_stride``, no augmentation).
+``CachedPredictor`` reads a clip list once for the models that predict on it in a row.
 """
 
 from __future__ import annotations
@@ -58,8 +59,10 @@ def load_checkpoint(train_dir: Path | str) -> dict:
 
 def load_model(train_dir: Path | str, device: str = "cpu") -> ClipClassifier:
     """The trained model of a training folder, in eval mode on ``device``."""
-    ckpt = load_checkpoint(train_dir)
-    path = Path(train_dir) / "checkpoint.pt"
+    return _model_of(load_checkpoint(train_dir), Path(train_dir) / "checkpoint.pt", device)
+
+
+def _model_of(ckpt: dict, path: Path, device: str) -> ClipClassifier:
     try:
         model = build_model(ckpt["model_name"], **ckpt["model_args"])
         model.load_state_dict(ckpt["model"])
@@ -68,18 +71,67 @@ def load_model(train_dir: Path | str, device: str = "cpu") -> ClipClassifier:
     return model.to(resolve_device(device)).eval()
 
 
+LEFT_OUT = "; clip left out of the predictions"     # eval.stage reads the reason before it
+
+
+class ClipFrames:
+    """The frames of a clip list at one image size, read once for every model that predicts on them.
+
+    ``clips`` holds the clips that could be read, in order: (clip_id, class_index, uint8 frames (T, size,
+    size, 3)), on ``device`` when that is CUDA, else on the CPU. A clip with a missing or unreadable frame or
+    meta.json is left out with a warning, which ``warn`` gives again for each later model.
+    """
+
+    def __init__(self, clip_dirs: Iterable[Path | str], size: int, device: torch.device | str = "cpu"):
+        self.clip_dirs = tuple(map(Path, clip_dirs))
+        self.size = size
+        keep = torch.device(device) if torch.device(device).type == "cuda" else torch.device("cpu")
+        self.clips: list[tuple[str, int, torch.Tensor]] = []
+        self.left_out: list[str] = []      # the warning of each clip left out
+        for clip_dir in self.clip_dirs:
+            try:        # the meta first: reading frames needs it too
+                meta = read_meta(clip_dir, "render")
+                class_index = int(meta["class_index"])
+            except (UserError, KeyError, TypeError, ValueError) as err:
+                self.left_out.append(f"clip {clip_dir.name}: {err}{LEFT_OUT}")
+                continue
+            try:
+                frames = torch.from_numpy(read_frames(clip_dir, size)).to(keep)
+            except FrameError as err:
+                self.left_out.append(f"{err}{LEFT_OUT}")
+                continue
+            self.clips.append((meta.get("clip_id", clip_dir.name), class_index, frames))
+        self.warn(stacklevel=3)
+
+    def warn(self, stacklevel: int = 2) -> None:
+        """Warn of each clip left out (a caller recording warnings per model learns which and why)."""
+        for text in self.left_out:
+            warnings.warn(text, stacklevel=stacklevel)
+
+
 @torch.no_grad()
 def predict_clips(train_dir: Path | str, clip_dirs: Iterable[Path | str], device: str = "auto",
-                  batch_size: int = 32) -> pd.DataFrame:
+                  batch_size: int = 32, frames: ClipFrames | None = None) -> pd.DataFrame:
     """One row per sub-sequence: ``clip_id, start, class_index, pred, probs`` (probs: (54,) float32).
 
     Clips with a missing or unreadable frame or meta.json are reported by a warning and left out.
+    ``frames``, when read from the same clips at the model's image size, are used instead of reading them
+    (their warnings are the caller's to give).
     """
     ckpt = load_checkpoint(train_dir)
-    train_cfg = ckpt["config"]["train"]
-    size, clip_len, stride = ckpt["model_args"]["image_size"], train_cfg["clip_len"], train_cfg["clip_stride"]
+    clip_dirs = tuple(map(Path, clip_dirs))
+    size = ckpt["model_args"]["image_size"]
     dev = resolve_device(device)
-    model = load_model(train_dir, str(dev))
+    if frames is None or frames.size != size or frames.clip_dirs != clip_dirs:
+        frames = ClipFrames(clip_dirs, size, dev)
+    return _predict(ckpt, Path(train_dir), frames, dev, batch_size)
+
+
+def _predict(ckpt: dict, train_dir: Path, frames: ClipFrames, dev: torch.device, batch_size: int) -> pd.DataFrame:
+    """``predict_clips`` of a loaded checkpoint on read frames."""
+    train_cfg = ckpt["config"]["train"]
+    clip_len, stride = train_cfg["clip_len"], train_cfg["clip_stride"]
+    model = _model_of(ckpt, train_dir / "checkpoint.pt", str(dev))
 
     windows: list[tuple[str, int, int]] = []     # (clip_id, start, class_index) of each window predicted
     probs: list[np.ndarray] = []
@@ -88,32 +140,51 @@ def predict_clips(train_dir: Path | str, clip_dirs: Iterable[Path | str], device
     def flush() -> None:
         if not pending:
             return
-        frames = torch.stack([f for _, f in pending])
-        probs.append(model.probs(model(to_input(frames, dev))).cpu().numpy().astype(np.float32))
+        batch = torch.stack([f for _, f in pending])
+        probs.append(model.probs(model(to_input(batch, dev))).cpu().numpy().astype(np.float32))
         windows.extend(w for w, _ in pending)
         pending.clear()
 
-    for clip_dir in map(Path, clip_dirs):
-        try:        # the meta first: reading frames needs it too
-            meta = read_meta(clip_dir, "render")
-            class_index = int(meta["class_index"])
-        except (UserError, KeyError, TypeError, ValueError) as err:
-            warnings.warn(f"clip {clip_dir.name}: {err}; clip left out of the predictions", stacklevel=2)
-            continue
-        try:
-            frames = torch.from_numpy(read_frames(clip_dir, size)).permute(0, 3, 1, 2)
-        except FrameError as err:
-            warnings.warn(f"{err}; clip left out of the predictions", stacklevel=2)
-            continue
-        for start in subsequence_starts(len(frames), clip_len, stride):
-            pending.append(((meta.get("clip_id", clip_dir.name), start, class_index),
-                            frames[start:start + clip_len]))
+    for clip_id, class_index, clip in frames.clips:
+        clip = clip.permute(0, 3, 1, 2)
+        for start in subsequence_starts(len(clip), clip_len, stride):
+            pending.append(((clip_id, start, class_index), clip[start:start + clip_len]))
             if len(pending) == batch_size:
                 flush()
     flush()
     ids, starts, labels = zip(*windows) if windows else ((), (), ())
     return predictions.frame(ids, starts, labels,
                              np.concatenate(probs) if probs else np.empty((0, predictions.NUM_CLASSES)))
+
+
+class CachedPredictor:
+    """``predict_clips`` as a ``(train_dir, clip_dirs) -> frame`` predictor that reads a clip list once for
+    every model predicting on it in a row (eval: a setting's models on one test variant).
+
+    It keeps the frames of the last (clip list, image size) only, so memory stays flat across clip lists
+    (a setting's test clips at 112 px are ~1.3 GB). A reused list's left-out clips are warned of again.
+    """
+
+    def __init__(self, device: str = "auto", batch_size: int = 32):
+        self.device = device
+        self.batch_size = batch_size
+        self._frames: ClipFrames | None = None
+
+    def frames(self, clip_dirs: Iterable[Path | str], size: int) -> ClipFrames:
+        """The frames of ``clip_dirs`` at ``size``: the kept ones when they match, else read (and kept)."""
+        clip_dirs = tuple(map(Path, clip_dirs))
+        if self._frames is not None and self._frames.clip_dirs == clip_dirs and self._frames.size == size:
+            self._frames.warn(stacklevel=3)
+            return self._frames
+        self._frames = None         # freed before the next list is read
+        self._frames = ClipFrames(clip_dirs, size, resolve_device(self.device))
+        return self._frames
+
+    @torch.no_grad()
+    def __call__(self, train_dir: Path | str, clip_dirs: Iterable[Path | str]) -> pd.DataFrame:
+        ckpt = load_checkpoint(train_dir)
+        frames = self.frames(clip_dirs, ckpt["model_args"]["image_size"])
+        return _predict(ckpt, Path(train_dir), frames, resolve_device(self.device), self.batch_size)
 
 
 @torch.no_grad()

@@ -16,7 +16,8 @@ from clothgap.config import preset
 from clothgap.runs import Run, clip_id, mark_done
 from eval import classes, tables
 from eval import predictions as preds
-from eval.stage import run_eval
+from eval.stage import predict_all, run_eval
+from eval.trained import finished_models
 
 CLASSES = (0, 8, 45, 53)
 VARIANT_SETTINGS = {  # two render axes: texture and tonemap
@@ -26,6 +27,7 @@ VARIANT_SETTINGS = {  # two render axes: texture and tonemap
 }
 # How often the stub is right: in-domain 0.9, otherwise lower by how many axes differ.
 HIT_RATE = {0: 0.9, 1: 0.5, 2: 0.2}
+SETTING = "wind-uniform1"
 
 
 def make_fake_run(root: Path, variants=("paper", "grid"), models=("lrcn",), seeds=(0,), per_class=4,
@@ -145,6 +147,25 @@ def test_run_eval_writes_tables_and_resumes(tmp_path):
 
     again = run_eval(run, progress=False, predictor=stub_predictor)     # resumable: nothing predicted again
     assert again["predicted"] == 0 and again["reused"] == 16
+
+
+def test_every_model_of_a_setting_predicts_a_test_variant_in_a_row(tmp_path):
+    """So that a caching predictor reads each test variant's frames once; the cells keep the models' order."""
+    run = make_fake_run(tmp_path / "run", models=("lrcn", "base1"), seeds=(0, 1))
+    calls = []
+
+    def recording(train_dir: Path, clip_dirs: list[Path]) -> pd.DataFrame:
+        calls.append((train_dir.relative_to(run.root).parts[1:], clip_dirs[0].parts[-3]))
+        return stub_predictor(train_dir, clip_dirs)
+
+    cells, counts, _ = predict_all(run, finished_models(run), recording, progress=False)
+    assert [v for _, v in calls] == ["paper"] * 8 + ["grid"] * 8 and counts["predicted"] == 16
+    assert [c[0] for c in calls[:8]] == [c[0] for c in calls[8:]]
+    assert list(cells) == [(SETTING, train, model, test) for train in ("paper", "grid") for model in ("lrcn", "base1")
+                           for test in ("paper", "grid")]
+    for key, cell in cells.items():
+        assert cell.frame["seed"].tolist() == [0] * 24 + [1] * 24
+        assert cell.sources == [f"train/{SETTING}/{key[1]}/{key[2]}/s{s}/checkpoint.pt" for s in (0, 1)]
 
 
 @pytest.mark.slow
