@@ -43,12 +43,17 @@ LAYOUTS = ("eager", "pad8", "graphs", "graphs-pad8")
 
 
 def _kernel_table(prof, steps: int, top: int = 25) -> tuple[list[dict], float]:
-    """The kernels (GPU time per step, ms, and calls per step), most expensive first, and their total."""
+    """The kernels (GPU time per step, ms, and calls per step), most expensive first, and their total.
+
+    Only the device's own events: an operator's entry (``aten::...``) carries its kernels' time too, and
+    counting both would count the GPU's time twice."""
+    from torch.autograd import DeviceType
+
     rows = []
     for evt in prof.key_averages():
-        gpu_us = getattr(evt, "self_device_time_total", None)
-        if gpu_us is None:
-            gpu_us = getattr(evt, "self_cuda_time_total", 0)
+        if evt.device_type == DeviceType.CPU:
+            continue
+        gpu_us = evt.self_device_time_total
         if gpu_us > 0:
             rows.append({"name": evt.key[:120], "ms_per_step": round(gpu_us / 1000 / steps, 4),
                          "calls_per_step": round(evt.count / steps, 1)})

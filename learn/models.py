@@ -77,8 +77,9 @@ class FrameCNN(nn.Module):
         self.fc6 = nn.Sequential(nn.Flatten(), nn.Linear(c5 * grid * grid, fc6), nn.ReLU(inplace=True),
                                  nn.Dropout(dropout))
         self.out_features = fc6
-        # Set by the trainer on CUDA: conv1's input channels (3, or 6 with frame differences) padded with zeros to
-        # this multiple, and its weights likewise, the same sums: tensor-core convolutions want multiples of 8.
+        # conv1's input channels (3, or 6 with frame differences) padded with zeros to this multiple, and its
+        # weights likewise: the same sums in a layout tensor cores prefer. Off in training: 1.045x eager and 0.95x
+        # under CUDA graphs on an H100 (docs/learning.md); benchmarks/train_profile.py measures it.
         self.pad_input_to = 0
         # He initialisation: torch's default shrinks activations layer by layer, and
         # a CNN trained from scratch then barely moves its features at first.

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # GPU: one setting of the paper's study at full size through the real CLI, stage by stage.
 #   STAGES="sim render" bash scripts/gpu/paper_study.sh     (then "train", then "eval report")
-#   SEQ=48 simulates the paper's 48 sequences per class instead of the preset's 96 (half the render time).
+#   SEQ=48 simulates the paper's 48 sequences per class instead of the preset's 192 (a quarter of the render time).
 #   RENDER_ARGS: the default is gpus.sh's gpu_render_args (four workers a GPU under clothgap's MPS daemon).
 #   TRAIN_ARGS (default "--parallel <4 x GPUs>") trains that many models at once over the machine's GPUs.
 #   SIM_ARGS="--executor process --workers 2 --gpus-per-worker 0.5" simulates two shards on one GPU, so one's
