@@ -34,7 +34,74 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from common import RESULTS, paper_scenes, simulate_options, write_result  # noqa: E402  (benchmarks/common.py)
 import sim.adaptive  # noqa: E402
 import sim.stage  # noqa: E402
+from sim import kernels  # noqa: E402
 from sim.solver import BatchSolver, resolve_device  # noqa: E402
+
+
+# The CG's Hessian-product kernels (sim.kernels) as they are, and without their per-cloth dot product: each thread
+# of those adds its share of p.K p into its cloth's one slot, so every face or hinge of a cloth adds into the same
+# address. Timed side by side on the profiled frame's state (``TimedSolver.product_variants``): whether those adds,
+# not the gathers, make an adaptive cloth's elements dearer.
+@wp.kernel
+def face_product_no_dot(p: wp.array(dtype=wp.vec3), tri: wp.array2d(dtype=int), dm_inv: wp.array(dtype=wp.mat22),
+                        f0_in: wp.array(dtype=wp.vec3), f1_in: wp.array(dtype=wp.vec3), kmat: wp.array(dtype=wp.vec4),
+                        smat: wp.array(dtype=wp.vec3), scale: float, out: wp.array(dtype=wp.vec3),
+                        dots: wp.array(dtype=float), keep_dot: int):
+    """sim.kernels.face_hessian_product's product; its p.K p share stored per face when ``keep_dot``, else dropped."""
+    f = wp.tid()
+    i = tri[f, 0]
+    j = tri[f, 1]
+    k = tri[f, 2]
+    d = dm_inv[f]
+    cj0 = d[0, 0]
+    cj1 = d[0, 1]
+    ck0 = d[1, 0]
+    ck1 = d[1, 1]
+    ci0 = -(cj0 + ck0)
+    ci1 = -(cj1 + ck1)
+    pi = p[i]
+    pj = p[j]
+    pk = p[k]
+    df0 = ci0 * pi + cj0 * pj + ck0 * pk
+    df1 = ci1 * pi + cj1 * pj + ck1 * pk
+    f0 = f0_in[f]
+    f1 = f1_in[f]
+    km = kmat[f]
+    sm = smat[f]
+    dg00 = wp.dot(f0, df0)
+    dg11 = wp.dot(f1, df1)
+    dg01 = 0.5 * (wp.dot(f0, df1) + wp.dot(f1, df0))
+    ds00 = km[0] * dg00 + km[1] * dg11
+    ds11 = km[1] * dg00 + km[2] * dg11
+    ds01 = 0.5 * km[3] * dg01
+    g0 = ds00 * f0 + ds01 * f1 + sm[0] * df0 + sm[1] * df1
+    g1 = ds01 * f0 + ds11 * f1 + sm[1] * df0 + sm[2] * df1
+    ki = scale * (ci0 * g0 + ci1 * g1)
+    kj = scale * (cj0 * g0 + cj1 * g1)
+    kk = scale * (ck0 * g0 + ck1 * g1)
+    wp.atomic_add(out, i, ki)
+    wp.atomic_add(out, j, kj)
+    wp.atomic_add(out, k, kk)
+    if keep_dot != 0:
+        dots[f] = wp.dot(pi, ki) + wp.dot(pj, kj) + wp.dot(pk, kk)
+
+
+@wp.kernel
+def hinge_product_no_dot(p: wp.array(dtype=wp.vec3), hinge: wp.array2d(dtype=int), stiffness: wp.array(dtype=float),
+                         grad: wp.array2d(dtype=wp.vec3), scale: float, out: wp.array(dtype=wp.vec3),
+                         dots: wp.array(dtype=float), keep_dot: int):
+    """sim.kernels.hinge_hessian_product's product; its p.K p share stored per hinge when ``keep_dot``."""
+    h = wp.tid()
+    kb = stiffness[h]
+    if kb > 0.0:
+        s = float(0.0)
+        for q in range(4):
+            s += wp.dot(grad[h, q], p[hinge[h, q]])
+        w = scale * kb * s
+        for q in range(4):
+            wp.atomic_add(out, hinge[h, q], w * grad[h, q])
+        if keep_dot != 0:
+            dots[h] = w * s
 
 
 class TimedSolver(BatchSolver):
@@ -56,6 +123,7 @@ class TimedSolver(BatchSolver):
         if len(self.calls) == self.profile_call:
             call["kernels_ms_per_step"] = self._profile(n)
             call["steps_s"] = self._sync() - start
+            call["product_variants_ms"] = self.product_variants()
         elif call["new_solver"] and n > 1:
             super().step(1)
             first = self._sync()
@@ -79,6 +147,39 @@ class TimedSolver(BatchSolver):
             self.step_uncaptured(n, host_times=host)
             times.update({k: [1e3 * s for s in v] for k, v in host.items()})
         return dict(sorted(((k, round(sum(v) / n, 4)) for k, v in times.items()), key=lambda kv: -kv[1]))
+
+    def product_variants(self, repeats: int = 30) -> dict[str, float]:
+        """Milliseconds a launch of each Hessian-product form on the solver's present search direction, every cloth
+        running, into scratch arrays (the solver's state is left as it is): as the CG runs them (the per-cloth dot
+        product added atomically into one slot a cloth), with the dot product stored per element instead (no
+        shared address), and without it."""
+        nf, nh, dev = self.num_faces, self.num_hinges, self.device
+        active = wp.ones(self.num_cloths, dtype=int, device=dev)
+        out = wp.zeros_like(self.ap)
+        acc = wp.zeros((1, self.num_cloths), dtype=float, device=dev)
+        dots = wp.zeros(max(nf, nh), dtype=float, device=dev)
+        forms = {
+            "face_per_cloth_slot": (kernels.face_hessian_product, nf, [self.p, self.tri, self.dm_inv, self.face_cloth,
+                                    self.f0, self.f1, self.kmat, self.smat, 1.0, 0, active, out, acc]),
+            "face_per_element": (face_product_no_dot, nf, [self.p, self.tri, self.dm_inv, self.f0, self.f1, self.kmat,
+                                 self.smat, 1.0, out, dots, 1]),
+            "face_no_dot": (face_product_no_dot, nf, [self.p, self.tri, self.dm_inv, self.f0, self.f1, self.kmat,
+                            self.smat, 1.0, out, dots, 0]),
+            "hinge_per_cloth_slot": (kernels.hinge_hessian_product, nh, [self.p, self.hinge, self.hinge_cloth,
+                                     self.hinge_k, self.hinge_grad, 1.0, 0, active, out, acc]),
+            "hinge_per_element": (hinge_product_no_dot, nh, [self.p, self.hinge, self.hinge_k, self.hinge_grad, 1.0,
+                                  out, dots, 1]),
+            "hinge_no_dot": (hinge_product_no_dot, nh, [self.p, self.hinge, self.hinge_k, self.hinge_grad, 1.0, out,
+                             dots, 0]),
+        }
+        times = {}
+        for name, (kernel, n, inputs) in forms.items():
+            wp.launch(kernel, dim=n, inputs=inputs, device=dev)       # compiled and warm before the clock
+            start = self._sync()
+            for _ in range(repeats):
+                wp.launch(kernel, dim=n, inputs=inputs, device=dev)
+            times[name] = round(1e3 * (self._sync() - start) / repeats, 4)
+        return times
 
     def _read(self, read) -> list[np.ndarray]:
         start = self._sync()
@@ -110,7 +211,8 @@ def run_setting(name: str, indices, frames: int, device: str, profile_frame: int
                "read_back_ms": round(1e3 * call.get("read_back_s", 0.0), 2)}
         if "kernels_ms_per_step" in call:
             row.update(profiled=True, step_ms=round(1e3 * call["steps_s"] / n, 3),
-                       kernels_ms_per_step=call["kernels_ms_per_step"])
+                       kernels_ms_per_step=call["kernels_ms_per_step"],
+                       product_variants_ms=call["product_variants_ms"])
         else:
             others = call["other_steps_s"] / (n - 1 if "first_step_s" in call else n)
             row["step_ms"] = round(1e3 * others, 3)
