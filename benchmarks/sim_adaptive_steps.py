@@ -38,16 +38,18 @@ from sim import kernels  # noqa: E402
 from sim.solver import BatchSolver, resolve_device  # noqa: E402
 
 
-# The CG's Hessian-product kernels (sim.kernels) as they are, and without their per-cloth dot product: each thread
-# of those adds its share of p.K p into its cloth's one slot, so every face or hinge of a cloth adds into the same
-# address. Timed side by side on the profiled frame's state (``TimedSolver.product_variants``): whether those adds,
-# not the gathers, make an adaptive cloth's elements dearer.
+# The CG's Hessian-product kernels (sim.kernels) with their share of the per-cloth dot product p.K p added into the
+# cloth's one slot by every element (``mode`` 2: how the CG ran them before its chunked sums, so that thousands of
+# adds a cloth met at one address), stored per element (1), or dropped (0). Timed side by side on the profiled
+# frame's state (``TimedSolver.product_variants``), with the CG's present form: stored per element, then added up a
+# chunk of a cloth at a time (sim.kernels.cloth_chunk_sum).
 @wp.kernel
 def face_product_no_dot(p: wp.array(dtype=wp.vec3), tri: wp.array2d(dtype=int), dm_inv: wp.array(dtype=wp.mat22),
                         f0_in: wp.array(dtype=wp.vec3), f1_in: wp.array(dtype=wp.vec3), kmat: wp.array(dtype=wp.vec4),
                         smat: wp.array(dtype=wp.vec3), scale: float, out: wp.array(dtype=wp.vec3),
-                        dots: wp.array(dtype=float), keep_dot: int):
-    """sim.kernels.face_hessian_product's product; its p.K p share stored per face when ``keep_dot``, else dropped."""
+                        dots: wp.array(dtype=float), cloth: wp.array(dtype=int), acc: wp.array2d(dtype=float),
+                        mode: int):
+    """sim.kernels.face_hessian_product's product; its p.K p share per ``mode`` (above)."""
     f = wp.tid()
     i = tri[f, 0]
     j = tri[f, 1]
@@ -82,15 +84,18 @@ def face_product_no_dot(p: wp.array(dtype=wp.vec3), tri: wp.array2d(dtype=int), 
     wp.atomic_add(out, i, ki)
     wp.atomic_add(out, j, kj)
     wp.atomic_add(out, k, kk)
-    if keep_dot != 0:
+    if mode == 1:
         dots[f] = wp.dot(pi, ki) + wp.dot(pj, kj) + wp.dot(pk, kk)
+    elif mode == 2:
+        wp.atomic_add(acc, 0, cloth[f], wp.dot(pi, ki) + wp.dot(pj, kj) + wp.dot(pk, kk))
 
 
 @wp.kernel
 def hinge_product_no_dot(p: wp.array(dtype=wp.vec3), hinge: wp.array2d(dtype=int), stiffness: wp.array(dtype=float),
                          grad: wp.array2d(dtype=wp.vec3), scale: float, out: wp.array(dtype=wp.vec3),
-                         dots: wp.array(dtype=float), keep_dot: int):
-    """sim.kernels.hinge_hessian_product's product; its p.K p share stored per hinge when ``keep_dot``."""
+                         dots: wp.array(dtype=float), cloth: wp.array(dtype=int), acc: wp.array2d(dtype=float),
+                         mode: int):
+    """sim.kernels.hinge_hessian_product's product; its p.K p share per ``mode``."""
     h = wp.tid()
     kb = stiffness[h]
     if kb > 0.0:
@@ -100,8 +105,10 @@ def hinge_product_no_dot(p: wp.array(dtype=wp.vec3), hinge: wp.array2d(dtype=int
         w = scale * kb * s
         for q in range(4):
             wp.atomic_add(out, hinge[h, q], w * grad[h, q])
-        if keep_dot != 0:
+        if mode == 1:
             dots[h] = w * s
+        elif mode == 2:
+            wp.atomic_add(acc, 0, cloth[h], w * s)
 
 
 class TimedSolver(BatchSolver):
@@ -150,34 +157,34 @@ class TimedSolver(BatchSolver):
 
     def product_variants(self, repeats: int = 30) -> dict[str, float]:
         """Milliseconds a launch of each Hessian-product form on the solver's present search direction, every cloth
-        running, into scratch arrays (the solver's state is left as it is): as the CG runs them (the per-cloth dot
-        product added atomically into one slot a cloth), with the dot product stored per element instead (no
-        shared address), and without it."""
+        running (the next step sets that again), into scratch arrays: with the per-cloth dot product added
+        by every element into the cloth's slot, stored per element, dropped, and both products as the CG runs them
+        now (stored per element, then summed a chunk of a cloth at a time)."""
         nf, nh, dev = self.num_faces, self.num_hinges, self.device
-        active = wp.ones(self.num_cloths, dtype=int, device=dev)
         out = wp.zeros_like(self.ap)
         acc = wp.zeros((1, self.num_cloths), dtype=float, device=dev)
         dots = wp.zeros(max(nf, nh), dtype=float, device=dev)
-        forms = {
-            "face_per_cloth_slot": (kernels.face_hessian_product, nf, [self.p, self.tri, self.dm_inv, self.face_cloth,
-                                    self.f0, self.f1, self.kmat, self.smat, 1.0, 0, active, out, acc]),
-            "face_per_element": (face_product_no_dot, nf, [self.p, self.tri, self.dm_inv, self.f0, self.f1, self.kmat,
-                                 self.smat, 1.0, out, dots, 1]),
-            "face_no_dot": (face_product_no_dot, nf, [self.p, self.tri, self.dm_inv, self.f0, self.f1, self.kmat,
-                            self.smat, 1.0, out, dots, 0]),
-            "hinge_per_cloth_slot": (kernels.hinge_hessian_product, nh, [self.p, self.hinge, self.hinge_cloth,
-                                     self.hinge_k, self.hinge_grad, 1.0, 0, active, out, acc]),
-            "hinge_per_element": (hinge_product_no_dot, nh, [self.p, self.hinge, self.hinge_k, self.hinge_grad, 1.0,
-                                  out, dots, 1]),
-            "hinge_no_dot": (hinge_product_no_dot, nh, [self.p, self.hinge, self.hinge_k, self.hinge_grad, 1.0, out,
-                             dots, 0]),
-        }
+        face = [self.p, self.tri, self.dm_inv, self.f0, self.f1, self.kmat, self.smat, 1.0, out, dots,
+                self.face_cloth, acc]
+        hinge = [self.p, self.hinge, self.hinge_k, self.hinge_grad, 1.0, out, dots, self.hinge_cloth, acc]
+        self.cg_active.fill_(1)
+
+        def chunked():
+            self._record_hessian_product(lambda k, n, inputs: n and wp.launch(k, dim=n, inputs=inputs, device=dev),
+                                         self.p, out, 1.0, acc, 0)
+        forms = {"face_per_cloth_slot": lambda: wp.launch(face_product_no_dot, nf, face + [2], device=dev),
+                 "face_per_element": lambda: wp.launch(face_product_no_dot, nf, face + [1], device=dev),
+                 "face_no_dot": lambda: wp.launch(face_product_no_dot, nf, face + [0], device=dev),
+                 "hinge_per_cloth_slot": lambda: wp.launch(hinge_product_no_dot, nh, hinge + [2], device=dev),
+                 "hinge_per_element": lambda: wp.launch(hinge_product_no_dot, nh, hinge + [1], device=dev),
+                 "hinge_no_dot": lambda: wp.launch(hinge_product_no_dot, nh, hinge + [0], device=dev),
+                 "both_as_the_cg_runs_them": chunked}
         times = {}
-        for name, (kernel, n, inputs) in forms.items():
-            wp.launch(kernel, dim=n, inputs=inputs, device=dev)       # compiled and warm before the clock
+        for name, run in forms.items():
+            run()                                 # compiled and warm before the clock
             start = self._sync()
             for _ in range(repeats):
-                wp.launch(kernel, dim=n, inputs=inputs, device=dev)
+                run()
             times[name] = round(1e3 * (self._sync() - start) / repeats, 4)
         return times
 

@@ -248,9 +248,10 @@ def hinge_prepare(x: wp.array(dtype=wp.vec3), hinge: wp.array2d(dtype=int), rest
 @wp.kernel
 def face_hessian_product(p: wp.array(dtype=wp.vec3), tri: wp.array2d(dtype=int), dm_inv: wp.array(dtype=wp.mat22),
                          cloth: wp.array(dtype=int), f0_in: wp.array(dtype=wp.vec3), f1_in: wp.array(dtype=wp.vec3),
-                         kmat: wp.array(dtype=wp.vec4), smat: wp.array(dtype=wp.vec3), scale: float, slot: int,
-                         active: wp.array(dtype=int), out: wp.array(dtype=wp.vec3), acc: wp.array2d(dtype=float)):
-    """out += scale * K_stretch p, and acc[slot, cloth] += scale * p.K p (per face); stopped cloths skipped."""
+                         kmat: wp.array(dtype=wp.vec4), smat: wp.array(dtype=wp.vec3), scale: float,
+                         active: wp.array(dtype=int), out: wp.array(dtype=wp.vec3), dots: wp.array(dtype=float)):
+    """out += scale * K_stretch p, and dots[f] = this face's share of scale * p.K p (``cloth_chunk_sum`` adds
+    those up a cloth); stopped cloths skipped."""
     f = wp.tid()
     if active[cloth[f]] == 0:
         return
@@ -287,24 +288,50 @@ def face_hessian_product(p: wp.array(dtype=wp.vec3), tri: wp.array2d(dtype=int),
     wp.atomic_add(out, i, ki)
     wp.atomic_add(out, j, kj)
     wp.atomic_add(out, k, kk)
-    wp.atomic_add(acc, slot, cloth[f], wp.dot(pi, ki) + wp.dot(pj, kj) + wp.dot(pk, kk))
+    dots[f] = wp.dot(pi, ki) + wp.dot(pj, kj) + wp.dot(pk, kk)
 
 
 @wp.kernel
 def hinge_hessian_product(p: wp.array(dtype=wp.vec3), hinge: wp.array2d(dtype=int), cloth: wp.array(dtype=int),
-                          stiffness: wp.array(dtype=float), grad: wp.array2d(dtype=wp.vec3), scale: float, slot: int,
-                          active: wp.array(dtype=int), out: wp.array(dtype=wp.vec3), acc: wp.array2d(dtype=float)):
-    """out += scale * kb g g^T p (Gauss-Newton bending stiffness), acc[slot, cloth] += scale * p.K p."""
+                          stiffness: wp.array(dtype=float), grad: wp.array2d(dtype=wp.vec3), scale: float,
+                          active: wp.array(dtype=int), out: wp.array(dtype=wp.vec3), dots: wp.array(dtype=float)):
+    """out += scale * kb g g^T p (Gauss-Newton bending stiffness), dots[h] = this hinge's share of scale * p.K p."""
     h = wp.tid()
+    if active[cloth[h]] == 0:
+        return
     kb = stiffness[h]
-    if kb > 0.0 and active[cloth[h]] != 0:
+    if kb > 0.0:
         s = float(0.0)
         for q in range(4):
             s += wp.dot(grad[h, q], p[hinge[h, q]])
         w = scale * kb * s
         for q in range(4):
             wp.atomic_add(out, hinge[h, q], w * grad[h, q])
-        wp.atomic_add(acc, slot, cloth[h], w * s)
+        dots[h] = w * s
+    else:
+        dots[h] = 0.0
+
+
+# A cloth's elements are contiguous in a batch, so a per-cloth sum is a segmented sum. One thread adds up a chunk
+# of CLOTH_CHUNK consecutive elements of one cloth and adds that into the cloth's slot: where every element added
+# into the slot itself, the thousands of adds to one address a cloth made the Hessian products of an adaptive
+# batch 7.6-10x dearer than the products alone (benchmarks/results/sim_adaptive_steps-cuda-wind-n432-atomics.json).
+CLOTH_CHUNK = 64
+
+
+@wp.kernel
+def cloth_chunk_sum(values: wp.array(dtype=float), start: wp.array(dtype=int), end: wp.array(dtype=int),
+                    cloth: wp.array(dtype=int), slot: int, active: wp.array(dtype=int), acc: wp.array2d(dtype=float)):
+    """acc[slot, cloth[t]] += values[start[t]:end[t]].sum(), one chunk a thread; stopped cloths skipped (their
+    elements' values were not written this time)."""
+    t = wp.tid()
+    c = cloth[t]
+    if active[c] == 0:
+        return
+    s = float(0.0)
+    for e in range(start[t], end[t]):
+        s += values[e]
+    wp.atomic_add(acc, slot, c, s)
 
 
 # ---------------------------------------------------------------- conjugate gradient on (M (1 + h a) + h^2 K) dv = b

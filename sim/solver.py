@@ -238,6 +238,25 @@ def _launch_name(cmd) -> str:
     return kernel.key if kernel is not None else getattr(cmd, "__qualname__", repr(cmd))
 
 
+def cloth_chunks(owner: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(start, end, cloth)`` of chunks of at most ``size`` consecutive elements of one cloth each, covering a
+    batch's elements in order; ``owner`` (each element's cloth) must be sorted, as a batch concatenates its cloths."""
+    owner = np.asarray(owner)
+    if len(owner) == 0:
+        empty = np.zeros(0, np.int32)
+        return empty, empty, empty
+    if np.any(np.diff(owner) < 0):
+        raise ValueError("a batch's elements must be grouped by cloth in order")
+    cuts = np.flatnonzero(np.diff(owner)) + 1
+    first, last = np.r_[0, cuts], np.r_[cuts, len(owner)]
+    count = -(-(last - first) // size)
+    segment = np.repeat(np.arange(len(first)), count)
+    within = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    start = first[segment] + size * within
+    end = np.minimum(start + size, last[segment])
+    return start.astype(np.int32), end.astype(np.int32), owner[first[segment]].astype(np.int32)
+
+
 class BatchSolver:
     """Advances a batch of cloths together. ``step(n)`` runs n time steps; positions are read back
     per cloth with ``positions()``."""
@@ -306,6 +325,8 @@ class BatchSolver:
         self.hinge_area = arr(rest["hinge_area"], float)
         self.hinge_dir = arr(rest["hinge_dir"], float)
         self.hinge_cloth = arr(rest["hinge_cloth"], int)
+        self.face_chunks = tuple(arr(a, int) for a in cloth_chunks(rest["face_cloth"], kernels.CLOTH_CHUNK))
+        self.hinge_chunks = tuple(arr(a, int) for a in cloth_chunks(rest["hinge_cloth"], kernels.CLOTH_CHUNK))
         self.stretch = arr(np.stack([np.asarray(s.stretching).ravel() for s in specs]).astype(f32), float)
         self.bend = arr(np.stack([np.asarray(s.bending).ravel() for s in specs]).astype(f32), float)
         self.wind = arr(np.array([s.wind for s in specs], dtype=f32).reshape(-1, 3), wp.vec3)
@@ -356,7 +377,8 @@ class BatchSolver:
         self.rz = wp.zeros((slots, self.num_cloths), dtype=float, device=dev)
         self.pap = wp.zeros((slots, self.num_cloths), dtype=float, device=dev)
         self.rr = wp.zeros((slots, self.num_cloths), dtype=float, device=dev)
-        self.scratch = wp.zeros((1, self.num_cloths), dtype=float, device=dev)
+        self.face_dot = wp.zeros(nf, dtype=float, device=dev)    # each element's share of a product's p.K p
+        self.hinge_dot = wp.zeros(nh, dtype=float, device=dev)
         nc = self.num_cloths
         self.cg_active = wp.zeros(nc, dtype=int, device=dev)
         self.cg_taken = wp.zeros(nc, dtype=int, device=dev)          # this step's iterations
@@ -399,12 +421,17 @@ class BatchSolver:
         self._record_step_end(self._launcher(after), after)
         return before, iterations, after
 
-    def _record_hessian_product(self, launch, vec, out, scale, acc, slot) -> None:
+    def _record_hessian_product(self, launch, vec, out, scale, acc=None, slot: int = 0) -> None:
+        """out += scale * K vec; with ``acc``, acc[slot, cloth] += scale * vec.K vec, summed a chunk of a cloth's
+        elements at a time (``kernels.cloth_chunk_sum``)."""
         nf, nh = self.num_faces, self.num_hinges
         launch(kernels.face_hessian_product, nf, [vec, self.tri, self.dm_inv, self.face_cloth, self.f0, self.f1,
-                                                  self.kmat, self.smat, scale, slot, self.cg_active, out, acc])
+                                                  self.kmat, self.smat, scale, self.cg_active, out, self.face_dot])
         launch(kernels.hinge_hessian_product, nh, [vec, self.hinge, self.hinge_cloth, self.hinge_k,
-                                                   self.hinge_grad, scale, slot, self.cg_active, out, acc])
+                                                   self.hinge_grad, scale, self.cg_active, out, self.hinge_dot])
+        if acc is not None:
+            for values, (start, end, cloth) in ((self.face_dot, self.face_chunks), (self.hinge_dot, self.hinge_chunks)):
+                launch(kernels.cloth_chunk_sum, start.shape[0], [values, start, end, cloth, slot, self.cg_active, acc])
 
     def _record_cg_check(self, launch, slot: int) -> None:
         tol2 = float(self.params.cg_tolerance) ** 2
@@ -432,13 +459,13 @@ class BatchSolver:
                                                  float(P.friction), float(P.slip_velocity), self.x, self.v,
                                                  self.released, self.contact_jn, self.contact_n, self.contact_y,
                                                  self.vy, self.friction_c, self.friction_b, self.contact_recover])
-            self._record_hessian_product(launch, self.vy, self.kv, 1.0, self.scratch, 0)
+            self._record_hessian_product(launch, self.vy, self.kv, 1.0)
             launch(kernels.cg_start_contact, nv, [self.force, self.v, self.kv, self.mass, self.free, self.vertex_cloth,
                                                   dt, float(P.damping), self.diag, self.contact_n, self.contact_y,
                                                   self.friction_c, self.friction_b, self.contact_rn, self.dv, self.r,
                                                   self.z, self.p, self.ap, self.rz, self.pap, self.rr])
         else:
-            self._record_hessian_product(launch, self.v, self.kv, 1.0, self.scratch, 0)
+            self._record_hessian_product(launch, self.v, self.kv, 1.0)
             launch(kernels.cg_start, nv, [self.force, self.v, self.kv, self.mass, self.free, self.vertex_cloth, dt,
                                           float(P.damping), self.diag, self.dv, self.r, self.z, self.p, self.ap,
                                           self.rz, self.pap, self.rr, int(self._block), self.block])

@@ -21,7 +21,7 @@ from sim.config import SimConfig
 from sim.materials import bending_stiffness, green_strain, list_materials, load_material, stretching_stiffness
 from sim.mesh import ClothMesh, hinges_of, square_cloth, vertices_per_side
 from sim.motions import hanging_positions
-from sim.solver import BatchSolver, ClothSpec, SolverParams
+from sim.solver import BatchSolver, ClothSpec, SolverParams, cloth_chunks
 from tests.conftest import tiny_sim_run
 
 BASIS = load_material("camel-ponte-roma")
@@ -198,7 +198,6 @@ def test_preconditioner_blocks_are_the_stiffness_own_vertex_blocks():
     nv = solver.num_vertices
     blocks = solver.block.numpy().astype(np.float64)
     active = wp.array(np.ones(1, np.int32), dtype=int, device="cpu")
-    sink = wp.zeros((1, 1), dtype=float, device="cpu")
     product = np.zeros((nv, 3, 3))
     for d in range(3):                          # K e_d restricted to each vertex: column d of its block
         unit = np.zeros((nv, 3), np.float32)
@@ -210,15 +209,54 @@ def test_preconditioner_blocks_are_the_stiffness_own_vertex_blocks():
             out = wp.zeros(nv, dtype=wp.vec3, device="cpu")
             wp.launch(kernels.face_hessian_product, solver.num_faces,
                       [p, solver.tri, solver.dm_inv, solver.face_cloth, solver.f0, solver.f1, solver.kmat,
-                       solver.smat, 1.0, 0, active, out, sink], device="cpu")
+                       solver.smat, 1.0, active, out, solver.face_dot], device="cpu")
             wp.launch(kernels.hinge_hessian_product, solver.num_hinges,
-                      [p, solver.hinge, solver.hinge_cloth, solver.hinge_k, solver.hinge_grad, 1.0, 0, active,
-                       out, sink], device="cpu")
+                      [p, solver.hinge, solver.hinge_cloth, solver.hinge_k, solver.hinge_grad, 1.0, active,
+                       out, solver.hinge_dot], device="cpu")
             product[i, :, d] = out.numpy()[i]
     scale = np.abs(product).max()
     np.testing.assert_allclose(blocks, product, atol=1e-4 * scale)
     np.testing.assert_allclose(np.diagonal(blocks, axis1=1, axis2=2), solver.diag.numpy(), atol=1e-5 * scale)
     assert np.all(np.linalg.eigvalsh(0.5 * (blocks + blocks.transpose(0, 2, 1))) >= -1e-6 * scale)   # PSD
+
+
+def test_cloth_chunks_cover_each_cloths_elements_once_in_order():
+    owner = np.repeat([0, 1, 2, 4], [130, 1, 64, 65])
+    start, end, cloth = cloth_chunks(owner, 64)
+    assert np.all(end - start >= 1) and np.all(end - start <= 64)
+    assert start[0] == 0 and end[-1] == len(owner) and np.array_equal(start[1:], end[:-1])   # contiguous, once
+    for a, b, c in zip(start, end, cloth):
+        assert np.all(owner[a:b] == c)                                                   # one cloth a chunk
+    assert list(np.bincount(cloth)) == [3, 1, 1, 0, 2]
+    with pytest.raises(ValueError, match="grouped by cloth"):
+        cloth_chunks(np.array([0, 1, 0]), 4)
+
+
+def test_per_cloth_p_k_p_summed_by_chunks_is_each_cloths_own_sum():
+    """The CG's p.A p of each cloth of a batch, added up a chunk of its faces and hinges at a time, is p.(K p)
+    over that cloth's vertices alone (cloths of 32 to 338 faces: one to six chunks)."""
+    specs = [_hanging(n=4, size=0.1, p=1.0, k=200.0), _hanging(n=13, size=0.3, p=2.0, k=5.0),
+             _hanging(n=9, size=0.2, p=0.5, k=50.0)]
+    rng = np.random.default_rng(3)
+    specs = [replace(s, positions=s.positions * np.array([1.05, 1.0, 0.98])
+                     + rng.normal(scale=0.003, size=s.positions.shape)) for s in specs]
+    solver = BatchSolver(specs, device="cpu")
+    _kernel_forces(solver)
+    solver.cg_active.fill_(1)
+    p = rng.normal(size=(solver.num_vertices, 3)).astype(np.float32)
+    vec, out = wp.array(p, dtype=wp.vec3, device="cpu"), wp.zeros(solver.num_vertices, dtype=wp.vec3, device="cpu")
+    acc = wp.zeros((3, solver.num_cloths), dtype=float, device="cpu")
+
+    def launch(kernel, dim, inputs):
+        if dim:
+            wp.launch(kernel, dim=dim, inputs=inputs, device="cpu")
+
+    solver._record_hessian_product(launch, vec, out, 0.5, acc, 2)
+    own = np.einsum("ij,ij->i", p.astype(np.float64), out.numpy().astype(np.float64))
+    want = np.bincount(solver.vertex_cloth.numpy(), weights=own)
+    assert max(len(s.mesh.faces) for s in specs) > 4 * kernels.CLOTH_CHUNK
+    np.testing.assert_allclose(acc.numpy()[2], want, rtol=1e-4)
+    assert not acc.numpy()[:2].any()
 
 
 def test_kernel_forces_are_minus_gradient_of_reference_energy():
