@@ -312,8 +312,9 @@ def hinge_hessian_product(p: wp.array(dtype=wp.vec3), hinge: wp.array2d(dtype=in
         dots[h] = 0.0
 
 
-# A cloth's elements are contiguous in a batch, so a per-cloth sum is a segmented sum. One thread adds up a chunk
-# of CLOTH_CHUNK consecutive elements of one cloth and adds that into the cloth's slot: where every element added
+# A cloth's vertices and elements are contiguous in a batch, so a per-cloth sum (the CG's dot products) is a
+# segmented sum. One thread adds up a chunk of CLOTH_CHUNK consecutive values of one cloth and adds that into the
+# cloth's slot: where every element added
 # into the slot itself, the thousands of adds to one address a cloth made the Hessian products of an adaptive
 # batch 7.6-10x dearer than the products alone (benchmarks/results/sim_adaptive_steps-cuda-wind-n432-atomics.json).
 CLOTH_CHUNK = 64
@@ -389,12 +390,18 @@ def cg_update(mass: wp.array(dtype=float), free: wp.array(dtype=float), cloth: w
               dinv: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3), ap: wp.array(dtype=wp.vec3),
               slot: int, active: wp.array(dtype=int), dv: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec3),
               z: wp.array(dtype=wp.vec3), rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float),
-              rr: wp.array2d(dtype=float), use_block: int, pinv: wp.array(dtype=wp.mat33)):
-    """dv += alpha p, r -= alpha A p, z = P r, accumulating the next r.z and r.r (running cloths only)."""
+              vrz: wp.array(dtype=float), vrr: wp.array(dtype=float), use_block: int,
+              pinv: wp.array(dtype=wp.mat33)):
+    """dv += alpha p, r -= alpha A p, z = P r, and each vertex's share of the next r.z and r.r in vrz, vrr
+    (``cloth_chunk_sum`` adds them up a cloth; running cloths only)."""
     i = wp.tid()
     c = cloth[i]
+    if active[c] == 0:
+        return
     den = pap[slot, c]
-    if active[c] == 0 or not cg_step_ok(den):
+    if not cg_step_ok(den):
+        vrz[i] = 0.0
+        vrr[i] = 0.0
         return
     alpha = rz[slot, c] / den
     dv[i] = dv[i] + alpha * p[i]
@@ -406,16 +413,16 @@ def cg_update(mass: wp.array(dtype=float), free: wp.array(dtype=float), cloth: w
         zi = wp.cw_mul(ri, dinv[i])
     r[i] = ri
     z[i] = zi
-    wp.atomic_add(rz, slot + 1, c, wp.dot(ri, zi))
-    wp.atomic_add(rr, slot + 1, c, wp.dot(ri, ri))
+    vrz[i] = wp.dot(ri, zi)
+    vrr[i] = wp.dot(ri, ri)
 
 
 @wp.kernel
 def cg_direction(mass: wp.array(dtype=float), cloth: wp.array(dtype=int), dt: float, damping: float,
                  z: wp.array(dtype=wp.vec3), slot: int, active: wp.array(dtype=int), p: wp.array(dtype=wp.vec3),
-                 ap: wp.array(dtype=wp.vec3), rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float)):
-    """p = z + beta p; starts A p with its mass part and accumulates that part of p.A p (running cloths:
-    ``cg_check`` has made sure their r.z is well above underflow)."""
+                 ap: wp.array(dtype=wp.vec3), rz: wp.array2d(dtype=float), vpap: wp.array(dtype=float)):
+    """p = z + beta p; starts A p with its mass part, and each vertex's share of that part of p.A p in vpap
+    (running cloths: ``cg_check`` has made sure their r.z is well above underflow)."""
     i = wp.tid()
     c = cloth[i]
     if active[c] == 0:
@@ -425,7 +432,8 @@ def cg_direction(mass: wp.array(dtype=float), cloth: wp.array(dtype=int), dt: fl
     pi = z[i] + beta * p[i]
     p[i] = pi
     ap[i] = m_eff * pi
-    wp.atomic_add(pap, slot + 1, c, m_eff * wp.dot(pi, pi))
+    vpap[i] = m_eff * wp.dot(pi, pi)
+
 
 @wp.kernel
 def cg_reset(active: wp.array(dtype=int), iterations: wp.array(dtype=int), residual: wp.array(dtype=float)):
@@ -824,12 +832,17 @@ def cg_update_contact(mass: wp.array(dtype=float), free: wp.array(dtype=float), 
                       cn: wp.array(dtype=wp.vec3), rn: wp.array(dtype=float),
                       slot: int, active: wp.array(dtype=int), dv: wp.array(dtype=wp.vec3),
                       r: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.vec3),
-                      rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float), rr: wp.array2d(dtype=float)):
+                      rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float), vrz: wp.array(dtype=float),
+                      vrr: wp.array(dtype=float)):
     """``cg_update`` with the contact filter."""
     i = wp.tid()
     c = cloth[i]
+    if active[c] == 0:
+        return
     den = pap[slot, c]
-    if active[c] == 0 or not cg_step_ok(den):
+    if not cg_step_ok(den):
+        vrz[i] = 0.0
+        vrr[i] = 0.0
         return
     alpha = rz[slot, c] / den
     n = cn[i]
@@ -840,15 +853,15 @@ def cg_update_contact(mass: wp.array(dtype=float), free: wp.array(dtype=float), 
     zi = filter_contact(wp.cw_mul(ri, dinv[i]), free[i], n)
     r[i] = ri
     z[i] = zi
-    wp.atomic_add(rz, slot + 1, c, wp.dot(ri, zi))
-    wp.atomic_add(rr, slot + 1, c, wp.dot(ri, ri))
+    vrz[i] = wp.dot(ri, zi)
+    vrr[i] = wp.dot(ri, ri)
 
 
 @wp.kernel
 def cg_direction_contact(mass: wp.array(dtype=float), cloth: wp.array(dtype=int), dt: float, damping: float,
                          fc: wp.array(dtype=float), z: wp.array(dtype=wp.vec3), slot: int,
                          active: wp.array(dtype=int), p: wp.array(dtype=wp.vec3), ap: wp.array(dtype=wp.vec3),
-                         rz: wp.array2d(dtype=float), pap: wp.array2d(dtype=float)):
+                         rz: wp.array2d(dtype=float), vpap: wp.array(dtype=float)):
     """``cg_direction`` with the contacts' friction term ``fc`` on the mass (p has no normal part there)."""
     i = wp.tid()
     c = cloth[i]
@@ -859,7 +872,7 @@ def cg_direction_contact(mass: wp.array(dtype=float), cloth: wp.array(dtype=int)
     pi = z[i] + beta * p[i]
     p[i] = pi
     ap[i] = m_eff * pi
-    wp.atomic_add(pap, slot + 1, c, m_eff * wp.dot(pi, pi))
+    vpap[i] = m_eff * wp.dot(pi, pi)
 
 
 @wp.kernel

@@ -325,6 +325,7 @@ class BatchSolver:
         self.hinge_area = arr(rest["hinge_area"], float)
         self.hinge_dir = arr(rest["hinge_dir"], float)
         self.hinge_cloth = arr(rest["hinge_cloth"], int)
+        self.vertex_chunks = tuple(arr(a, int) for a in cloth_chunks(rest["vertex_cloth"], kernels.CLOTH_CHUNK))
         self.face_chunks = tuple(arr(a, int) for a in cloth_chunks(rest["face_cloth"], kernels.CLOTH_CHUNK))
         self.hinge_chunks = tuple(arr(a, int) for a in cloth_chunks(rest["hinge_cloth"], kernels.CLOTH_CHUNK))
         self.stretch = arr(np.stack([np.asarray(s.stretching).ravel() for s in specs]).astype(f32), float)
@@ -379,6 +380,7 @@ class BatchSolver:
         self.rr = wp.zeros((slots, self.num_cloths), dtype=float, device=dev)
         self.face_dot = wp.zeros(nf, dtype=float, device=dev)    # each element's share of a product's p.K p
         self.hinge_dot = wp.zeros(nh, dtype=float, device=dev)
+        self.vertex_dot = (wp.zeros(nv, dtype=float, device=dev), wp.zeros(nv, dtype=float, device=dev))
         nc = self.num_cloths
         self.cg_active = wp.zeros(nc, dtype=int, device=dev)
         self.cg_taken = wp.zeros(nc, dtype=int, device=dev)          # this step's iterations
@@ -430,8 +432,15 @@ class BatchSolver:
         launch(kernels.hinge_hessian_product, nh, [vec, self.hinge, self.hinge_cloth, self.hinge_k,
                                                    self.hinge_grad, scale, self.cg_active, out, self.hinge_dot])
         if acc is not None:
-            for values, (start, end, cloth) in ((self.face_dot, self.face_chunks), (self.hinge_dot, self.hinge_chunks)):
-                launch(kernels.cloth_chunk_sum, start.shape[0], [values, start, end, cloth, slot, self.cg_active, acc])
+            self._record_cloth_sums(launch, [(self.face_dot, self.face_chunks, acc),
+                                             (self.hinge_dot, self.hinge_chunks, acc)], slot)
+
+    def _record_cloth_sums(self, launch, sums: list, slot: int) -> None:
+        """acc[slot, cloth] += the cloth's share of ``values`` for each (values, chunks, acc) of ``sums``
+        (``chunks``: the vertex, face or hinge chunks the values are laid out by), a chunk a thread
+        (``kernels.cloth_chunk_sum``)."""
+        for values, (start, end, cloth), acc in sums:
+            launch(kernels.cloth_chunk_sum, start.shape[0], [values, start, end, cloth, slot, self.cg_active, acc])
 
     def _record_cg_check(self, launch, slot: int) -> None:
         tol2 = float(self.params.cg_tolerance) ** 2
@@ -477,22 +486,27 @@ class BatchSolver:
         dt, h2 = float(P.dt), float(P.dt) ** 2
         nv = self.num_vertices
         self._record_hessian_product(launch, self.p, self.ap, h2, self.pap, it)
+        vrz, vrr = self.vertex_dot
         if self.has_arm:
             launch(kernels.cg_update_contact, nv, [self.mass, self.free, self.vertex_cloth, self.diag, self.p,
                                                    self.ap, self.contact_n, self.contact_rn, it, self.cg_active,
-                                                   self.dv, self.r, self.z, self.rz, self.pap, self.rr])
+                                                   self.dv, self.r, self.z, self.rz, self.pap, vrz, vrr])
         else:
             launch(kernels.cg_update, nv, [self.mass, self.free, self.vertex_cloth, self.diag, self.p, self.ap,
                                            it, self.cg_active, self.dv, self.r, self.z, self.rz, self.pap,
-                                           self.rr, int(self._block), self.block])
+                                           vrz, vrr, int(self._block), self.block])
+        self._record_cloth_sums(launch, [(vrz, self.vertex_chunks, self.rz), (vrr, self.vertex_chunks, self.rr)],
+                                it + 1)
         self._record_cg_check(launch, it + 1)
         if it + 1 < P.cg_iterations and self.has_arm:
             launch(kernels.cg_direction_contact, nv, [self.mass, self.vertex_cloth, dt, float(P.damping),
                                                       self.friction_c, self.z, it, self.cg_active, self.p,
-                                                      self.ap, self.rz, self.pap])
+                                                      self.ap, self.rz, self.vertex_dot[0]])
         elif it + 1 < P.cg_iterations:
             launch(kernels.cg_direction, nv, [self.mass, self.vertex_cloth, dt, float(P.damping), self.z, it,
-                                              self.cg_active, self.p, self.ap, self.rz, self.pap])
+                                              self.cg_active, self.p, self.ap, self.rz, self.vertex_dot[0]])
+        if it + 1 < P.cg_iterations:
+            self._record_cloth_sums(launch, [(self.vertex_dot[0], self.vertex_chunks, self.pap)], it + 1)
 
     def _record_step_end(self, launch, cmds: list) -> None:
         """After the CG: its statistics, the integration, self-collision and the arm's contacts, into ``cmds``
