@@ -34,7 +34,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from common import RESULTS, paper_scenes, simulate_options, write_result  # noqa: E402  (benchmarks/common.py)
 import sim.adaptive  # noqa: E402
 import sim.stage  # noqa: E402
-from sim import kernels  # noqa: E402
 from sim.solver import BatchSolver, resolve_device  # noqa: E402
 
 
