@@ -7,7 +7,9 @@ Predicts every model (training folders with a checkpoint.pt, e.g. ``RUN/train/..
 the setting's rendered test clips of ``--variant`` twice in one process: ``learn.predict.predict_clips`` a model
 (how the eval stage predicted before, each model reading every clip's frames again), and one
 ``learn.predict.CachedPredictor`` for all of them (how it predicts now). Before either, one untimed pass reads
-every clip so both find the files in the page cache. Checks the two give the same predictions and writes the
+every clip so both find the files in the page cache, and one untimed prediction sets CUDA up. (``predict_clips``
+now reads a model's whole clip list before predicting, where the eval stage once streamed clip by clip: the same
+reads.) Checks the two give the same predictions and writes the
 seconds of each and their ratio to benchmarks/results/eval_predict-<device>-<setting>.json with the command.
 """
 
@@ -61,6 +63,7 @@ def main(argv: list[str] | None = None) -> dict:
         frames = [predict(m) for m in models]
         return time.perf_counter() - t0, frames
 
+    predict_clips(models[0], clips[:8], device=str(device))     # CUDA and cuDNN set up before either clock
     per_model_s, per_model = timed(lambda m: predict_clips(m, clips, device=str(device)))
     cached = CachedPredictor(device=str(device))
     cached_s, shared = timed(lambda m: cached(m, clips))

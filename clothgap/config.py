@@ -126,7 +126,7 @@ def _small() -> StudyConfig:
 
 
 def _paper() -> StudyConfig:
-    # The paper's setting (Section 7.1) for one GPU, with twice its 2,592 sequences a setting. Wind clips vary
+    # The paper's setting (Section 7.1) for one GPU, with four times its 2,592 sequences a setting. Wind clips vary
     # only the wind speed, as the paper varies "the external force magnitude" (docs/learnability.md:
     # with pose, gathering and direction drawn too, the geometry of new simulations tells a plain MLP
     # 27 % of the classes; with speed alone, 84 %); arm clips likewise draw only the forearm's speed

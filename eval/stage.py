@@ -44,6 +44,7 @@ from clothgap.settings import to_dict
 from eval import figures, metrics, tables
 from eval import predictions as preds
 from eval.trained import TrainedModel, checkpoint_sha256, finished_models
+from learn.predictions import LEFT_OUT
 from sim.phases import timed
 
 # (train_dir, clip_dirs) -> predict_clips-shaped frame; the default is learn.predict.CachedPredictor.
@@ -196,7 +197,7 @@ def _left_out_reason(clip_dir: Path, caught: list[warnings.WarningMessage]) -> s
     for w in caught:
         text = str(w.message)
         if str(clip_dir) in text or f"clip {clip_dir.name}" in text or f"{clip_dir.name}:" in text:
-            return text.removesuffix("; clip left out of the predictions")
+            return text.removesuffix(LEFT_OUT)
     return "no sub-sequence predicted (fewer frames than one sub-sequence, or unreadable)"
 
 

@@ -17,6 +17,9 @@ import pandas as pd
 from clothgap.runs import atomic_write_text
 from sim.classes import NUM_CLASSES
 
+# Ends the warning for a clip a prediction leaves out; eval.stage reads the reason before it.
+LEFT_OUT = "; clip left out of the predictions"
+
 PROB_COLUMNS = [f"prob_{i:02d}" for i in range(NUM_CLASSES)]
 KEY_COLUMNS = ["clip_id", "start", "class_index", "pred"]
 

@@ -19,8 +19,9 @@ set -uo pipefail
 source scripts/gpu/env.sh
 RUN=${RUN:-/tmp/paper_study}
 STAGES=${STAGES:-"sim render train eval report"}
-# One batch a setting, adaptive ones too: 3.7 GB of GPU memory per 432 adaptive cloths since the leak fix
-# (docs/simulation.md), ~19 GB for 2,592. BATCH=N cuts a setting into batches of N cloths.
+# Batches of 2,592 cloths, adaptive ones too: 3.7 GB of GPU memory per 432 adaptive cloths since the leak fix
+# (docs/simulation.md), ~19 GB for 2,592 (the preset's 192 sequences a class are four batches a setting).
+# BATCH=N cuts a setting into batches of N cloths.
 SETS=(--set sim.motions=${MOTIONS:-wind} --set sim.remeshing=${REMESHING:-uniform1} --set sim.batch_size=${BATCH:-2592}
       --set render.resolution=${RES:-112} --set render.spp=${SPP:-8}
       ${SEQ:+--set sim.sequences_per_class=$SEQ} ${EXTRA:-})
