@@ -201,11 +201,16 @@ class ClipClassifier(nn.Module):
 
     def read_shape(self, geometry: torch.Tensor, lattice: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """The bottleneck's outputs from a predicted (B, T, geometry_dim) shape; gradients stop at the shape."""
-        out = self.read_lattice(self._noised(geometry.detach().float()))
-        if self.training and lattice is not None:
-            # The readers also learn from the true shape, which carries the material more
-            # precisely than any prediction, noised like the predicted one.
-            out["truth_logits"] = self.read_lattice(self._noised(lattice.float()))["logits"]
+        shape = self._noised(geometry.detach().float())
+        if not (self.training and lattice is not None):
+            return self.read_lattice(shape)
+        # The readers also learn from the true shape, which carries the material more precisely than any
+        # prediction, noised like the predicted one. Both go through the readers as one batch: half the launches
+        # of a step that launches bound (the readers of a shared regressor), the same sums a clip.
+        both = self.read_lattice(torch.cat([shape, self._noised(lattice.float())]))
+        b = shape.shape[0]
+        out = {key: value[:b] for key, value in both.items()}
+        out["truth_logits"] = both["logits"][b:]
         return out
 
     def _noised(self, shape: torch.Tensor) -> torch.Tensor:

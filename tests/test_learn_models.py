@@ -218,3 +218,21 @@ def test_conv1_input_padded_to_eight_channels_computes_the_same_sums(channels_la
     assert model.cnn.features[0].weight.shape[1] == 6      # the parameters keep their shape: checkpoints unchanged
     torch.testing.assert_close(padded, plain, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(padded_grad, plain_grad, rtol=1e-4, atol=1e-5)
+
+
+def test_the_readers_read_the_predicted_and_the_true_shape_as_one_batch_with_the_same_sums():
+    torch.manual_seed(0)
+    model = build_model("base2", image_size=32, geometry_dim=192, bottleneck=True, bottleneck_noise=0.2,
+                        factored=True, **TINY).train()
+    shape, lattice = torch.randn(3, 5, 192), torch.randn(3, 5, 192)
+    torch.manual_seed(1)
+    fused = model.read_shape(shape, lattice)
+    torch.manual_seed(1)                                   # the same noise, drawn in the same order
+    noised_shape = model._noised(shape)
+    noised_lattice = model._noised(lattice)
+    apart = model.read_lattice(noised_shape)
+    for key in ("logits", "stretch", "bend"):
+        torch.testing.assert_close(fused[key], apart[key], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(fused["truth_logits"], model.read_lattice(noised_lattice)["logits"], rtol=1e-5,
+                               atol=1e-6)
+    assert fused["logits"].shape == (3, 5, 54) and fused["truth_logits"].shape == (3, 5, 54)
