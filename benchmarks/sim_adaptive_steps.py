@@ -34,6 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from common import RESULTS, paper_scenes, simulate_options, write_result  # noqa: E402  (benchmarks/common.py)
 import sim.adaptive  # noqa: E402
 import sim.stage  # noqa: E402
+from sim import kernels  # noqa: E402
 from sim.solver import BatchSolver, resolve_device  # noqa: E402
 
 
@@ -43,71 +44,32 @@ from sim.solver import BatchSolver, resolve_device  # noqa: E402
 # frame's state (``TimedSolver.product_variants``), with the CG's present form: stored per element, then added up a
 # chunk of a cloth at a time (sim.kernels.cloth_chunk_sum).
 @wp.kernel
-def face_product_no_dot(p: wp.array(dtype=wp.vec3), tri: wp.array2d(dtype=int), dm_inv: wp.array(dtype=wp.mat22),
-                        f0_in: wp.array(dtype=wp.vec3), f1_in: wp.array(dtype=wp.vec3), kmat: wp.array(dtype=wp.vec4),
-                        smat: wp.array(dtype=wp.vec3), scale: float, out: wp.array(dtype=wp.vec3),
-                        dots: wp.array(dtype=float), cloth: wp.array(dtype=int), acc: wp.array2d(dtype=float),
-                        mode: int):
-    """sim.kernels.face_hessian_product's product; its p.K p share per ``mode`` (above)."""
+def face_product_forms(p: wp.array(dtype=wp.vec3), tri: wp.array2d(dtype=int), dm_inv: wp.array(dtype=wp.mat22),
+                       f0_in: wp.array(dtype=wp.vec3), f1_in: wp.array(dtype=wp.vec3), kmat: wp.array(dtype=wp.vec4),
+                       smat: wp.array(dtype=wp.vec3), scale: float, out: wp.array(dtype=wp.vec3),
+                       dots: wp.array(dtype=float), cloth: wp.array(dtype=int), acc: wp.array2d(dtype=float),
+                       mode: int):
+    """sim.kernels' face product (``face_product``); its p.K p share per ``mode`` (above)."""
     f = wp.tid()
-    i = tri[f, 0]
-    j = tri[f, 1]
-    k = tri[f, 2]
-    d = dm_inv[f]
-    cj0 = d[0, 0]
-    cj1 = d[0, 1]
-    ck0 = d[1, 0]
-    ck1 = d[1, 1]
-    ci0 = -(cj0 + ck0)
-    ci1 = -(cj1 + ck1)
-    pi = p[i]
-    pj = p[j]
-    pk = p[k]
-    df0 = ci0 * pi + cj0 * pj + ck0 * pk
-    df1 = ci1 * pi + cj1 * pj + ck1 * pk
-    f0 = f0_in[f]
-    f1 = f1_in[f]
-    km = kmat[f]
-    sm = smat[f]
-    dg00 = wp.dot(f0, df0)
-    dg11 = wp.dot(f1, df1)
-    dg01 = 0.5 * (wp.dot(f0, df1) + wp.dot(f1, df0))
-    ds00 = km[0] * dg00 + km[1] * dg11
-    ds11 = km[1] * dg00 + km[2] * dg11
-    ds01 = 0.5 * km[3] * dg01
-    g0 = ds00 * f0 + ds01 * f1 + sm[0] * df0 + sm[1] * df1
-    g1 = ds01 * f0 + ds11 * f1 + sm[1] * df0 + sm[2] * df1
-    ki = scale * (ci0 * g0 + ci1 * g1)
-    kj = scale * (cj0 * g0 + cj1 * g1)
-    kk = scale * (ck0 * g0 + ck1 * g1)
-    wp.atomic_add(out, i, ki)
-    wp.atomic_add(out, j, kj)
-    wp.atomic_add(out, k, kk)
+    share = kernels.face_product(f, p, tri, dm_inv, f0_in, f1_in, kmat, smat, scale, out)
     if mode == 1:
-        dots[f] = wp.dot(pi, ki) + wp.dot(pj, kj) + wp.dot(pk, kk)
+        dots[f] = share
     elif mode == 2:
-        wp.atomic_add(acc, 0, cloth[f], wp.dot(pi, ki) + wp.dot(pj, kj) + wp.dot(pk, kk))
+        wp.atomic_add(acc, 0, cloth[f], share)
 
 
 @wp.kernel
-def hinge_product_no_dot(p: wp.array(dtype=wp.vec3), hinge: wp.array2d(dtype=int), stiffness: wp.array(dtype=float),
-                         grad: wp.array2d(dtype=wp.vec3), scale: float, out: wp.array(dtype=wp.vec3),
-                         dots: wp.array(dtype=float), cloth: wp.array(dtype=int), acc: wp.array2d(dtype=float),
-                         mode: int):
-    """sim.kernels.hinge_hessian_product's product; its p.K p share per ``mode``."""
+def hinge_product_forms(p: wp.array(dtype=wp.vec3), hinge: wp.array2d(dtype=int), stiffness: wp.array(dtype=float),
+                        grad: wp.array2d(dtype=wp.vec3), scale: float, out: wp.array(dtype=wp.vec3),
+                        dots: wp.array(dtype=float), cloth: wp.array(dtype=int), acc: wp.array2d(dtype=float),
+                        mode: int):
+    """sim.kernels' hinge product (``hinge_product``); its p.K p share per ``mode``."""
     h = wp.tid()
-    kb = stiffness[h]
-    if kb > 0.0:
-        s = float(0.0)
-        for q in range(4):
-            s += wp.dot(grad[h, q], p[hinge[h, q]])
-        w = scale * kb * s
-        for q in range(4):
-            wp.atomic_add(out, hinge[h, q], w * grad[h, q])
-        if mode == 1:
-            dots[h] = w * s
-        elif mode == 2:
-            wp.atomic_add(acc, 0, cloth[h], w * s)
+    share = kernels.hinge_product(h, p, hinge, stiffness, grad, scale, out)
+    if mode == 1:
+        dots[h] = share
+    elif mode == 2:
+        wp.atomic_add(acc, 0, cloth[h], share)
 
 
 class TimedSolver(BatchSolver):
@@ -171,12 +133,12 @@ class TimedSolver(BatchSolver):
         def chunked():
             self._record_hessian_product(lambda k, n, inputs: n and wp.launch(k, dim=n, inputs=inputs, device=dev),
                                          self.p, out, 1.0, acc, 0)
-        forms = {"face_per_cloth_slot": lambda: wp.launch(face_product_no_dot, nf, face + [2], device=dev),
-                 "face_per_element": lambda: wp.launch(face_product_no_dot, nf, face + [1], device=dev),
-                 "face_no_dot": lambda: wp.launch(face_product_no_dot, nf, face + [0], device=dev),
-                 "hinge_per_cloth_slot": lambda: wp.launch(hinge_product_no_dot, nh, hinge + [2], device=dev),
-                 "hinge_per_element": lambda: wp.launch(hinge_product_no_dot, nh, hinge + [1], device=dev),
-                 "hinge_no_dot": lambda: wp.launch(hinge_product_no_dot, nh, hinge + [0], device=dev),
+        forms = {"face_per_cloth_slot": lambda: wp.launch(face_product_forms, nf, face + [2], device=dev),
+                 "face_per_element": lambda: wp.launch(face_product_forms, nf, face + [1], device=dev),
+                 "face_no_dot": lambda: wp.launch(face_product_forms, nf, face + [0], device=dev),
+                 "hinge_per_cloth_slot": lambda: wp.launch(hinge_product_forms, nh, hinge + [2], device=dev),
+                 "hinge_per_element": lambda: wp.launch(hinge_product_forms, nh, hinge + [1], device=dev),
+                 "hinge_no_dot": lambda: wp.launch(hinge_product_forms, nh, hinge + [0], device=dev),
                  "both_as_the_cg_runs_them": chunked}
         times = {}
         for name, run in forms.items():

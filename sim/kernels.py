@@ -245,16 +245,11 @@ def hinge_prepare(x: wp.array(dtype=wp.vec3), hinge: wp.array2d(dtype=int), rest
 
 # ---------------------------------------------------------------- Hessian-vector products
 
-@wp.kernel
-def face_hessian_product(p: wp.array(dtype=wp.vec3), tri: wp.array2d(dtype=int), dm_inv: wp.array(dtype=wp.mat22),
-                         cloth: wp.array(dtype=int), f0_in: wp.array(dtype=wp.vec3), f1_in: wp.array(dtype=wp.vec3),
-                         kmat: wp.array(dtype=wp.vec4), smat: wp.array(dtype=wp.vec3), scale: float,
-                         active: wp.array(dtype=int), out: wp.array(dtype=wp.vec3), dots: wp.array(dtype=float)):
-    """out += scale * K_stretch p, and dots[f] = this face's share of scale * p.K p (``cloth_chunk_sum`` adds
-    those up a cloth); stopped cloths skipped."""
-    f = wp.tid()
-    if active[cloth[f]] == 0:
-        return
+@wp.func
+def face_product(f: int, p: wp.array(dtype=wp.vec3), tri: wp.array2d(dtype=int), dm_inv: wp.array(dtype=wp.mat22),
+                 f0_in: wp.array(dtype=wp.vec3), f1_in: wp.array(dtype=wp.vec3), kmat: wp.array(dtype=wp.vec4),
+                 smat: wp.array(dtype=wp.vec3), scale: float, out: wp.array(dtype=wp.vec3)):
+    """out += scale * K_stretch p over face ``f``'s vertices; returns the face's share of scale * p.K p."""
     i = tri[f, 0]
     j = tri[f, 1]
     k = tri[f, 2]
@@ -288,7 +283,37 @@ def face_hessian_product(p: wp.array(dtype=wp.vec3), tri: wp.array2d(dtype=int),
     wp.atomic_add(out, i, ki)
     wp.atomic_add(out, j, kj)
     wp.atomic_add(out, k, kk)
-    dots[f] = wp.dot(pi, ki) + wp.dot(pj, kj) + wp.dot(pk, kk)
+    return wp.dot(pi, ki) + wp.dot(pj, kj) + wp.dot(pk, kk)
+
+
+@wp.func
+def hinge_product(h: int, p: wp.array(dtype=wp.vec3), hinge: wp.array2d(dtype=int), stiffness: wp.array(dtype=float),
+                  grad: wp.array2d(dtype=wp.vec3), scale: float, out: wp.array(dtype=wp.vec3)):
+    """out += scale * kb g g^T p over hinge ``h``'s vertices (Gauss-Newton bending stiffness); returns the hinge's
+    share of scale * p.K p."""
+    kb = stiffness[h]
+    if kb <= 0.0:
+        return 0.0
+    s = float(0.0)
+    for q in range(4):
+        s += wp.dot(grad[h, q], p[hinge[h, q]])
+    w = scale * kb * s
+    for q in range(4):
+        wp.atomic_add(out, hinge[h, q], w * grad[h, q])
+    return w * s
+
+
+@wp.kernel
+def face_hessian_product(p: wp.array(dtype=wp.vec3), tri: wp.array2d(dtype=int), dm_inv: wp.array(dtype=wp.mat22),
+                         cloth: wp.array(dtype=int), f0_in: wp.array(dtype=wp.vec3), f1_in: wp.array(dtype=wp.vec3),
+                         kmat: wp.array(dtype=wp.vec4), smat: wp.array(dtype=wp.vec3), scale: float,
+                         active: wp.array(dtype=int), out: wp.array(dtype=wp.vec3), dots: wp.array(dtype=float)):
+    """out += scale * K_stretch p, and dots[f] = this face's share of scale * p.K p (``cloth_chunk_sum`` adds
+    those up a cloth); stopped cloths skipped."""
+    f = wp.tid()
+    if active[cloth[f]] == 0:
+        return
+    dots[f] = face_product(f, p, tri, dm_inv, f0_in, f1_in, kmat, smat, scale, out)
 
 
 @wp.kernel
@@ -299,17 +324,7 @@ def hinge_hessian_product(p: wp.array(dtype=wp.vec3), hinge: wp.array2d(dtype=in
     h = wp.tid()
     if active[cloth[h]] == 0:
         return
-    kb = stiffness[h]
-    if kb > 0.0:
-        s = float(0.0)
-        for q in range(4):
-            s += wp.dot(grad[h, q], p[hinge[h, q]])
-        w = scale * kb * s
-        for q in range(4):
-            wp.atomic_add(out, hinge[h, q], w * grad[h, q])
-        dots[h] = w * s
-    else:
-        dots[h] = 0.0
+    dots[h] = hinge_product(h, p, hinge, stiffness, grad, scale, out)
 
 
 # A cloth's vertices and elements are contiguous in a batch, so a per-cloth sum (the CG's dot products) is a
