@@ -28,6 +28,20 @@ def write_result(script: str, argv: list[str] | None, result: dict, out: Path) -
     print(f"wrote {out}")
 
 
+def run_arguments(doc: str, *, recipe: str | None = None, model: str = "lrcn",
+                  model_help: str | None = None) -> argparse.ArgumentParser:
+    """The training benchmarks' parser: a run folder, --setting, --variant, --model and, when given a default,
+    --recipe (an ``eval.ablation`` recipe whose train settings it uses)."""
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
+    ap.add_argument("run", type=Path)
+    ap.add_argument("--setting", default="wind-uniform1")
+    ap.add_argument("--variant", default="paper")
+    if recipe is not None:
+        ap.add_argument("--recipe", default=recipe, help="an eval.ablation recipe (its train settings)")
+    ap.add_argument("--model", default=model, help=model_help)
+    return ap
+
+
 def simulate_options(cfg, frames: int, device: str = "cpu", **changes) -> dict:
     """The keyword arguments of a batch simulator (``sim.stage.simulate_scenes`` or its adaptive form) for sim
     settings ``cfg``, ``frames`` frames on ``device``; ``changes`` replace any of them."""

@@ -16,7 +16,6 @@ benchmarks/results/shared_regressor-<device>-<setting>.json with the command.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import sys
 import time
@@ -26,7 +25,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common import RESULTS, write_result  # noqa: E402  (benchmarks/common.py)
+from common import RESULTS, run_arguments, write_result  # noqa: E402  (benchmarks/common.py)
 from clothgap.runs import Run  # noqa: E402
 from learn.models import ShapeReader, model_args  # noqa: E402
 from learn.train import (build_training_model, forward_net, make_optimizer, resolve_device, run_epoch,  # noqa: E402
@@ -39,11 +38,7 @@ def _sync(device: torch.device) -> None:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("run", type=Path)
-    ap.add_argument("--setting", default="wind-uniform1")
-    ap.add_argument("--variant", default="paper")
-    ap.add_argument("--model", default="base3", help="the model whose two ways of training are timed")
+    ap = run_arguments(__doc__, model="base3", model_help="the model whose two ways of training are timed")
     ap.add_argument("--regressor", default="lrcn", help="the trained model whose CNN and lattice head it reads")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--epochs", type=int, default=80, help="a whole training's epochs, for the per-model ratio")

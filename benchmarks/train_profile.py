@@ -21,7 +21,6 @@ Writes benchmarks/results/train_profile-<device>-<setting>.json with the command
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import sys
 import time
@@ -32,7 +31,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common import RESULTS, write_result  # noqa: E402  (benchmarks/common.py)
+from common import RESULTS, run_arguments, write_result  # noqa: E402  (benchmarks/common.py)
 from clothgap.runs import Run  # noqa: E402
 from eval.ablation import recipe_config  # noqa: E402
 from learn.models import model_args  # noqa: E402
@@ -62,12 +61,7 @@ def _kernel_table(prof, steps: int, top: int = 25) -> tuple[list[dict], float]:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("run", type=Path)
-    ap.add_argument("--setting", default="wind-uniform1")
-    ap.add_argument("--variant", default="paper")
-    ap.add_argument("--recipe", default="baseline", help="an eval.ablation recipe (its train settings)")
-    ap.add_argument("--model", default="lrcn")
+    ap = run_arguments(__doc__, recipe="baseline")
     ap.add_argument("--layouts", default="eager,pad8,graphs",
                     help=f"comma-separated, the first is the baseline and the one profiled ({', '.join(LAYOUTS)})")
     ap.add_argument("--warmup", type=int, default=20, help="untimed steps first (cuDNN and compile set-up)")

@@ -14,7 +14,6 @@ GPU's. Writes benchmarks/results/train_step_wait-<device>-<setting>.json with th
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import sys
 import time
@@ -24,7 +23,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common import RESULTS, write_result  # noqa: E402  (benchmarks/common.py)
+from common import RESULTS, run_arguments, write_result  # noqa: E402  (benchmarks/common.py)
 from clothgap.runs import Run  # noqa: E402
 from eval.ablation import recipe_config  # noqa: E402
 from learn.models import model_args  # noqa: E402
@@ -39,12 +38,7 @@ def _with_wait(batches, device: torch.device):
 
 
 def main(argv: list[str] | None = None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("run", type=Path)
-    ap.add_argument("--setting", default="wind-uniform1")
-    ap.add_argument("--variant", default="paper")
-    ap.add_argument("--recipe", default="best", help="an eval.ablation recipe (its train settings)")
-    ap.add_argument("--model", default="lrcn")
+    ap = run_arguments(__doc__, recipe="best")
     ap.add_argument("--warmup", type=int, default=20, help="untimed steps first (cuDNN and compile set-up)")
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--out", type=Path)

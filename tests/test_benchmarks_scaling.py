@@ -78,3 +78,23 @@ def test_train_step_wait_times_the_same_steps_with_and_without_a_wait(tmp_path):
                                "--recipe", "baseline", "--steps", "1000"], capture_output=True, text=True,
                               env={**os.environ, "PYTHONPATH": str(ROOT)}, cwd=ROOT, timeout=240)
     assert too_many.returncode != 0 and "fewer than (warmup + steps) x batch" in too_many.stderr
+
+
+def test_train_profile_times_each_layout_from_the_same_weights_against_the_first(tmp_path):
+    run = synthetic_run(tmp_path / "run", tiny_train_config(num_threads=1))
+    out = tmp_path / "profile.json"
+    _bench("train_profile.py", str(run.root), "--recipe", "baseline", "--layouts", "eager,pad8", "--warmup", "1",
+           "--steps", "2", "--profile-steps", "0", "--out", str(out))
+    result = json.loads(out.read_text())
+    assert result["command"].startswith("python benchmarks/train_profile.py")
+    assert list(result["layouts"]) == ["eager", "pad8"] and result["layouts"]["eager"]["ratio"] == 1.0
+    assert all(v["frames_per_s"] > 0 for v in result["layouts"].values()) and result["profile"] is None
+
+
+def test_reader_step_times_both_ways_of_reading_the_two_shapes(tmp_path):
+    out = tmp_path / "reader.json"
+    done = _bench("reader_step.py", "--device", "cpu", "--batch-size", "2", "--frames", "4", "--warmup", "1",
+                  "--steps", "2", "--out", str(out))
+    result = json.loads(out.read_text())
+    assert result["two_passes"]["step_ms"] > 0 and result["one_batch"]["step_ms"] > 0
+    assert result["speedup"] > 0 and "as one batch" in done.stdout
