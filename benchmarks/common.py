@@ -28,6 +28,14 @@ def write_result(script: str, argv: list[str] | None, result: dict, out: Path) -
     print(f"wrote {out}")
 
 
+def torch_device(device) -> dict:
+    """What a training benchmark's result says of where it ran: the device's name and torch's version."""
+    import torch
+
+    return {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+            "torch": torch.__version__}
+
+
 def run_arguments(doc: str, *, recipe: str | None = None, model: str = "lrcn",
                   model_help: str | None = None) -> argparse.ArgumentParser:
     """The training benchmarks' parser: a run folder, --setting, --variant, --model and, when given a default,

@@ -25,7 +25,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common import RESULTS, write_result  # noqa: E402  (benchmarks/common.py)
+from common import RESULTS, torch_device, write_result  # noqa: E402  (benchmarks/common.py)
 from clothgap.runs import Run, is_done  # noqa: E402
 from eval.stage import test_clips  # noqa: E402
 from learn.dataset import read_frames  # noqa: E402
@@ -70,8 +70,7 @@ def main(argv: list[str] | None = None) -> dict:
     same_rows = all(a[["clip_id", "start"]].equals(b[["clip_id", "start"]]) for a, b in zip(per_model, shared))
     max_diff = max(float(np.abs(np.stack(a["probs"]) - np.stack(b["probs"])).max())
                    for a, b in zip(per_model, shared))
-    result = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
-              "torch": torch.__version__, "run": str(args.run), "setting": args.setting, "variant": args.variant,
+    result = {**torch_device(device), "run": str(args.run), "setting": args.setting, "variant": args.variant,
               "models": [str(m) for m in models], "test_clips": len(clips), "image_size": size,
               "windows_per_model": len(per_model[0]), "warm_read_s": round(warm_read, 2),
               "predict_clips_per_model_s": round(per_model_s, 2), "cached_predictor_s": round(cached_s, 2),

@@ -7,9 +7,10 @@ against one after another.
 Under ``train.shared_regressor`` base1-3 train their readers alone on the regressor's cached shapes, with
 ``train.reader_truth`` reading the simulation's own lattice as well: two passes through the readers a step.
 ``ClipClassifier.read_shape`` reads both as one batch (the same sums a clip: tests/test_learn_models.py). This
-times the preset's reader (hidden 256, the lattice's 192 numbers, noise 0.2, truth weight 1, AdamW, bf16 on CUDA)
-on random shapes held on the device, both ways in one process from the same weights, and writes the ms a step,
-windows/s and their ratio to benchmarks/results/reader_step-<device>-<model>.json with the command.
+times the `paper` preset's reader (its model arguments, optimiser, truth weight and bf16 on CUDA, through
+``learn.train.run_epoch``) on random shapes held on the device, both ways in one process from the same weights,
+and writes the ms a step, windows/s and their ratio to benchmarks/results/reader_step-<device>-<model>.json with
+the command.
 """
 
 from __future__ import annotations
@@ -23,68 +24,67 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common import RESULTS, write_result  # noqa: E402  (benchmarks/common.py)
-from learn.models import GEOMETRY_DIM, ShapeReader, build_model  # noqa: E402
-from learn.train import resolve_device  # noqa: E402
+from common import RESULTS, torch_device, write_result  # noqa: E402  (benchmarks/common.py)
+from clothgap.config import preset  # noqa: E402
+from learn.models import GEOMETRY_DIM, NUM_CLASSES, ShapeReader, build_model, model_args  # noqa: E402
+from learn.train import make_optimizer, resolve_device, run_epoch  # noqa: E402
 
 
-def read_apart(model, geometry: torch.Tensor, lattice: torch.Tensor) -> dict[str, torch.Tensor]:
-    """``read_shape`` as two passes through the readers, the predicted shape and then the true one."""
-    out = model.read_lattice(model._noised(geometry.detach().float()))
-    out["truth_logits"] = model.read_lattice(model._noised(lattice.float()))["logits"]
-    return out
+class ReadApart(torch.nn.Module):
+    """``ShapeReader`` with ``read_shape`` as two passes through the readers, the predicted shape and then the true
+    one (how a reader's step read them before)."""
+
+    def __init__(self, model):
+        super().__init__()
+        self.model = model
+
+    def forward(self, geometry: torch.Tensor, lattice: torch.Tensor) -> dict[str, torch.Tensor]:
+        model = self.model
+        out = model.read_lattice(model._noised(geometry.detach().float()))
+        out["truth_logits"] = model.read_lattice(model._noised(lattice.float()))["logits"]
+        return out
 
 
 def main(argv: list[str] | None = None) -> dict:
+    cfg = preset("paper").train
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="auto")
     ap.add_argument("--model", default="base2", choices=("base1", "base2", "base3"))
-    ap.add_argument("--batch-size", type=int, default=16)
-    ap.add_argument("--frames", type=int, default=40)
+    ap.add_argument("--batch-size", type=int, default=cfg.batch_size)
+    ap.add_argument("--frames", type=int, default=cfg.clip_len)
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--warmup", type=int, default=20)
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
     device = resolve_device(args.device)
-    amp = device.type == "cuda"
+    amp = cfg.amp and device.type == "cuda"
     gen = torch.Generator().manual_seed(0)
     shape = torch.randn(args.batch_size, args.frames, GEOMETRY_DIM, generator=gen).to(device)
     lattice = torch.randn(args.batch_size, args.frames, GEOMETRY_DIM, generator=gen).to(device)
-    labels = torch.randint(0, 54, (args.batch_size,), generator=gen).to(device)
+    labels = torch.randint(0, NUM_CLASSES, (args.batch_size,), generator=gen).to(device)
 
     def timed(one_batch: bool) -> dict:
         torch.manual_seed(0)
-        model = build_model(args.model, image_size=112, width=64, fc6=512, hidden=256, dropout=0.0, motion=True,
-                            geometry_dim=GEOMETRY_DIM, bottleneck=True, bottleneck_noise=0.2).to(device).train()
-        reader = ShapeReader(model)
-        optimizer = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-3,
-                                      weight_decay=0.05, fused=device.type == "cuda")
+        model = build_model(args.model, **model_args(cfg)).to(device)
+        model.cnn.requires_grad_(False)             # a shared regressor's readers train alone (take_regressor)
+        model.head_geometry.requires_grad_(False)
+        net = ShapeReader(model) if one_batch else ReadApart(model)
+        optimizer = make_optimizer(model, cfg, device)
 
-        def step() -> None:
-            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
-                out = reader(shape, lattice) if one_batch else read_apart(model, shape, lattice)
-            loss = model.loss(out, labels, truth_weight=1.0)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
+        def steps(n: int) -> None:      # the training step itself; run_epoch reads its sums back at the end
+            run_epoch(net, model, [(shape, labels, lattice)] * n, device, optimizer, amp,
+                      label_smoothing=cfg.label_smoothing, truth_weight=cfg.reader_truth)
 
-        for _ in range(args.warmup):
-            step()
-        if device.type == "cuda":
-            torch.cuda.synchronize()
+        steps(args.warmup)
         start = time.perf_counter()
-        for _ in range(args.steps):
-            step()
-        if device.type == "cuda":
-            torch.cuda.synchronize()
+        steps(args.steps)
         seconds = time.perf_counter() - start
         return {"step_ms": round(1000 * seconds / args.steps, 3),
                 "windows_per_s": round(args.steps * args.batch_size / seconds, 1)}
 
     apart = timed(one_batch=False)
     together = timed(one_batch=True)
-    result = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
-              "torch": torch.__version__, "threads": torch.get_num_threads(), "model": args.model,
+    result = {**torch_device(device), "threads": torch.get_num_threads(), "model": args.model,
               "batch_size": args.batch_size, "frames": args.frames, "warmup": args.warmup, "steps": args.steps,
               "two_passes": apart, "one_batch": together,
               "speedup": round(together["windows_per_s"] / apart["windows_per_s"], 3)}

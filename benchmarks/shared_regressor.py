@@ -25,7 +25,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common import RESULTS, run_arguments, write_result  # noqa: E402  (benchmarks/common.py)
+from common import RESULTS, run_arguments, torch_device, write_result  # noqa: E402  (benchmarks/common.py)
 from clothgap.runs import Run  # noqa: E402
 from learn.models import ShapeReader, model_args  # noqa: E402
 from learn.train import (build_training_model, forward_net, make_optimizer, resolve_device, run_epoch,  # noqa: E402
@@ -87,8 +87,7 @@ def main(argv: list[str] | None = None) -> dict:
     reader_s = epoch_seconds(forward_net(ShapeReader(reader_model), cfg, device), reader_model,
                              lambda: shapes[0].batches(cfg.batch_size, order=order, drop_last=True))
 
-    result = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
-              "torch": torch.__version__, "run": str(args.run), "setting": args.setting, "variant": args.variant,
+    result = {**torch_device(device), "run": str(args.run), "setting": args.setting, "variant": args.variant,
               "model": args.model, "regressor": args.regressor, "seed": args.seed, "image_size": cfg.image_size,
               "clip_len": cfg.clip_len, "batch_size": cfg.batch_size, "train_windows": len(train_set),
               "windows_an_epoch": windows,

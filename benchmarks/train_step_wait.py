@@ -23,7 +23,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common import RESULTS, run_arguments, write_result  # noqa: E402  (benchmarks/common.py)
+from common import RESULTS, run_arguments, torch_device, write_result  # noqa: E402  (benchmarks/common.py)
 from clothgap.runs import Run  # noqa: E402
 from eval.ablation import recipe_config  # noqa: E402
 from learn.models import model_args  # noqa: E402
@@ -75,8 +75,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     with_wait = timed(wait=True)
     without = timed(wait=False)
-    result = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
-              "torch": torch.__version__, "run": str(args.run), "setting": args.setting, "variant": args.variant,
+    result = {**torch_device(device), "run": str(args.run), "setting": args.setting, "variant": args.variant,
               "recipe": args.recipe, "model": args.model, "batch_size": cfg.batch_size, "clip_len": cfg.clip_len,
               "compile": cfg.compile and device.type == "cuda", "compile_mode": cfg.compile_mode,
               "frames_on_device": train_set.resident, "warmup": args.warmup, "steps": args.steps,

@@ -349,4 +349,3 @@ class Run:
         if not folder.is_dir():
             return []
         return sorted(p.name for p in folder.iterdir() if p.is_dir() and is_done(p))
-

@@ -77,10 +77,6 @@ class FrameCNN(nn.Module):
         self.fc6 = nn.Sequential(nn.Flatten(), nn.Linear(c5 * grid * grid, fc6), nn.ReLU(inplace=True),
                                  nn.Dropout(dropout))
         self.out_features = fc6
-        # conv1's input channels (3, or 6 with frame differences) padded with zeros to this multiple, and its
-        # weights likewise: the same sums in a layout tensor cores prefer. Off in training: 1.045x eager and 0.95x
-        # under CUDA graphs on an H100 (docs/learning.md); benchmarks/train_profile.py measures it.
-        self.pad_input_to = 0
         # He initialisation: torch's default shrinks activations layer by layer, and
         # a CNN trained from scratch then barely moves its features at first.
         for layer in self.modules():
@@ -91,15 +87,7 @@ class FrameCNN(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(N, C, H, W) in [0, 1] (C = 3, or 6 with frame differences) -> (N, fc6)."""
-        x = (x - _PIXEL_MEAN) / _PIXEL_STD
-        pad = -x.shape[1] % self.pad_input_to if self.pad_input_to else 0
-        if not pad:
-            return self.fc6(self.pool(self.features(x)))
-        conv1 = self.features[0]
-        layout = torch.channels_last if x.is_contiguous(memory_format=torch.channels_last) else torch.contiguous_format
-        x = F.pad(x, (0, 0, 0, 0, 0, pad)).contiguous(memory_format=layout)
-        x = F.conv2d(x, F.pad(conv1.weight, (0, 0, 0, 0, 0, pad)), None, conv1.stride, conv1.padding)
-        return self.fc6(self.pool(self.features[1:](x)))
+        return self.fc6(self.pool(self.features((x - _PIXEL_MEAN) / _PIXEL_STD)))
 
 
 class TemporalGeometryHead(nn.Module):

@@ -71,9 +71,6 @@ def _model_of(ckpt: dict, path: Path, device: str) -> ClipClassifier:
     return model.to(resolve_device(device)).eval()
 
 
-LEFT_OUT = predictions.LEFT_OUT
-
-
 class ClipFrames:
     """The frames of a clip list at one image size, read once for every model that predicts on them.
 
@@ -93,15 +90,19 @@ class ClipFrames:
                 meta = read_meta(clip_dir, "render")
                 class_index = int(meta["class_index"])
             except (UserError, KeyError, TypeError, ValueError) as err:
-                self.left_out.append(f"clip {clip_dir.name}: {err}{LEFT_OUT}")
+                self.left_out.append(f"clip {clip_dir.name}: {err}{predictions.LEFT_OUT}")
                 continue
             try:
                 frames = torch.from_numpy(read_frames(clip_dir, size)).to(keep)
             except FrameError as err:
-                self.left_out.append(f"{err}{LEFT_OUT}")
+                self.left_out.append(f"{err}{predictions.LEFT_OUT}")
                 continue
             self.clips.append((meta.get("clip_id", clip_dir.name), class_index, frames))
         self.warn(stacklevel=3)
+
+    def matches(self, clip_dirs: tuple[Path, ...], size: int) -> bool:
+        """Whether these are the frames of ``clip_dirs`` (as paths, in order) at ``size``."""
+        return self.clip_dirs == clip_dirs and self.size == size
 
     def warn(self, stacklevel: int = 2) -> None:
         """Warn of each clip left out (a caller recording warnings per model learns which and why)."""
@@ -122,7 +123,7 @@ def predict_clips(train_dir: Path | str, clip_dirs: Iterable[Path | str], device
     clip_dirs = tuple(map(Path, clip_dirs))
     size = ckpt["model_args"]["image_size"]
     dev = resolve_device(device)
-    if frames is None or frames.size != size or frames.clip_dirs != clip_dirs:
+    if frames is None or not frames.matches(clip_dirs, size):
         frames = ClipFrames(clip_dirs, size, dev)
     return _predict(ckpt, Path(train_dir), frames, dev, batch_size)
 
@@ -162,7 +163,8 @@ class CachedPredictor:
     every model predicting on it in a row (eval: a setting's models on one test variant).
 
     It keeps the frames of the last (clip list, image size) only, so memory stays flat across clip lists
-    (a setting's test clips at 112 px are ~2.6 GB at the `paper` preset's 192 sequences a class). A reused list's left-out clips are warned of again.
+    (a setting's test clips at 112 px are ~2.6 GB at the `paper` preset's 192 sequences a class). A reused
+    list's left-out clips are warned of again.
     """
 
     def __init__(self, device: str = "auto", batch_size: int = 32):
@@ -173,7 +175,7 @@ class CachedPredictor:
     def frames(self, clip_dirs: Iterable[Path | str], size: int) -> ClipFrames:
         """The frames of ``clip_dirs`` at ``size``: the kept ones when they match, else read (and kept)."""
         clip_dirs = tuple(map(Path, clip_dirs))
-        if self._frames is not None and self._frames.clip_dirs == clip_dirs and self._frames.size == size:
+        if self._frames is not None and self._frames.matches(clip_dirs, size):
             self._frames.warn(stacklevel=3)
             return self._frames
         self._frames = None         # freed before the next list is read

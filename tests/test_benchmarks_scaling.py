@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import subprocess
@@ -98,3 +99,40 @@ def test_reader_step_times_both_ways_of_reading_the_two_shapes(tmp_path):
     result = json.loads(out.read_text())
     assert result["two_passes"]["step_ms"] > 0 and result["one_batch"]["step_ms"] > 0
     assert result["speedup"] > 0 and "as one batch" in done.stdout
+
+
+def _train_profile_module(monkeypatch):
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))          # its `from common import ...`
+    spec = importlib.util.spec_from_file_location("train_profile", ROOT / "benchmarks" / "train_profile.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize("channels_last", [False, True])
+def test_conv1_input_padded_to_eight_channels_computes_the_same_sums(channels_last, monkeypatch):
+    import torch
+
+    from learn.models import build_model
+
+    padded_conv = _train_profile_module(monkeypatch).PaddedConv
+    torch.manual_seed(0)
+    model = build_model("lrcn", image_size=64, width=8, fc6=32, hidden=16, motion=True).eval()
+    x = torch.rand(2, 3, 3, 64, 64)
+    if channels_last:
+        model.cnn.to(memory_format=torch.channels_last)
+        model.channels_last = True
+    conv1 = model.cnn.features[0]
+
+    def run():
+        model.zero_grad()
+        out = model(x)["logits"]
+        out.sum().backward()
+        return out.detach(), conv1.weight.grad.clone()
+
+    plain, plain_grad = run()
+    model.cnn.features[0] = padded_conv(conv1)
+    padded, padded_grad = run()
+    assert conv1.weight.shape[1] == 6      # the parameters keep their shape: checkpoints unchanged
+    torch.testing.assert_close(padded, plain, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(padded_grad, plain_grad, rtol=1e-4, atol=1e-5)
