@@ -9,15 +9,22 @@
 #   bash scripts/gpu/table3_shared.sh train RUN    lrcn seeds 0 and 1, then the readers; with OWN=1 also base1
 #                                                  with its own CNN and base2 on that CNN (seed 0, recipe
 #                                                  `shared_regressor=base1+seeds=0`) beside them, for `own`
+#   bash scripts/gpu/table3_shared.sh lrcn RUN     lrcn seeds 0 and 1 alone (every look of LOOKS), before `looks`
+#   bash scripts/gpu/table3_shared.sh looks RUN    lrcn in LOOKS' second look against the first, seeds pooled and
+#                                                  as ensembles, on validation windows (the choice) and test
+#                                                  clips (pooled_recipes.py); the look validation prefers goes
+#                                                  to RUN/chosen_look, the one `train` then trains readers on
 #   bash scripts/gpu/table3_shared.sh eval RUN     eval and report: RUN/eval/table3.md
 #   bash scripts/gpu/table3_shared.sh own RUN      base1 and base2 of seed 0 reading lrcn's regressor against the
 #                                                  same models on their own CNN, paired by clip, on validation
 #                                                  windows (the choice) and test clips (pooled_recipes.py)
+# LOOKS (default paper): the render variants the run renders, comma-separated (e.g. paper,close: a look against
+# the paper's, lrcn trained on each, the readers on the one validation chooses).
 # RUN's name after "t3" is the motion (/tmp/t3wind: wind-uniform1). BUDGET (seconds) bounds a step; every step
 # resumes when called again. Exit status: 0 done, 75 call again, 1 failed. PLAN_SETS adds settings to the run
 # (a CPU dry run: sim.device=cpu, ...). Outputs go to $OUT.
 set -uo pipefail
-[ $# -eq 2 ] || { echo "usage: bash scripts/gpu/table3_shared.sh data|train|eval|own RUN" >&2; exit 2; }
+[ $# -eq 2 ] || { echo "usage: bash scripts/gpu/table3_shared.sh data|lrcn|looks|train|eval|own RUN" >&2; exit 2; }
 step=$1 run=$2
 here=$(cd "$(dirname "$0")" && pwd)
 source "$here/t3run.sh"
@@ -25,7 +32,12 @@ out=${OUT:-/tmp}
 budget=${BUDGET:-560}
 own=shared_regressor=base1+seeds=0
 export RUN=$run MOTIONS=$motion SPP=16
-export EXTRA="--set train.seeds=0,1 --set eval.seed_ensemble=true --set eval.measured_sequences=0 --set train.shared_regressor=lrcn ${PLAN_SETS:-}"
+looks=${LOOKS:-paper}
+export EXTRA="--set train.seeds=0,1 --set eval.seed_ensemble=true --set eval.measured_sequences=0 --set train.shared_regressor=lrcn --set render.variants=$looks ${PLAN_SETS:-}"
+source "$here/gpus.sh"
+# `train` after `looks`: the readers of the chosen look only
+chosen=$(cat "$run/chosen_look" 2>/dev/null)
+export TRAIN_ARGS="--parallel $((4 * ngpu))${chosen:+ --variant $chosen}"
 case $step in
   data) STAGES="sim render" bash "$here/paper_study.sh" ;;
   train)
@@ -56,6 +68,39 @@ case $step in
       done
     fi
     exit $rc ;;
+  lrcn) TRAIN_ARGS="--parallel $((4 * ngpu)) --model lrcn" STAGES=train bash "$here/paper_study.sh" ;;
+  looks)
+    IFS=, read -r ref look _ <<< "$looks"
+    [ -n "${look:-}" ] || { echo "looks: LOOKS names one look ($looks): nothing to compare" >&2; exit 1; }
+    # each look's two lrcn as the recipe `baseline` (the run's own: hard links, nothing retrained), scored on their
+    # test clips by learn_grid's table (test_predictions.csv), then compared
+    for v in "$ref" "$look"; do
+      for seed in 0 1; do link_trained lrcn "$seed" baseline "$v" || exit 1; done
+      python3 "$here/learn_grid.py" "$run" --setting "$setting" --variant "$v" \
+        --table "looks-$setting-$v=baseline:lrcn" > "$out/looks-$v-table.log" 2>&1 || exit 1
+      [ -f "$run/eval/looks-$setting-$v.json" ] || { grep -v UserWarning "$out/looks-$v-table.log"; exit 1; }
+    done
+    failed=0
+    for scored in val own; do
+      for ens in "" "--a-ensemble --b-ensemble"; do
+        name="looks-$motion-$look-$scored${ens:+-ensemble}"
+        echo "lrcn in $look against $ref, $scored${ens:+, ensembles}:"
+        python3 "$here/../pooled_recipes.py" "$run" --setting "$setting" --look $scored $ens \
+          --a "$look:baseline@0,baseline@1" --b "$ref:baseline@0,baseline@1" > "$out/$name.json" || failed=1
+      done
+    done
+    [ $failed = 0 ] || exit 1
+    # validation windows choose, seeds pooled: the look whose lrcn read more of them
+    python3 - "$out/looks-$motion-$look-val.json" "$look" "$ref" > "$run/chosen_look.partial" <<'PY' || exit 1
+import json, sys
+result, look, ref = json.load(open(sys.argv[1])), sys.argv[2], sys.argv[3]
+print(look if result["acc_a_minus_b"] > 0 else ref)
+PY
+    mv "$run/chosen_look.partial" "$run/chosen_look"
+    echo "validation chooses $(cat "$run/chosen_look") for the readers"
+    cd /tmp && tar czf "$out/looks-$motion.tgz" $(basename "$run")/chosen_look \
+      $(cd /tmp && ls -d $(basename "$run")/ablation/baseline/*/*/lrcn/s*/{test,val}_predictions.csv \
+        $(basename "$run")/ablation/baseline/*/*/lrcn/s*/metrics.csv) ;;
   eval) STAGES="eval report" bash "$here/paper_study.sh" && head -20 "$run/eval/table3.md" ;;
   own)
     # the row's seed-0 readers as the `seeds=0` recipe (the run's recipe with seed 0 alone: hard links, nothing
@@ -79,5 +124,5 @@ case $step in
       done
     done
     [ $failed = 0 ] ;;
-  *) echo "usage: bash scripts/gpu/table3_shared.sh data|train|eval|own RUN" >&2; exit 2 ;;
+  *) echo "usage: bash scripts/gpu/table3_shared.sh data|lrcn|looks|train|eval|own RUN" >&2; exit 2 ;;
 esac
