@@ -2,8 +2,8 @@
 
 ``ClipRenderer(clip, variant, ...)`` draws everything random about the clip
 (texture, background, lights, camera errors) from named seed streams, frames the
-camera on the setting's fixed ``view_box`` from the sim meta (else on the clip's
-own bounds: synthetic clips, garments), and renders the cloth as an in-memory
+camera on the setting's fixed ``view_box`` and ``view_zoom`` from the sim meta (else on
+the clip's own bounds: synthetic clips, garments), and renders the cloth as an in-memory
 ``mi.Mesh``. ``render_frame(t)`` writes frame t's vertex positions into that
 mesh (``mi.traverse`` + ``params.update()``; Mitsuba recomputes normals and the
 BVH) and renders. Rebuilding per frame would leak memory and, on the JIT
@@ -210,9 +210,11 @@ class ClipRenderer:
         # A fixed camera per setting (the sim's ``view_box``), else one framed on the clip's own bounds
         # (synthetic clips, garments, runs simulated before view_box existed).
         box = clip.meta.get("view_box")
-        # The view box already holds every pose with room to spare, so it is framed without a margin.
+        # The view box already holds every pose with room to spare, so it is framed without a margin; the
+        # motion's own zoom (``view_zoom``, absent before motions had one) frames its usual poses closer.
+        zoom = variant.zoom * float(clip.meta.get("view_zoom", 1.0))
         self.framing = zoomed(frame_camera(*(np.asarray(b, np.float64) for b in box), margin=1.0) if box
-                              else frame_camera(*clip.bounds()), variant.zoom)
+                              else frame_camera(*clip.bounds()), zoom)
         self.lights, lighting_info = emitters(self.mi, variant, self.framing, stream("lighting"))
         self.room = room_shapes(self.mi, variant, self.framing, stream("room"))
         self.camera = draw_camera(variant, stream("camera"))
@@ -374,6 +376,8 @@ class ClipRenderer:
             kind = value.get("type")
             if name == "sensor":
                 put("sensor.to_world", mi.AffineTransform4f(value["to_world"]))
+                # the field of view is the variant's and the motion's zoom: clips of two motions share a scene
+                params["sensor.x_fov"] = float(value["fov"])
             elif kind == "rectangle":
                 put(f"{name}.to_world", mi.AffineTransform4f(value["to_world"]))
                 if "emitter" in value:

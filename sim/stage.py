@@ -44,7 +44,7 @@ from sim.config import REMESHING, SimConfig
 from sim.intersections import count_intersections
 from sim.materials import load_material
 from sim.mesh import ClothMesh, square_cloth, unique_edges, vertices_per_side
-from sim.motions import MOTIONS, ClipScene, get_motion, view_box
+from sim.motions import MOTIONS, ClipScene, get_motion, view_box, view_zoom
 from sim.phases import timed
 from sim.solver import BatchSolver, CGStats, SolverParams, load_kernels, resolve_device
 
@@ -368,7 +368,7 @@ def simulate_batch(cfg: SimConfig, simulate: Callable[..., list[ClipResult]], sc
 def clip_meta(run: Run, setting: Setting, job: ClipJob, scene: ClipScene, labels: dict, substeps: int,
               mesh: ClothMesh) -> dict:
     """A clip's ``meta.json`` before its outcome (``health``, ``status``) is known: the clip, its labels,
-    the simulation's settings, the motion's draws and the setting's camera box."""
+    the simulation's settings, the motion's draws and the setting's camera box and zoom."""
     cfg = run.config.sim
     meta = {"clip_id": job.name, "index": job.index, "sequence": job.sequence, "setting": setting.name,
             "motion": setting.motion, "remeshing": setting.remeshing, **labels,
@@ -376,7 +376,7 @@ def clip_meta(run: Run, setting: Setting, job: ClipJob, scene: ClipScene, labels
             "dt": 1.0 / (cfg.fps * substeps), "settle_s": cfg.settle_s, "cloth_size_m": cfg.cloth_size_m,
             "vertices_per_side": vertices_per_side(cfg.grid_vertices, setting.level),
             "motion_params": scene.motion_params, "view_box": view_box(setting.motion, cfg.cloth_size_m),
-            "self_collision": cfg.self_collision}
+            "view_zoom": view_zoom(setting.motion), "self_collision": cfg.self_collision}
     if cfg.self_collision:
         meta["collision_thickness_m"] = cfg.collision_thickness
     return meta

@@ -8,6 +8,7 @@ import pytest
 from render.scene import ClipRenderer
 from render.synthetic import waving_sheet
 from render.variants import (USER_VARIANTS_ENV, VariantError, describe_variants, get_variant, list_variants)
+from sim.clip import SimClip
 
 
 def test_paper_grid_color_registered_and_paper_is_the_defaults():
@@ -87,3 +88,29 @@ def test_zoom_narrows_the_view_and_the_cloth_fills_more_of_the_frame():
     assert close_cover > 1.4 * wide_cover       # 1.3 x 1.3 = 1.69 times the pixels where the cloth stays in view
     with pytest.raises(VariantError, match="zoom must be positive"):
         type(paper)(name="bad", zoom=0.0)
+
+
+def test_a_motions_view_zoom_frames_its_clips_as_a_zoomed_look_would_and_the_two_multiply():
+    from sim.motions import get_motion
+
+    assert get_motion("arm").view_zoom == 1.3 and get_motion("wind").view_zoom == 1.0
+    sheet = waving_sheet(frames=1, n=8)
+    box = [[-0.4, -0.2, -0.2], [0.4, 0.6, 1.1]]     # a setting's camera box, as the sim writes it
+
+    def framed(variant, view_zoom=None):
+        meta = {**sheet.meta, "view_box": box, **({"view_zoom": view_zoom} if view_zoom else {})}
+        clip = SimClip.from_fixed(meta, sheet.frame(0)[0][None], sheet.faces, sheet.uv)
+        renderer = ClipRenderer(clip, get_variant(variant), resolution=32, spp=2, run_seed=0, clip_index=1,
+                                backend="scalar_rgb")
+        cover = float((renderer.render_frame(0).hdr[..., 3] > 0.5).mean())
+        return renderer.framing, cover, renderer.retargets
+
+    (box_only, cover, _), (by_motion, motion_cover, retargets) = framed("paper"), framed("paper", 1.3)
+    assert retargets == 1   # the second clip took the first's pooled scene: its field of view was written there
+    by_look, look_cover, _ = framed("close")
+    assert by_motion.fov_deg == pytest.approx(by_look.fov_deg) and motion_cover == pytest.approx(look_cover)
+    np.testing.assert_array_equal(by_motion.origin, box_only.origin)       # the camera stays where it was
+    assert motion_cover > 1.4 * cover
+    both, _, _ = framed("close", 1.3)
+    half_width = np.tan(np.radians(box_only.fov_deg) / 2), np.tan(np.radians(both.fov_deg) / 2)
+    assert half_width[0] == pytest.approx(1.3 * 1.3 * half_width[1])

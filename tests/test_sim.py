@@ -575,8 +575,9 @@ def test_run_sim_writes_skips_and_redoes(tmp_path):
         assert m["class_index"] == cls and m["status"] == "ok" and m["setting"] == "wind-uniform1"
         assert classes.nearest_class(m["p"], m["k"]) == cls
         for key in ("clip_id", "index", "motion", "remeshing", "p_class", "k_class", "basis", "density", "seed",
-                    "fps", "frames", "substeps", "dt", "motion_params", "view_box"):
+                    "fps", "frames", "substeps", "dt", "motion_params", "view_box", "view_zoom"):
             assert key in m
+        assert m["view_zoom"] == 1.0              # wind's cloth fills its box: no closer framing
         h = m["health"]                           # the solver's CG work on this clip
         assert h["cg_steps"] > 0 and 0 < h["cg_iterations_mean"] <= h["cg_iterations_max"] <= 30
         assert 0 <= h["cg_residual_max"] < 1
