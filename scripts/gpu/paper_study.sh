@@ -72,10 +72,12 @@ PY
   esac
 done
 cat "$RUN/gpu_timings.jsonl"
-# The report (images embedded) in a tarball of its own: the device brings back files of at most 16 MiB, and the
-# numbers must come back even when the report does not.
+# The report (images embedded) and the eval's per-clip predictions in tarballs of their own: the device brings back
+# files of at most 16 MiB (the queue leaves out the largest first), and the numbers must come back even when those
+# do not.
 cd "$RUN" && tar czf "$OUT/paper_study.tgz" config.json gpu_timings.jsonl train/index.json \
-  $(ls -d train/*/*/*/s*/metrics.csv train/*/*/*/s*/val_predictions.csv eval/*.csv eval/*.md eval/*.json eval/predictions 2>/dev/null) 2>/dev/null
+  $(ls -d train/*/*/*/s*/metrics.csv train/*/*/*/s*/val_predictions.csv eval/*.csv eval/*.md eval/*.json 2>/dev/null) 2>/dev/null
+[ -d eval/predictions ] && tar czf "$OUT/paper_study-predictions.tgz" eval/predictions
 [ -f report/report.html ] && tar czf "$OUT/paper_study-report.tgz" report/report.html
 ls -la "$OUT"
 exit $status
