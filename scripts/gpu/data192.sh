@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # GPU: a motion's uniform1 at 192 sequences a class, lrcn seeds 0 and 1 on all its training sequences against the
 # same seeds on half of them (train.train_fraction=0.5: the 96-a-class training set), the same validation and test
-# clips: the data-size lever of arm-data192.plan and wind-data192.plan.
+# clips: the data-size lever of arm-data192.plan (wind's is table3_shared.sh's `half` step: wind-t3-192.plan).
 #   bash scripts/gpu/data192.sh data MOTION       simulate and render /tmp/MOTION192 (the run is made on first use)
 #   bash scripts/gpu/data192.sh train MOTION      the four lrcn (four at a time over the lane's GPUs) and their table
 #   bash scripts/gpu/data192.sh compare MOTION    192 against 96 on validation windows (the choice) and test clips,

@@ -4,16 +4,20 @@
 # base1, base2 and base3 train their readers alone on lrcn's frozen CNN (train.shared_regressor=lrcn). In the
 # bottleneck recipe the class loss never reaches the CNN, so the four models train the same pixels -> lattice
 # regressor: a row costs two CNN trainings instead of about seven (at the preset's 192 sequences a class a row
-# wants two GPUs for one session: docs/learning.md, sixteenth session).
+# wants two GPUs for one session: docs/learning.md, sixteenth and seventeenth sessions).
 #   bash scripts/gpu/table3_shared.sh data RUN     simulate and render (the run is made on first use)
 #   bash scripts/gpu/table3_shared.sh train RUN    lrcn seeds 0 and 1, then the readers; with OWN=1 also base1
 #                                                  with its own CNN and base2 on that CNN (seed 0, recipe
 #                                                  `shared_regressor=base1+seeds=0`) beside them, for `own`
 #   bash scripts/gpu/table3_shared.sh lrcn RUN     lrcn seeds 0 and 1 alone (every look of LOOKS), before `looks`
+#                                                  or `half`; with HALF=1 also the same lrcn on half of each
+#                                                  class's training sequences (recipe train_fraction=0.5) beside
 #   bash scripts/gpu/table3_shared.sh looks RUN    lrcn in LOOKS' second look against the first, seeds pooled and
 #                                                  as ensembles, on validation windows (the choice) and test
 #                                                  clips (pooled_recipes.py); the look validation prefers goes
 #                                                  to RUN/chosen_look, the one `train` then trains readers on
+#   bash scripts/gpu/table3_shared.sh half RUN     lrcn on all training sequences against half of them (HALF=1's
+#                                                  models), the same way: what the data size buys
 #   bash scripts/gpu/table3_shared.sh eval RUN     eval and report: RUN/eval/table3.md
 #   bash scripts/gpu/table3_shared.sh own RUN      base1 and base2 of seed 0 reading lrcn's regressor against the
 #                                                  same models on their own CNN, paired by clip, on validation
@@ -24,83 +28,126 @@
 # resumes when called again. Exit status: 0 done, 75 call again, 1 failed. PLAN_SETS adds settings to the run
 # (a CPU dry run: sim.device=cpu, ...). Outputs go to $OUT.
 set -uo pipefail
-[ $# -eq 2 ] || { echo "usage: bash scripts/gpu/table3_shared.sh data|lrcn|looks|train|eval|own RUN" >&2; exit 2; }
+[ $# -eq 2 ] || { echo "usage: bash scripts/gpu/table3_shared.sh data|lrcn|looks|half|train|eval|own RUN" >&2; exit 2; }
 step=$1 run=$2
 here=$(cd "$(dirname "$0")" && pwd)
 source "$here/t3run.sh"
 out=${OUT:-/tmp}
 budget=${BUDGET:-560}
-own=shared_regressor=base1+seeds=0
+own=shared_regressor=base1+seeds=0 half=train_fraction=0.5
 export RUN=$run MOTIONS=$motion SPP=16
 looks=${LOOKS:-paper}
+IFS=, read -r first second _ <<< "$looks"
 export EXTRA="--set train.seeds=0,1 --set eval.seed_ensemble=true --set eval.measured_sequences=0 --set train.shared_regressor=lrcn --set render.variants=$looks ${PLAN_SETS:-}"
 source "$here/gpus.sh"
 # `train` after `looks`: the readers of the chosen look only
 chosen=$(cat "$run/chosen_look" 2>/dev/null)
 export TRAIN_ARGS="--parallel $((4 * ngpu))${chosen:+ --variant $chosen}"
+
+# beside NAME RECIPES:MODELS: learn_grid trains those recipes in the background, beside the step's own training, once
+# the first look's frame cache is built (else both would pack the same frames), within what the wait left of the
+# step's budget; its log and exit status go to $out/NAME.{log,rc}. Sets beside_pid.
+beside_pid=
+beside() {
+  ( for _ in $(seq 120); do ls "$run"/cache/"$first"/"$setting"/*.json > /dev/null 2>&1 && break; sleep 2; done
+    left=$((budget - SECONDS))
+    if [ $left -gt 90 ]; then
+      timeout $((left - 20)) python3 "$here/learn_grid.py" "$run" --setting "$setting" --variant "$first" \
+        --parallel 2 --deadline $((left - 60)) --job "$2" > "$out/$1.log" 2>&1
+      echo $? > "$out/$1.rc"
+    else
+      echo 124 > "$out/$1.rc"
+    fi ) &
+  beside_pid=$!
+}
+
+# beside_done NAME MODELS RECIPE SEEDS: waits for `beside` (in this shell: the job is its child), then turns rc from
+# 0 into 75 when one of its models is unfinished
+beside_done() {
+  local model seed
+  wait "$beside_pid"
+  grep -v UserWarning "$out/$1.log" 2>/dev/null | grep -e 'training call' -e Error
+  case $(cat "$out/$1.rc" 2>/dev/null) in 0|124|137) ;; *) echo "the models beside failed: $out/$1.log" ;; esac
+  for model in ${2//,/ }; do
+    for seed in $4; do
+      [ -f "$run/ablation/$3/$setting/$first/$model/s$seed/DONE" ] || { [ "$rc" = 0 ] && rc=75; }
+    done
+  done
+}
+
+# scored RECIPE LOOK: the recipe's two lrcn scored on their test clips (learn_grid's table writes each model's
+# test_predictions.csv), once
+scored() {
+  local name=lrcn-$setting-$2-${1//=/}      # (a table's name holds no "=")
+  [ -f "$run/eval/$name.json" ] && return 0
+  python3 "$here/learn_grid.py" "$run" --setting "$setting" --variant "$2" --table "$name=$1:lrcn" \
+    > "$out/$name-table.log" 2>&1 || { grep -v UserWarning "$out/$name-table.log" | tail -3; return 1; }
+  [ -f "$run/eval/$name.json" ] || { grep -v UserWarning "$out/$name-table.log" | tail -3; return 1; }
+}
+
+# compared NAME A B: lrcn seeds 0 and 1 of side A (LOOK:RECIPE) against side B, pooled and as ensembles, on
+# validation windows (the choice) and test clips: $out/NAME-{val,own}[-ensemble].json
+compared() {
+  local scored_on ens failed=0
+  for scored_on in val own; do
+    for ens in "" "--a-ensemble --b-ensemble"; do
+      echo "lrcn, $2 against $3, $scored_on${ens:+, ensembles}:"
+      python3 "$here/../pooled_recipes.py" "$run" --setting "$setting" --look $scored_on $ens \
+        --a "$2@0,${2#*:}@1" --b "$3@0,${3#*:}@1" > "$out/$1-$scored_on${ens:+-ensemble}.json" || failed=1
+    done
+  done
+  return $failed
+}
+
+# predictions NAME: every lrcn's test and validation predictions and curves under ablation/, as $out/NAME.tgz
+predictions() {
+  local parent base
+  parent=$(dirname "$run") base=$(basename "$run")
+  ( cd "$parent" && tar czf "$out/$1.tgz" $(ls "$base"/chosen_look 2>/dev/null) \
+      $(ls -d "$base"/ablation/*/*/*/lrcn/s*/{test,val}_predictions.csv "$base"/ablation/*/*/*/lrcn/s*/metrics.csv \
+        2>/dev/null) )
+}
+
 case $step in
   data) STAGES="sim render" bash "$here/paper_study.sh" ;;
   train)
-    pid=
-    if [ "${OWN:-0}" = 1 ]; then
-      # beside the row's training, once its frame cache is built (else both would pack the same frames), within
-      # what the wait left of the step's budget
-      ( for _ in $(seq 120); do ls "$run"/cache/paper/"$setting"/*.json > /dev/null 2>&1 && break; sleep 2; done
-        left=$((budget - SECONDS))
-        if [ $left -gt 90 ]; then
-          timeout $((left - 20)) python3 "$here/learn_grid.py" "$run" --setting "$setting" --variant paper \
-            --parallel 2 --deadline $((left - 60)) --job "$own:base1,base2" > "$out/own-cnn.log" 2>&1
-          echo $? > "$out/own-cnn.rc"
-        else
-          echo 124 > "$out/own-cnn.rc"
-        fi ) &
-      pid=$!
-    fi
+    [ "${OWN:-0}" = 1 ] && beside own-cnn "$own:base1,base2"
     STAGES=train bash "$here/paper_study.sh"
     rc=$?
-    if [ -n "$pid" ]; then
-      wait $pid
-      grep -v UserWarning "$out/own-cnn.log" 2>/dev/null | grep -e 'training call' -e Error
-      # the own-CNN models are the `own` step's check, not the row: their failure fails that step, not this one
-      case $(cat "$out/own-cnn.rc") in 0|124|137) ;; *) echo "the own-CNN models failed: $out/own-cnn.log" ;; esac
-      for model in base1 base2; do
-        [ -f "$run/ablation/$own/$setting/paper/$model/s0/DONE" ] || { [ $rc = 0 ] && rc=75; }
-      done
-    fi
+    # the own-CNN models are the `own` step's check, not the row: their failure fails that step, not this one
+    [ -n "$beside_pid" ] && beside_done own-cnn base1,base2 "$own" 0
     exit $rc ;;
-  lrcn) TRAIN_ARGS="--parallel $((4 * ngpu)) --model lrcn" STAGES=train bash "$here/paper_study.sh" ;;
+  lrcn)
+    [ "${HALF:-0}" = 1 ] && beside half "$half:lrcn"
+    TRAIN_ARGS="--parallel $((4 * ngpu)) --model lrcn" STAGES=train bash "$here/paper_study.sh"
+    rc=$?
+    [ -n "$beside_pid" ] && beside_done half lrcn "$half" "0 1"
+    exit $rc ;;
   looks)
-    IFS=, read -r ref look _ <<< "$looks"
-    [ -n "${look:-}" ] || { echo "looks: LOOKS names one look ($looks): nothing to compare" >&2; exit 1; }
-    # each look's two lrcn as the recipe `baseline` (the run's own: hard links, nothing retrained), scored on their
-    # test clips by learn_grid's table (test_predictions.csv), then compared
-    for v in "$ref" "$look"; do
+    [ -n "${second:-}" ] || { echo "looks: LOOKS names one look ($looks): nothing to compare" >&2; exit 1; }
+    # each look's two lrcn as the recipe `baseline` (the run's own: hard links, nothing retrained)
+    for v in "$first" "$second"; do
       for seed in 0 1; do link_trained lrcn "$seed" baseline "$v" || exit 1; done
-      python3 "$here/learn_grid.py" "$run" --setting "$setting" --variant "$v" \
-        --table "looks-$setting-$v=baseline:lrcn" > "$out/looks-$v-table.log" 2>&1 || exit 1
-      [ -f "$run/eval/looks-$setting-$v.json" ] || { grep -v UserWarning "$out/looks-$v-table.log"; exit 1; }
+      scored baseline "$v" || exit 1
     done
-    failed=0
-    for scored in val own; do
-      for ens in "" "--a-ensemble --b-ensemble"; do
-        name="looks-$motion-$look-$scored${ens:+-ensemble}"
-        echo "lrcn in $look against $ref, $scored${ens:+, ensembles}:"
-        python3 "$here/../pooled_recipes.py" "$run" --setting "$setting" --look $scored $ens \
-          --a "$look:baseline@0,baseline@1" --b "$ref:baseline@0,baseline@1" > "$out/$name.json" || failed=1
-      done
-    done
-    [ $failed = 0 ] || exit 1
+    compared "looks-$motion-$second" "$second:baseline" "$first:baseline" || exit 1
     # validation windows choose, seeds pooled: the look whose lrcn read more of them
-    python3 - "$out/looks-$motion-$look-val.json" "$look" "$ref" > "$run/chosen_look.partial" <<'PY' || exit 1
+    python3 - "$out/looks-$motion-$second-val.json" "$second" "$first" > "$run/chosen_look.partial" <<'PY' || exit 1
 import json, sys
 result, look, ref = json.load(open(sys.argv[1])), sys.argv[2], sys.argv[3]
 print(look if result["acc_a_minus_b"] > 0 else ref)
 PY
     mv "$run/chosen_look.partial" "$run/chosen_look"
     echo "validation chooses $(cat "$run/chosen_look") for the readers"
-    cd /tmp && tar czf "$out/looks-$motion.tgz" $(basename "$run")/chosen_look \
-      $(cd /tmp && ls -d $(basename "$run")/ablation/baseline/*/*/lrcn/s*/{test,val}_predictions.csv \
-        $(basename "$run")/ablation/baseline/*/*/lrcn/s*/metrics.csv) ;;
+    predictions "looks-$motion" ;;
+  half)
+    for seed in 0 1; do
+      [ -f "$run/ablation/$half/$setting/$first/lrcn/s$seed/DONE" ] || { echo "$half lrcn s$seed is not trained (HALF=1 lrcn)" >&2; exit 1; }
+      link_trained lrcn "$seed" baseline "$first" || exit 1
+    done
+    scored baseline "$first" && scored "$half" "$first" || exit 1
+    compared "half-$motion" "$first:baseline" "$first:$half" || exit 1
+    predictions "half-$motion" ;;
   eval) STAGES="eval report" bash "$here/paper_study.sh" && head -20 "$run/eval/table3.md" ;;
   own)
     # the row's seed-0 readers as the `seeds=0` recipe (the run's recipe with seed 0 alone: hard links, nothing
@@ -124,5 +171,5 @@ PY
       done
     done
     [ $failed = 0 ] ;;
-  *) echo "usage: bash scripts/gpu/table3_shared.sh data|lrcn|looks|train|eval|own RUN" >&2; exit 2 ;;
+  *) echo "usage: bash scripts/gpu/table3_shared.sh data|lrcn|looks|half|train|eval|own RUN" >&2; exit 2 ;;
 esac
