@@ -511,8 +511,8 @@ SIM_ANALYSES = ("table2", "sensitivity")
 def run_sim_analysis(run: Run, progress: bool = True) -> dict[str, str]:
     """The sim stage's analyses named in ``eval.sim_analysis`` into ``RUN/sim_analysis`` (kept when present).
 
-    ``table2``: the paper's Table 2 (``sim.analysis.table2``, no simulation);
-    ``sensitivity``: its Fig. 3 curves (``sim.analysis.sensitivity``, simulates on ``sim.device``).
+    ``table2``: the paper's Table 2 (``sim.analysis.table2``: the basis sweep and every fabric simulated);
+    ``sensitivity``: its Fig. 3 curves (``sim.analysis.sensitivity``). Both simulate on ``sim.device``.
     The same files as ``clothgap sim table2|sensitivity --out RUN/sim_analysis``.
     """
     unknown = [a for a in run.config.eval.sim_analysis if a not in SIM_ANALYSES]
@@ -525,13 +525,13 @@ def run_sim_analysis(run: Run, progress: bool = True) -> dict[str, str]:
         if not last.is_file():
             t0 = time.perf_counter()
             from sim import analysis
+            from sim.solver import resolve_device
 
+            device = resolve_device(run.config.sim.device)
             if name == "table2":
-                analysis.table2(out)
+                analysis.table2(out, device=device)
             else:
-                from sim.solver import resolve_device
-
-                analysis.sensitivity(out, device=resolve_device(run.config.sim.device))
+                analysis.sensitivity(out, device=device)
             if progress:
                 print(f"[eval] sim analysis {name}: {time.perf_counter() - t0:.1f} s", flush=True)
         done[name] = _rel(run, last)

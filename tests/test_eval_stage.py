@@ -271,3 +271,30 @@ def test_report_is_self_contained(tmp_path):
             (path.parent / ref).exists(), ref
     assert all(r.startswith("data:") for r in re.findall(r'src\s*=\s*"([^"]*)"', doc))
     assert "<link" not in doc and "@import" not in doc and "url(" not in doc
+
+
+def test_the_sim_analyses_simulate_on_the_runs_sim_device_and_are_kept_once_written(tmp_path, monkeypatch):
+    from eval.stage import run_sim_analysis
+    from sim import analysis
+
+    run = make_fake_run(tmp_path / "run", sim_analysis=("table2", "sensitivity"))
+    calls = []
+
+    def fake(name, last):
+        def write(out, device="cpu", **_):
+            calls.append((name, device))
+            (out / last).parent.mkdir(parents=True, exist_ok=True)
+            (out / last).write_text("x")
+        return write
+
+    monkeypatch.setattr(analysis, "table2", fake("table2", "table2.csv"))
+    monkeypatch.setattr(analysis, "sensitivity", fake("sensitivity", "sensitivity.png"))
+    from sim import solver
+
+    # the device the run's sim.device resolves to, here one a CPU machine would never pick by default
+    monkeypatch.setattr(solver, "resolve_device", lambda device: "cuda:7")
+    done = run_sim_analysis(run, progress=False)
+    assert calls == [("table2", "cuda:7"), ("sensitivity", "cuda:7")]   # Table 2 too: on a GPU run, on the GPU
+    assert done == {"table2": "sim_analysis/table2.csv", "sensitivity": "sim_analysis/sensitivity.png"}
+    run_sim_analysis(run, progress=False)
+    assert len(calls) == 2                                              # written files are kept
