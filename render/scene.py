@@ -318,7 +318,10 @@ class ClipRenderer:
                 return {k: shape(v) for k, v in entry.items() if k not in ("to_world", "value", "bitmap", "scale",
                                                                            "radiance", "irradiance", "direction")}
             return type(entry).__name__
+        # The field of view (the variant's zoom times the motion's, meta view_zoom) is not retargeted: a frozen
+        # render may have baked it in, so clips framed differently (wind and arm under one look) take two scenes.
         return json.dumps({"variant": self.variant.settings(), "resolution": self.resolution,
+                           "fov_deg": round(float(self.framing.fov_deg), 9),
                            "capacity": capacity, "lights": shape(self.lights), "room": shape(self.room)},
                           sort_keys=True, default=str)
 
@@ -376,8 +379,6 @@ class ClipRenderer:
             kind = value.get("type")
             if name == "sensor":
                 put("sensor.to_world", mi.AffineTransform4f(value["to_world"]))
-                # the field of view is the variant's and the motion's zoom: clips of two motions share a scene
-                params["sensor.x_fov"] = float(value["fov"])
             elif kind == "rectangle":
                 put(f"{name}.to_world", mi.AffineTransform4f(value["to_world"]))
                 if "emitter" in value:

@@ -83,7 +83,8 @@ class RenderVariant:
     max_depth: int = 4                      # path length (light bounces + 1)
     zoom: float = 1.0                       # the camera's field of view narrowed by this factor from where it
                                             # stands (>1: the cloth fills more of the frame; the lights and room
-                                            # stay where they were; a cloth that moves far may leave the frame)
+                                            # stay where they were; a cloth that moves far may leave the frame),
+                                            # times the clip's own view_zoom (sim.arm_view_zoom for arm clips)
 
     def __post_init__(self) -> None:
         for key, allowed in CHOICES.items():

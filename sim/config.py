@@ -44,6 +44,8 @@ class SimConfig:
                                                     # "the external force magnitude"); rod pose, fixed gathering
     arm_nuisance: str = "full"                      # "full": the cloth's place on the arm and the forearm's speed
                                                     # drawn per clip; "speed": only the speed, the cloth centred
+    arm_view_zoom: float = 1.0                      # the arm camera's field of view narrowed by this factor from
+                                                    # its view box (meta view_zoom; the paper preset: 1.3)
 
     def problems(self) -> list[str]:
         """What is wrong with these settings, one message each (empty when they are valid)."""
@@ -82,6 +84,7 @@ class SimConfig:
                            f"{self.cloth_size_m:g} m cloth, level {self.finest_level()})")
         out += checks.choice("sim.wind_nuisance", self.wind_nuisance, WIND_NUISANCE)
         out += checks.choice("sim.arm_nuisance", self.arm_nuisance, ARM_NUISANCE)
+        out += checks.number("sim.arm_view_zoom", self.arm_view_zoom, 0, lo_open=True)
         out += checks.device("sim.device", self.device)
         return out
 

@@ -259,11 +259,12 @@ class Motion:
     # setting, as the paper's "controlled camera settings": a cloth that stretches, sags or swings more then
     # looks bigger or moves further in the image (a camera framed on each clip would scale that away).
     view_box: Callable[[float], tuple[list[float], list[float]]]
-    # The camera's field of view narrowed by this factor from the box's framing (``meta["view_zoom"]``, which
-    # render multiplies into a variant's own zoom): the box holds the rarest poses, so where the cloth's usual
-    # poses fill only part of it the camera frames them closer, and a few pixels of an extreme pose may leave
-    # the frame. Chosen per motion on validation windows (docs/learning.md, seventeenth session).
-    view_zoom: float = 1.0
+    # cfg (sim.config.SimConfig) -> the camera's field of view narrowed by this factor from the box's framing
+    # (``meta["view_zoom"]``, which render multiplies into a variant's own zoom): the box holds the rarest poses,
+    # so where the cloth's usual poses fill only part of it a setting may frame them closer, and a few pixels of
+    # an extreme pose then leave the frame. A setting of the run (sim.arm_view_zoom), so that a run's clips share
+    # one framing whatever code resumes it.
+    view_zoom: Callable[[object], float] = lambda cfg: 1.0
 
 
 def _wind_clip(mesh: ClothMesh, material: Material, rng: np.random.Generator, cfg) -> ClipScene:
@@ -278,9 +279,9 @@ def _arm_clip(mesh: ClothMesh, material: Material, rng: np.random.Generator, cfg
 MOTIONS: dict[str, Motion] = {m.name: m for m in (
     Motion("wind", "a gathered cloth hanging from a rod or its corners, blown by a constant wind "
                    "(sim.wind_nuisance: what is drawn per clip)", _wind_clip, wind_view_box),
-    # arm's cloth is wide and low in its box: framed 1.3x closer, lrcn read +8.7 points of new arm simulations
     Motion("arm", f"a cloth draped over a capsule arm whose forearm swings through {ARM_ANGLE_DEG:g} degrees "
-                  "(sim.arm_nuisance: what is drawn per clip)", _arm_clip, arm_view_box, view_zoom=1.3),
+                  "(sim.arm_nuisance: what is drawn per clip; sim.arm_view_zoom: how close the camera frames it)",
+           _arm_clip, arm_view_box, view_zoom=lambda cfg: cfg.arm_view_zoom),
 )}
 
 
@@ -296,9 +297,10 @@ def view_box(motion: str, size_m: float) -> tuple[list[float], list[float]]:
     return get_motion(motion).view_box(size_m)
 
 
-def view_zoom(motion: str) -> float:
-    """How much closer than its ``view_box`` the camera frames ``motion`` (``Motion.view_zoom``)."""
-    return get_motion(motion).view_zoom
+def view_zoom(motion: str, cfg) -> float:
+    """How much closer than its ``view_box`` the camera frames ``motion`` under sim settings ``cfg``
+    (``Motion.view_zoom``)."""
+    return float(get_motion(motion).view_zoom(cfg))
 
 
 def describe_motions() -> str:

@@ -376,7 +376,7 @@ def clip_meta(run: Run, setting: Setting, job: ClipJob, scene: ClipScene, labels
             "dt": 1.0 / (cfg.fps * substeps), "settle_s": cfg.settle_s, "cloth_size_m": cfg.cloth_size_m,
             "vertices_per_side": vertices_per_side(cfg.grid_vertices, setting.level),
             "motion_params": scene.motion_params, "view_box": view_box(setting.motion, cfg.cloth_size_m),
-            "view_zoom": view_zoom(setting.motion), "self_collision": cfg.self_collision}
+            "view_zoom": view_zoom(setting.motion, cfg), "self_collision": cfg.self_collision}
     if cfg.self_collision:
         meta["collision_thickness_m"] = cfg.collision_thickness
     return meta

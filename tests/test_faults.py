@@ -180,6 +180,9 @@ def test_config_json_with_unknown_or_missing_settings_is_never_silently_defaulte
     with pytest.warns(UserWarning, match="sim.self_collision, train.bottleneck"):
         assert Run.open(run.root).config.sim.self_collision is False
     assert json.loads(path.read_text())["sim"]["self_collision"] is False
+    write(lambda d: d["sim"].pop("arm_view_zoom"))             # runs before it framed arm by its camera box alone
+    with pytest.warns(UserWarning, match="sim.arm_view_zoom"):
+        assert Run.open(run.root).config.sim.arm_view_zoom == 1.0
 
 
 @pytest.mark.skipif(not can_mount_tmpfs(), reason="needs unshare and tmpfs for a real read-only folder")

@@ -91,9 +91,13 @@ def test_zoom_narrows_the_view_and_the_cloth_fills_more_of_the_frame():
 
 
 def test_a_motions_view_zoom_frames_its_clips_as_a_zoomed_look_would_and_the_two_multiply():
-    from sim.motions import get_motion
+    from clothgap.config import preset
+    from sim.config import SimConfig
+    from sim.motions import view_zoom
 
-    assert get_motion("arm").view_zoom == 1.3 and get_motion("wind").view_zoom == 1.0
+    paper = preset("paper").sim
+    assert view_zoom("arm", paper) == paper.arm_view_zoom == 1.3 and view_zoom("wind", paper) == 1.0
+    assert view_zoom("arm", SimConfig()) == 1.0        # the setting's default: runs made before it, framed by the box
     sheet = waving_sheet(frames=1, n=8)
     box = [[-0.4, -0.2, -0.2], [0.4, 0.6, 1.1]]     # a setting's camera box, as the sim writes it
 
@@ -103,10 +107,11 @@ def test_a_motions_view_zoom_frames_its_clips_as_a_zoomed_look_would_and_the_two
         renderer = ClipRenderer(clip, get_variant(variant), resolution=32, spp=2, run_seed=0, clip_index=1,
                                 backend="scalar_rgb")
         cover = float((renderer.render_frame(0).hdr[..., 3] > 0.5).mean())
-        return renderer.framing, cover, renderer.retargets
+        return renderer.framing, cover, renderer.rebuilds
 
-    (box_only, cover, _), (by_motion, motion_cover, retargets) = framed("paper"), framed("paper", 1.3)
-    assert retargets == 1   # the second clip took the first's pooled scene: its field of view was written there
+    (box_only, cover, _), (by_motion, motion_cover, rebuilds) = framed("paper"), framed("paper", 1.3)
+    assert rebuilds == 1    # not the first clip's pooled scene: a frozen render may have its field of view baked in
+    assert framed("paper")[2] == 0                                       # the same framing takes it again
     by_look, look_cover, _ = framed("close")
     assert by_motion.fov_deg == pytest.approx(by_look.fov_deg) and motion_cover == pytest.approx(look_cover)
     np.testing.assert_array_equal(by_motion.origin, box_only.origin)       # the camera stays where it was

@@ -20,8 +20,9 @@
 #                                                  models), the same way: what the data size buys
 #   bash scripts/gpu/table3_shared.sh eval RUN     eval and report: RUN/eval/table3.md
 #   bash scripts/gpu/table3_shared.sh own RUN      base1 and base2 of seed 0 reading lrcn's regressor against the
-#                                                  same models on their own CNN, paired by clip, on validation
-#                                                  windows (the choice) and test clips (pooled_recipes.py)
+#                                                  same models on their own CNN (OWN=1's), paired by clip, on
+#                                                  validation windows (the choice) and test clips
+#                                                  (pooled_recipes.py); in LOOKS' first look
 # LOOKS (default paper): the render variants the run renders, comma-separated (e.g. paper,close: a look against
 # the paper's, lrcn trained on each, the readers on the one validation chooses).
 # RUN's name after "t3" is the motion (/tmp/t3wind: wind-uniform1). BUDGET (seconds) bounds a step; every step
@@ -62,12 +63,15 @@ beside() {
 }
 
 # beside_done NAME MODELS RECIPE SEEDS: waits for `beside` (in this shell: the job is its child), then turns rc from
-# 0 into 75 when one of its models is unfinished
+# 0 into 75 when one of its models is unfinished for time; a failure of theirs is left to the step that needs them
 beside_done() {
   local model seed
   wait "$beside_pid"
   grep -v UserWarning "$out/$1.log" 2>/dev/null | grep -e 'training call' -e Error
-  case $(cat "$out/$1.rc" 2>/dev/null) in 0|124|137) ;; *) echo "the models beside failed: $out/$1.log" ;; esac
+  case $(cat "$out/$1.rc" 2>/dev/null) in
+    0|124|137) ;;
+    *) echo "the models beside failed ($out/$1.log): the step that reads them will say so"; return ;;
+  esac
   for model in ${2//,/ }; do
     for seed in $4; do
       [ -f "$run/ablation/$3/$setting/$first/$model/s$seed/DONE" ] || { [ "$rc" = 0 ] && rc=75; }
@@ -99,13 +103,14 @@ compared() {
   return $failed
 }
 
-# predictions NAME: every lrcn's test and validation predictions and curves under ablation/, as $out/NAME.tgz
+# predictions NAME: every lrcn's test and validation predictions and curves under ablation/, as $out/NAME.tgz (a
+# failure to pack is said, not the step's: its results are in the run and the JSONs beside)
 predictions() {
   local parent base
   parent=$(dirname "$run") base=$(basename "$run")
   ( cd "$parent" && tar czf "$out/$1.tgz" $(ls "$base"/chosen_look 2>/dev/null) \
       $(ls -d "$base"/ablation/*/*/*/lrcn/s*/{test,val}_predictions.csv "$base"/ablation/*/*/*/lrcn/s*/metrics.csv \
-        2>/dev/null) )
+        2>/dev/null) ) || echo "predictions: $out/$1.tgz not packed"
 }
 
 case $step in
@@ -155,10 +160,10 @@ PY
     # and compared
     ref=seeds=0
     for model in base1 base2; do
-      [ -f "$run/ablation/$own/$setting/paper/$model/s0/DONE" ] || { echo "$own $model is not trained" >&2; exit 1; }
-      link_trained "$model" 0 "$ref" || exit 1
+      [ -f "$run/ablation/$own/$setting/$first/$model/s0/DONE" ] || { echo "$own $model is not trained" >&2; exit 1; }
+      link_trained "$model" 0 "$ref" "$first" || exit 1
     done
-    python3 "$here/learn_grid.py" "$run" --setting "$setting" --variant paper \
+    python3 "$here/learn_grid.py" "$run" --setting "$setting" --variant "$first" \
       --table "own-cnn-$setting=$ref,$own:base1,base2" > "$out/own-cnn-table.log" 2>&1 || exit 1
     grep -v UserWarning "$out/own-cnn-table.log" | grep -e '|' -e Error
     [ -f "$run/eval/own-cnn-$setting.json" ] || exit 1
@@ -167,7 +172,7 @@ PY
       for look in val own; do
         echo "$model on lrcn's regressor against its own CNN, seed 0, $look:"
         python3 "$here/../pooled_recipes.py" "$run" --setting "$setting" --model "$model" --look "$look" \
-          --a "paper:$ref@0" --b "paper:$own@0" > "$out/own-$motion-$model-$look.json" || failed=1
+          --a "$first:$ref@0" --b "$first:$own@0" > "$out/own-$motion-$model-$look.json" || failed=1
       done
     done
     [ $failed = 0 ] ;;
