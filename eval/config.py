@@ -21,7 +21,7 @@ class EvalConfig:
     measured_variant: str = "heldout"       # render variant of the measured clips: one no model trains on
     measured_fabrics: tuple[str, ...] = ()  # assets/materials names; empty = the ten fabrics of the paper's Table 2
     # The sim stage's material analyses run by `clothgap eval` into RUN/sim_analysis (the report shows them):
-    # "table2" (the paper's Table 2, no simulation) and/or "sensitivity" (Fig. 3, simulates).
+    # "table2" (the paper's Table 2) and/or "sensitivity" (Fig. 3); both simulate, on sim.device.
     sim_analysis: tuple[str, ...] = ()
     # Cells of two or more seeds are also scored as one model, the seeds' class probabilities averaged per
     # window (model ``<model>-avg<N>`` in every table), beside the seeds pooled.

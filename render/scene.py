@@ -13,7 +13,7 @@ Scenes outlive clips (``ScenePool``). Building a Mitsuba scene is cheap, but
 on ``cuda_ad_rgb`` every new scene costs a fresh OptiX compile of the path
 tracer (about 0.5 s on an H100, against 1.6 ms of GPU time per 224 px, 16 spp
 frame), so a clip does not build its own: it takes a pooled scene of the same
-structure (variant, light and room layout, mesh capacity) and retargets it in
+structure (variant, field of view, light and room layout, mesh capacity) and retargets it in
 place, writing its camera, lights, room and texture in through ``mi.traverse``.
 Meshes are allocated for a capacity and padded (unreferenced vertices,
 degenerate faces that no ray hits), so clips and remeshed frames of different
@@ -211,7 +211,8 @@ class ClipRenderer:
         # (synthetic clips, garments, runs simulated before view_box existed).
         box = clip.meta.get("view_box")
         # The view box already holds every pose with room to spare, so it is framed without a margin; the
-        # motion's own zoom (``view_zoom``, absent before motions had one) frames its usual poses closer.
+        # setting's zoom (``view_zoom``: sim.arm_view_zoom for arm clips; absent in clips simulated before it)
+        # frames the usual poses closer.
         zoom = variant.zoom * float(clip.meta.get("view_zoom", 1.0))
         self.framing = zoomed(frame_camera(*(np.asarray(b, np.float64) for b in box), margin=1.0) if box
                               else frame_camera(*clip.bounds()), zoom)

@@ -153,6 +153,14 @@ def test_settings_change_freely_until_their_stage_has_finished_work(tmp_path):
     assert Run.create_or_resume(root, grown).config == grown
     with pytest.raises(ConfigError, match=r"train.models lrcn,base1 -> base1"):
         Run.create_or_resume(root, apply_overrides(grown, ["train.models=base1"]))
+    # an arm setting shapes arm clips only: free on a run that has none, refused once it has
+    framed = apply_overrides(grown, ["sim.arm_view_zoom=1.3", "sim.arm_nuisance=speed"])
+    assert Run.create_or_resume(root, framed).config.sim.arm_view_zoom == 1.3        # the smoke run is wind only
+    with_arm = apply_overrides(framed, ["sim.motions=wind,arm"])
+    Run.create_or_resume(root, with_arm)
+    mark_done(root / "sim" / "arm-uniform1" / "c00000")
+    with pytest.raises(ConfigError, match=r"sim.arm_view_zoom 1.3 -> 1.0 \(sim, train work is done\)"):
+        Run.create_or_resume(root, apply_overrides(with_arm, ["sim.arm_view_zoom=1"]))
 
 
 def test_config_file_then_set(tmp_path):

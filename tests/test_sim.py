@@ -827,3 +827,15 @@ def test_adaptive_rebuilds_free_the_replaced_solvers(monkeypatch):
     assert len(solvers) >= 3, "the settled solver and at least two rebuilds"
     assert any(len({len(f[0]) for f in r.frames}) > 1 for r in results), "some cloth should change topology"
     assert alive == 0 and len(set(live)) == 1, (alive, live)
+
+
+def test_arm_clips_record_the_runs_view_zoom_and_wind_clips_none(tmp_path):
+    """The arm camera's zoom is a setting of the run (sim.arm_view_zoom), written into each arm clip's meta.json
+    for render; wind clips stay framed by their box."""
+    from sim.stage import run_sim
+
+    run = tiny_sim_run(tmp_path / "r", motions=("wind", "arm"), arm_view_zoom=1.3)
+    run_sim(run, progress=False)
+    for setting, zoom in (("arm-uniform1", 1.3), ("wind-uniform1", 1.0)):
+        metas = [SimClip.load(run.sim_dir(setting) / clip_id(i)).meta for i in (0, 1)]
+        assert [m["view_zoom"] for m in metas] == [zoom, zoom]

@@ -17,12 +17,14 @@
 #                                                  clips (pooled_recipes.py); the look validation prefers goes
 #                                                  to RUN/chosen_look, the one `train` then trains readers on
 #   bash scripts/gpu/table3_shared.sh half RUN     lrcn on all training sequences against half of them (HALF=1's
-#                                                  models), the same way: what the data size buys
+#                                                  models), the same way, in LOOKS' first look: what the data
+#                                                  size buys
 #   bash scripts/gpu/table3_shared.sh eval RUN     eval and report: RUN/eval/table3.md
 #   bash scripts/gpu/table3_shared.sh own RUN      base1 and base2 of seed 0 reading lrcn's regressor against the
 #                                                  same models on their own CNN (OWN=1's), paired by clip, on
 #                                                  validation windows (the choice) and test clips
-#                                                  (pooled_recipes.py); in LOOKS' first look
+#                                                  (pooled_recipes.py); in the readers' look (the chosen one,
+#                                                  else LOOKS' first)
 # LOOKS (default paper): the render variants the run renders, comma-separated (e.g. paper,close: a look against
 # the paper's, lrcn trained on each, the readers on the one validation chooses).
 # RUN's name after "t3" is the motion (/tmp/t3wind: wind-uniform1). BUDGET (seconds) bounds a step; every step
@@ -44,16 +46,19 @@ source "$here/gpus.sh"
 # `train` after `looks`: the readers of the chosen look only
 chosen=$(cat "$run/chosen_look" 2>/dev/null)
 export TRAIN_ARGS="--parallel $((4 * ngpu))${chosen:+ --variant $chosen}"
+# the look the readers train on: the chosen one, else the first (where `own` checks them and `beside` trains)
+row_look=${chosen:-$first}
 
-# beside NAME RECIPES:MODELS: learn_grid trains those recipes in the background, beside the step's own training, once
-# the first look's frame cache is built (else both would pack the same frames), within what the wait left of the
-# step's budget; its log and exit status go to $out/NAME.{log,rc}. Sets beside_pid.
-beside_pid=
+# beside NAME RECIPES:MODELS LOOK: learn_grid trains those recipes in the background on LOOK, beside the step's own
+# training, once that look's frame cache is built (else both would pack the same frames), within what the wait left
+# of the step's budget; its log and exit status go to $out/NAME.{log,rc}. Sets beside_pid and beside_look.
+beside_pid= beside_look=
 beside() {
-  ( for _ in $(seq 120); do ls "$run"/cache/"$first"/"$setting"/*.json > /dev/null 2>&1 && break; sleep 2; done
+  beside_look=$3
+  ( for _ in $(seq 120); do ls "$run"/cache/"$beside_look"/"$setting"/*.json > /dev/null 2>&1 && break; sleep 2; done
     left=$((budget - SECONDS))
     if [ $left -gt 90 ]; then
-      timeout $((left - 20)) python3 "$here/learn_grid.py" "$run" --setting "$setting" --variant "$first" \
+      timeout $((left - 20)) python3 "$here/learn_grid.py" "$run" --setting "$setting" --variant "$beside_look" \
         --parallel 2 --deadline $((left - 60)) --job "$2" > "$out/$1.log" 2>&1
       echo $? > "$out/$1.rc"
     else
@@ -74,7 +79,7 @@ beside_done() {
   esac
   for model in ${2//,/ }; do
     for seed in $4; do
-      [ -f "$run/ablation/$3/$setting/$first/$model/s$seed/DONE" ] || { [ "$rc" = 0 ] && rc=75; }
+      [ -f "$run/ablation/$3/$setting/$beside_look/$model/s$seed/DONE" ] || { [ "$rc" = 0 ] && rc=75; }
     done
   done
 }
@@ -116,14 +121,15 @@ predictions() {
 case $step in
   data) STAGES="sim render" bash "$here/paper_study.sh" ;;
   train)
-    [ "${OWN:-0}" = 1 ] && beside own-cnn "$own:base1,base2"
+    [ "${OWN:-0}" = 1 ] && beside own-cnn "$own:base1,base2" "$row_look"
     STAGES=train bash "$here/paper_study.sh"
     rc=$?
     # the own-CNN models are the `own` step's check, not the row: their failure fails that step, not this one
     [ -n "$beside_pid" ] && beside_done own-cnn base1,base2 "$own" 0
     exit $rc ;;
   lrcn)
-    [ "${HALF:-0}" = 1 ] && beside half "$half:lrcn"
+    # (before `looks` chooses: the first look, as `half` reads them)
+    [ "${HALF:-0}" = 1 ] && beside half "$half:lrcn" "$first"
     TRAIN_ARGS="--parallel $((4 * ngpu)) --model lrcn" STAGES=train bash "$here/paper_study.sh"
     rc=$?
     [ -n "$beside_pid" ] && beside_done half lrcn "$half" "0 1"
@@ -160,10 +166,10 @@ PY
     # and compared
     ref=seeds=0
     for model in base1 base2; do
-      [ -f "$run/ablation/$own/$setting/$first/$model/s0/DONE" ] || { echo "$own $model is not trained" >&2; exit 1; }
-      link_trained "$model" 0 "$ref" "$first" || exit 1
+      [ -f "$run/ablation/$own/$setting/$row_look/$model/s0/DONE" ] || { echo "$own $model is not trained" >&2; exit 1; }
+      link_trained "$model" 0 "$ref" "$row_look" || exit 1
     done
-    python3 "$here/learn_grid.py" "$run" --setting "$setting" --variant "$first" \
+    python3 "$here/learn_grid.py" "$run" --setting "$setting" --variant "$row_look" \
       --table "own-cnn-$setting=$ref,$own:base1,base2" > "$out/own-cnn-table.log" 2>&1 || exit 1
     grep -v UserWarning "$out/own-cnn-table.log" | grep -e '|' -e Error
     [ -f "$run/eval/own-cnn-$setting.json" ] || exit 1
@@ -172,7 +178,7 @@ PY
       for look in val own; do
         echo "$model on lrcn's regressor against its own CNN, seed 0, $look:"
         python3 "$here/../pooled_recipes.py" "$run" --setting "$setting" --model "$model" --look "$look" \
-          --a "$first:$ref@0" --b "$first:$own@0" > "$out/own-$motion-$model-$look.json" || failed=1
+          --a "$row_look:$ref@0" --b "$row_look:$own@0" > "$out/own-$motion-$model-$look.json" || failed=1
       done
     done
     [ $failed = 0 ] ;;
