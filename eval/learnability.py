@@ -182,10 +182,14 @@ def probe(run: Run, setting: str, clip_len: int = 10, stride: int = 10, test_fra
             y = all_targets[target]
             for kind in classifiers:
                 pred = fit_predict(kind, x[tr], y[tr], x[te], classes, seed)
+                right = pred == y[te]
+                # per true bin of a factor (its grid index): which stiffnesses the geometry tells apart
+                by_bin = ({"accuracy_by_true_bin": {int(b): float(right[y[te] == b].mean())
+                                                    for b in np.unique(y[te])}} if target != "class" else {})
                 results.append({"protocol": protocol, "target": target, "classifier": kind,
-                                "accuracy": float((pred == y[te]).mean()), "chance": 1.0 / classes,
+                                "accuracy": float(right.mean()), "chance": 1.0 / classes,
                                 "within_one_bin": within_one_bin(target, pred, y[te]),
-                                "train_windows": int(len(tr)), "test_windows": int(len(te))})
+                                "train_windows": int(len(tr)), "test_windows": int(len(te)), **by_bin})
     return {"setting": setting, "source": f"pixels of {pixels}" if pixels else "geometry",
             "clips": int(len(first)), "windows": int(len(x)), "clip_len": clip_len,
             "stride": stride, "features": int(x.shape[1]), "lattice": LATTICE, "results": results,

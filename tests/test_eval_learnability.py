@@ -48,6 +48,13 @@ def test_probe_reads_the_class_when_the_geometry_carries_it(tmp_path):
     assert _acc(report, "sequence", "class", "linear") > 0.9
     assert _acc(report, "sequence", "stretching", "linear") > 0.9
     assert _acc(report, "sequence", "bending", "nearest") > 0.75
+    # per true bin of each factor: the bins the test windows hold, their accuracies averaging to the whole
+    row = next(r for r in report["results"] if (r["protocol"], r["target"], r["classifier"]) ==
+               ("sequence", "stretching", "linear"))
+    bins = row["accuracy_by_true_bin"]
+    assert len(bins) >= 2 and all(0.0 <= a <= 1.0 for a in bins.values())
+    assert min(bins.values()) <= row["accuracy"] <= max(bins.values())
+    assert all("accuracy_by_true_bin" not in r for r in report["results"] if r["target"] == "class")
 
 
 def test_probe_measures_the_leak_of_the_split_by_subsequence(tmp_path):
