@@ -80,8 +80,8 @@ class StudyConfig:
                 continue
             if key in GROWING_SETTINGS and set(before) <= set(after):
                 continue
-            if key.startswith("sim.arm_") and "arm" not in old.sim.motions:
-                continue                    # an arm setting shapes arm clips only, and the run has none yet
+            if _motion_of_setting(key) not in (None, *old.sim.motions):
+                continue                    # it shapes one motion's clips only, and the run has none of them yet
             if key == "render.variant_settings":
                 settings = self.sim.settings()
                 if all(set(old.render.settings_of(v, settings)) <= set(self.render.settings_of(v, settings))
@@ -261,6 +261,14 @@ DEFAULT_KEEPS_OLD_BEHAVIOUR = frozenset({"sim.self_collision", "sim.collision_th
                                          "train.shared_regressor", "train.reader_epochs", "sim.arm_view_zoom"})
 # Lists a resumed run may extend: an item more is more work downstream, nothing finished changes.
 GROWING_SETTINGS = frozenset({"sim.motions", "sim.remeshing", "render.variants", "train.models", "train.seeds"})
+
+def _motion_of_setting(key: str) -> str | None:
+    """The motion whose clips alone read sim setting ``key`` (``sim.motions.Motion.settings``), else None."""
+    from sim.motions import MOTIONS          # numpy only
+
+    name = key.removeprefix("sim.") if key.startswith("sim.") else None
+    return next((m.name for m in MOTIONS.values() if name in m.settings), None)
+
 
 # The names callers use; the config itself holds the logic (clothgap.runs reaches it through the instance).
 STAGES = StudyConfig.STAGES

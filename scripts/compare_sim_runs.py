@@ -7,7 +7,7 @@ distribution moved. For each clip id finished in both runs this pairs, new minus
 - the CG iterations a step (``health.cg_iterations_mean``);
 - the cloth's mean height, its vertical and horizontal extent, and its mean speed per frame, averaged over frames;
 
-each with a 95 % interval from resampling clips, beside the spread of the old run's clips (so a shift reads against
+each with a 95 % interval from resampling clips (``eval.metrics.bootstrap_mean``), beside the spread of the old run's clips (so a shift reads against
 how much clips differ anyway). It also gives the last frame's RMS vertex distance between the two versions of one
 clip against that between two sequences of one class in the old run: rounding chaos keeps the first below the
 second.
@@ -27,15 +27,16 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from clothgap.runs import is_done  # noqa: E402
+from eval.metrics import bootstrap_mean  # noqa: E402
 from sim.clip import SimClip  # noqa: E402
 
 SHAPES = ("mean_height_m", "vertical_extent_m", "horizontal_extent_m", "speed_m_per_frame")
 
 
-def clip_frames(folder: Path) -> np.ndarray:
-    """A uniform clip's positions, (frames, vertices, 3)."""
+def load_clip(folder: Path) -> tuple[dict, np.ndarray]:
+    """A uniform clip's meta and positions, (frames, vertices, 3), read once."""
     clip = SimClip.load(folder)
-    return np.stack([clip.frame(t)[0] for t in range(clip.num_frames)])
+    return clip.meta, np.stack([positions for positions, _, _ in clip.frames()])
 
 
 def shape_summary(frames: np.ndarray) -> dict[str, float]:
@@ -47,13 +48,7 @@ def shape_summary(frames: np.ndarray) -> dict[str, float]:
             "speed_m_per_frame": float(np.linalg.norm(np.diff(frames, axis=0), axis=-1).mean())}
 
 
-def mean_interval(values, rng: np.random.Generator, resamples: int = 2000) -> dict[str, float]:
-    x = np.asarray(values, np.float64)
-    boots = x[rng.integers(0, len(x), (resamples, len(x)))].mean(axis=1)
-    return {"mean": float(x.mean()), "lo": float(np.percentile(boots, 2.5)), "hi": float(np.percentile(boots, 97.5))}
-
-
-def compare(old_run: Path, new_run: Path, setting: str, seed: int = 0) -> dict:
+def compare(old_run: Path, new_run: Path, setting: str) -> dict:
     old_dir, new_dir = old_run / "sim" / setting, new_run / "sim" / setting
     ids = sorted(p.name for p in old_dir.iterdir() if is_done(p) and is_done(new_dir / p.name)) \
         if old_dir.is_dir() and new_dir.is_dir() else []
@@ -64,11 +59,10 @@ def compare(old_run: Path, new_run: Path, setting: str, seed: int = 0) -> dict:
     old_values = {k: [] for k in SHAPES}
     drift, by_class = [], {}
     for cid in ids:
-        old_meta, new_meta = (SimClip.load(d / cid).meta for d in (old_dir, new_dir))
+        (old_meta, old), (new_meta, new) = load_clip(old_dir / cid), load_clip(new_dir / cid)
         if old_meta["class_index"] != new_meta["class_index"]:
             raise SystemExit(f"compare_sim_runs: {cid} is class {old_meta['class_index']} in {old_run} and "
                              f"{new_meta['class_index']} in {new_run}: not runs of the same seeds and settings")
-        old, new = clip_frames(old_dir / cid), clip_frames(new_dir / cid)
         differences["cg_iterations_mean"].append(new_meta["health"]["cg_iterations_mean"]
                                                  - old_meta["health"]["cg_iterations_mean"])
         s_old, s_new = shape_summary(old), shape_summary(new)
@@ -79,10 +73,13 @@ def compare(old_run: Path, new_run: Path, setting: str, seed: int = 0) -> dict:
         by_class.setdefault(old_meta["class_index"], []).append(old[-1])
     between = [float(np.sqrt(((a - b) ** 2).sum(-1).mean()))
                for last in by_class.values() for i, a in enumerate(last) for b in last[i + 1:]]
-    rng = np.random.default_rng(seed)
+    def interval(values) -> dict[str, float]:             # one value a clip: resampled clip by clip
+        estimate = bootstrap_mean(values, ids)
+        return {"mean": estimate.value, "lo": estimate.low, "hi": estimate.high}
+
     return {
         "old_run": str(old_run), "new_run": str(new_run), "setting": setting, "clips": len(ids),
-        "new_minus_old": {k: mean_interval(v, rng) for k, v in differences.items()},
+        "new_minus_old": {k: interval(v) for k, v in differences.items()},
         "old_spread_across_clips": {k: float(np.std(v)) for k, v in old_values.items()},
         "last_frame_rms_m": {
             "same_clip_old_vs_new": {"median": float(np.median(drift)), "mean": float(np.mean(drift)),

@@ -265,6 +265,8 @@ class Motion:
     # an extreme pose then leave the frame. A setting of the run (sim.arm_view_zoom), so that a run's clips share
     # one framing whatever code resumes it.
     view_zoom: Callable[[object], float] = lambda cfg: 1.0
+    # The sim settings only this motion's clips read: a run with none of its clips may change them at any time.
+    settings: tuple[str, ...] = ()
 
 
 def _wind_clip(mesh: ClothMesh, material: Material, rng: np.random.Generator, cfg) -> ClipScene:
@@ -278,10 +280,12 @@ def _arm_clip(mesh: ClothMesh, material: Material, rng: np.random.Generator, cfg
 
 MOTIONS: dict[str, Motion] = {m.name: m for m in (
     Motion("wind", "a gathered cloth hanging from a rod or its corners, blown by a constant wind "
-                   "(sim.wind_nuisance: what is drawn per clip)", _wind_clip, wind_view_box),
+                   "(sim.wind_nuisance: what is drawn per clip)", _wind_clip, wind_view_box,
+           settings=("wind_nuisance",)),
     Motion("arm", f"a cloth draped over a capsule arm whose forearm swings through {ARM_ANGLE_DEG:g} degrees "
                   "(sim.arm_nuisance: what is drawn per clip; sim.arm_view_zoom: how close the camera frames it)",
-           _arm_clip, arm_view_box, view_zoom=lambda cfg: cfg.arm_view_zoom),
+           _arm_clip, arm_view_box, view_zoom=lambda cfg: cfg.arm_view_zoom,
+           settings=("arm_nuisance", "arm_view_zoom")),
 )}
 
 

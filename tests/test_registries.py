@@ -110,6 +110,7 @@ def test_every_registered_motion_simulates_a_tiny_clip_on_cpu(name):
         assert scene.motion_params                        # written to the clip's meta.json
     lo, hi = map(np.asarray, get_motion(name).view_box(cfg.cloth_size_m))
     assert (lo < hi).all() and hi[1] - lo[1] <= hi[0] - lo[0]   # the camera looks along y
+    assert set(get_motion(name).settings) <= set(vars(cfg))     # its own settings are sim settings
 
 
 def test_an_unknown_motion_is_a_config_problem_and_never_simulated():
