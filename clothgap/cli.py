@@ -413,8 +413,12 @@ def eval_measured(run_dir: Path, train_dirs: tuple[Path, ...], sequences: int | 
 @click.option("--pixels", "variant", metavar="VARIANT",
               help="Probe the rendered frames of this variant (16 px window summaries) instead of the geometry: "
                    "how well a clip is recognised by its look (texture, background, light) alone.")
+@click.option("--measured", "measured", type=click.IntRange(min=1), metavar="N",
+              help="Instead: simulate N clips of each Table 2 fabric with its own tables (finished ones kept) and "
+                   "read them with classifiers trained on all the setting's clips: the class the simulated geometry "
+                   "gives each measured fabric, beside its Table 2 class (eval/learnability-measured.{json,md}).")
 def eval_learnability(run_dir: Path, settings: tuple[str, ...], clip_len: int, stride: int | None,
-                      variant: str | None) -> None:
+                      variant: str | None, measured: int | None) -> None:
     """How well the simulated 3D sequences alone tell the material, split by sequence and by the
     paper's sub-sequence protocol (writes RUN_DIR/eval/learnability.{json,md}; needs only `clothgap sim`)."""
     run = Run.open(run_dir)
@@ -426,9 +430,16 @@ def eval_learnability(run_dir: Path, settings: tuple[str, ...], clip_len: int, s
     if stride is not None and stride < clip_len:
         raise ConfigError(f"--stride {stride} < --clip-len {clip_len}: overlapping windows would share frames "
                           "across train and test in the split by sub-sequence")
-    from eval.learnability import run_probe
+    if measured and variant:
+        raise ConfigError("--measured probes the geometry: it does not take --pixels")
+    from eval.learnability import run_probe, run_probe_measured
 
     t0 = time.perf_counter()
+    if measured:
+        _echo_summary("eval learnability", run_probe_measured(run, measured, list(settings) or None,
+                                                              clip_len=clip_len, stride=stride or clip_len),
+                      time.perf_counter() - t0)
+        return
     _echo_summary("eval learnability", run_probe(run, list(settings) or None, clip_len=clip_len,
                                                  stride=stride or clip_len, pixels=variant),
                   time.perf_counter() - t0)

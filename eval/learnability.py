@@ -27,12 +27,14 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
+from clothgap import seeding
 from clothgap.errors import ConfigError
 from clothgap.runs import Run, atomic_write_json, atomic_write_text
 from eval import metrics
@@ -73,9 +75,11 @@ def pixel_windows(run: Run, variant: str, setting: str, clip_len: int, stride: i
     return np.stack(feats), np.array(clips), np.array(starts), np.array(labels)
 
 
-def load_windows(run: Run, setting: str, clip_len: int, stride: int, progress: bool = True):
-    """Features (N, D), clip ids (N,), window starts (N,), classes (N,) of every finished sim clip."""
-    folder = run.sim_dir(setting)
+def load_windows(run: Run, setting: str, clip_len: int, stride: int, progress: bool = True,
+                 folder: Path | None = None):
+    """Features (N, D), clip ids (N,), window starts (N,), classes (N,) of every finished sim clip
+    (of the setting's folder, or of ``folder``: e.g. the measured fabrics')."""
+    folder = folder or run.sim_dir(setting)
     ids = run.done_clips(folder)
     if not ids:
         raise ConfigError(f"no finished sim clips in {folder}: run `clothgap sim {run.root}` first")
@@ -103,15 +107,22 @@ def within_one_bin(target: str, pred: np.ndarray, truth: np.ndarray) -> float:
     return float((np.abs(pred.astype(int) - truth.astype(int)) <= 1).mean())
 
 
-def fit_predict(kind: str, x_train: np.ndarray, y_train: np.ndarray, x_test: np.ndarray, classes: int,
-                seed: int = 0) -> np.ndarray:
-    """Predicted labels of ``x_test`` from one plain classifier trained on (x_train, y_train)."""
+def fit(kind: str, x_train: np.ndarray, y_train: np.ndarray, classes: int,
+        seed: int = 0) -> Callable[[np.ndarray], np.ndarray]:
+    """One plain classifier trained on (x_train, y_train): a function from features to class probabilities
+    (N, classes); the nearest neighbour's are its label's one-hot."""
     mean, std = x_train.mean(0), x_train.std(0) + 1e-6
     xt = torch.from_numpy((x_train - mean) / std)
-    xs = torch.from_numpy((x_test - mean) / std)
+
+    def standardised(x: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(((x - mean) / std).astype(np.float32))
+
     if kind == "nearest":
-        d = torch.cdist(xs, xt)
-        return y_train[d.argmin(1).numpy()]
+        def nearest(x: np.ndarray) -> np.ndarray:
+            out = np.zeros((len(x), classes), np.float32)
+            out[np.arange(len(x)), y_train[torch.cdist(standardised(x), xt).argmin(1).numpy()]] = 1
+            return out
+        return nearest
     torch.manual_seed(seed)
     y = torch.from_numpy(y_train.astype(np.int64))
     if kind == "linear":
@@ -139,8 +150,17 @@ def fit_predict(kind: str, x_train: np.ndarray, y_train: np.ndarray, x_test: np.
     else:
         raise ValueError(f"unknown classifier {kind!r}; known: {', '.join(CLASSIFIERS)}")
     model.eval()
-    with torch.no_grad():
-        return model(xs).argmax(1).numpy()
+
+    def probabilities(x: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return torch.softmax(model(standardised(x)), 1).numpy()
+    return probabilities
+
+
+def fit_predict(kind: str, x_train: np.ndarray, y_train: np.ndarray, x_test: np.ndarray, classes: int,
+                seed: int = 0) -> np.ndarray:
+    """Predicted labels of ``x_test`` from one plain classifier trained on (x_train, y_train)."""
+    return fit(kind, x_train, y_train, classes, seed)(x_test).argmax(1)
 
 
 def probe(run: Run, setting: str, clip_len: int = 10, stride: int = 10, test_fraction: float = 1 / 6,
@@ -196,6 +216,91 @@ def probe(run: Run, setting: str, clip_len: int = 10, stride: int = 10, test_fra
             "seconds": round(time.perf_counter() - t0, 1)}
 
 
+def probe_measured(run: Run, setting: str, clip_len: int = 10, stride: int = 10,
+                   classifiers: tuple[str, ...] = CLASSIFIERS, progress: bool = True) -> dict:
+    """What the geometry of the measured fabrics' clips says their class is: each classifier trained on every
+    simulated clip of the setting (the 54 classes, the basis fabric's density) reads the windows of the clips
+    simulated with the fabrics' own tables (``run.measured_sim_dir``); a fabric's class is the argmax of its
+    windows' mean probabilities, set beside its Table 2 class as ``eval.measured`` sets a model's.
+
+    The ceiling this gives is the one the measured-fabric goal meets: a network reading the pixels of these clips
+    can place a fabric only where its simulated motion puts it.
+    """
+    from eval.classes import k_value, p_value
+    from sim.analysis import PAPER_TABLE2
+    from sim.measured import measured_values
+
+    t0 = time.perf_counter()
+    folder = run.measured_sim_dir(setting)
+    if not run.done_clips(folder):
+        raise ConfigError(f"no simulated measured-fabric clips in {folder}: run `clothgap eval learnability "
+                          f"{run.root} --measured N` (it simulates N a fabric) or `clothgap eval measured` first")
+    x, clips, _, labels = load_windows(run, setting, clip_len, stride, progress)
+    mx, mclips, _, mlabels = load_windows(run, setting, clip_len, stride, progress, folder=folder)
+    fabric_of = {c: json.loads((folder / c / "meta.json").read_text())["fabric"] for c in set(mclips)}
+    fabrics = sorted(set(fabric_of.values()))
+    window_fabric = np.array([fabric_of[c] for c in mclips])
+    truth = {f: int(mlabels[window_fabric == f][0]) for f in fabrics}
+    cfg, seed = run.config.eval, run.config.seed
+    results = []
+    for kind in classifiers:
+        probs = fit(kind, x, labels, TARGETS["class"], seed)(mx)
+        rows = []
+        for f in fabrics:
+            pred = int(probs[window_fabric == f].mean(0).argmax())
+            t = truth[f]
+            rows.append({"fabric": f, "clips": int(len({c for c, w in zip(mclips, window_fabric) if w == f})),
+                         "pred": pred, "pred_p": float(p_value(pred)), "pred_k": float(k_value(pred)),
+                         "table2_class": t, "table2_p": float(p_value(t)), "table2_k": float(k_value(t)),
+                         "table2_p_est": PAPER_TABLE2[f][0] if f in PAPER_TABLE2 else float("nan"),
+                         "table2_k_est": PAPER_TABLE2[f][2] if f in PAPER_TABLE2 else float("nan"),
+                         "exact": float(pred == t), "within_one_bin": float(metrics.within_one_bin([t], [pred])[0]),
+                         "class_dist": float(metrics.class_distance([t], [pred])[0]), **measured_values(f)})
+        frame = {k: np.array([r[k] for r in rows]) for k in rows[0]}
+        scores = {name: metrics.bootstrap_mean(frame[name], frame["fabric"], resamples=cfg.bootstrap,
+                                               confidence=cfg.confidence,
+                                               rng=seeding.rng(seed, 0, seeding.EVAL, "learnability-measured",
+                                                               setting, kind, name)).as_dict("value")
+                  for name in ("exact", "within_one_bin", "class_dist")}
+        correlations = {f"{a}~{b}": metrics.bootstrap_correlation(
+            frame[a], frame[b], method="spearman", resamples=cfg.bootstrap, confidence=cfg.confidence,
+            rng=seeding.rng(seed, 0, seeding.EVAL, "learnability-measured", setting, kind, a, b)).as_dict("spearman")
+            for a, b in (("pred_k", "bending_N_m"), ("pred_k", "table2_k_est"), ("pred_p", "stretching_N_m"),
+                         ("pred_p", "table2_p_est"), ("pred_k", "density_kg_m2"))}
+        results.append({"classifier": kind, "fabrics": rows, "scores": scores, "spearman": correlations,
+                        "window_within_one_bin": float(metrics.within_one_bin(mlabels, probs.argmax(1)).mean())})
+    return {"setting": setting, "source": "geometry", "clips": int(len(set(clips))),
+            "train_windows": int(len(x)), "measured_clips": len(fabric_of), "measured_windows": int(len(mx)),
+            "clip_len": clip_len, "stride": stride, "features": int(x.shape[1]), "lattice": LATTICE,
+            "results": results, "seconds": round(time.perf_counter() - t0, 1)}
+
+
+def markdown_measured(report: dict) -> str:
+    """Per classifier: each fabric's class from its simulated geometry beside its Table 2 class, and the scores."""
+    lines = [f"# What the simulated geometry says the measured fabrics are: {report['setting']}", "",
+             f"Classifiers trained on {report['train_windows']} windows of {report['clip_len']} frames of the "
+             f"setting's simulated clips (the 54 classes) read {report['measured_windows']} windows of "
+             f"{report['measured_clips']} clips simulated with each fabric's own tables; a fabric's class is the "
+             "argmax of its windows' mean probabilities. Intervals resample fabrics.", ""]
+    for r in report["results"]:
+        s, c = r["scores"], r["spearman"]
+        lines += [f"## {r['classifier']}", "",
+                  "| Fabric | Clips | Geometry says (p, k) | Table 2 (p, k) | Within one bin | Grid steps | "
+                  "Bending (N*m) | Stretching (N/m) | Density (kg/m^2) |", "|---|---|---|---|---|---|---|---|---|"]
+        lines += [f"| {f['fabric']} | {f['clips']} | ({f['pred_p']:g}, {f['pred_k']:g}) | ({f['table2_p']:g}, "
+                  f"{f['table2_k']:g}) | {'yes' if f['within_one_bin'] else 'no'} | {f['class_dist']:g} | "
+                  f"{f['bending_N_m']:.3g} | {f['stretching_N_m']:.4g} | {f['density_kg_m2']:.3g} |"
+                  for f in r["fabrics"]]
+        lines += ["", "| Score over fabrics | Value [95% interval] |", "|---|---|"]
+        lines += [f"| {name} | {metrics.Estimate(v['value'], v['value_lo'], v['value_hi']).fmt(1.0, 2)} |"
+                  for name, v in s.items()]
+        lines += [f"| Spearman {pair.replace('~', ' vs ')} | "
+                  f"{metrics.Estimate(v['spearman'], v['spearman_lo'], v['spearman_hi']).fmt(1.0, 2)} |"
+                  for pair, v in c.items()]
+        lines += [f"| windows within one bin of Table 2 | {100 * r['window_within_one_bin']:.1f} % |", ""]
+    return "\n".join(lines)
+
+
 def markdown(report: dict) -> str:
     """One table per protocol: targets down, classifiers across, accuracy in percent (chance)."""
     source = report.get("source", "geometry")
@@ -234,3 +339,18 @@ def run_probe(run: Run, settings: list[str] | None = None, progress: bool = True
     atomic_write_json(run.eval_dir / f"{name}.json", {"settings": reports})
     atomic_write_text(run.eval_dir / f"{name}.md", "\n\n".join(markdown(r) for r in reports))
     return {"settings": settings, "written": str(run.eval_dir / f"{name}.md")}
+
+
+def run_probe_measured(run: Run, sequences: int, settings: list[str] | None = None, progress: bool = True,
+                       **kwargs) -> dict:
+    """Simulate ``sequences`` clips of each Table 2 fabric under the run's settings (finished ones kept), probe
+    each simulated setting with ``probe_measured``; write ``eval/learnability-measured.{json,md}``."""
+    from sim.measured import table2_fabrics
+    from sim.stage import simulate_measured
+
+    simulate_measured(run, table2_fabrics(), sequences, progress)
+    settings = settings or [s for s in run.config.sim.settings() if run.done_clips(run.sim_dir(s))]
+    reports = [probe_measured(run, s, progress=progress, **kwargs) for s in settings]
+    atomic_write_json(run.eval_dir / "learnability-measured.json", {"sequences": sequences, "settings": reports})
+    atomic_write_text(run.eval_dir / "learnability-measured.md", "\n\n".join(markdown_measured(r) for r in reports))
+    return {"settings": settings, "written": str(run.eval_dir / "learnability-measured.md")}

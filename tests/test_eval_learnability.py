@@ -8,12 +8,25 @@ import numpy as np
 
 from clothgap.config import StudyConfig
 from clothgap.runs import Run, clip_id, mark_done
-from eval.learnability import markdown, probe, run_probe
+import pytest
+
+from clothgap.errors import ConfigError
+from eval.learnability import markdown, markdown_measured, probe, probe_measured, run_probe
 from sim.clip import SimClip
 from sim.config import SimConfig
 from tests.conftest import flat_sheet
 
 CLASSES = (0, 8, 45, 53)
+
+
+def _sheet_clip(folder, meta: dict, level: int, class_signal: float, rng, frames: int) -> None:
+    """One clip of the toy sheet at class level ``level`` (its index in CLASSES), saved finished."""
+    uv, rest = flat_sheet(6)
+    signature = rng.normal(size=(36, 3)) * 0.02                      # this sequence's own shape
+    shape = rest + class_signal * level * np.array([0, 0, 0.1]) + signature
+    positions = shape[None] + rng.normal(size=(frames, 36, 3)) * 0.002
+    SimClip.from_fixed(meta, positions, np.array([[0, 1, 6]], np.int32), uv).save(folder)
+    mark_done(folder)
 
 
 def _fake_sim_run(root, class_signal: float, per_class: int = 12, frames: int = 40) -> Run:
@@ -22,16 +35,10 @@ def _fake_sim_run(root, class_signal: float, per_class: int = 12, frames: int = 
     cfg = StudyConfig(sim=SimConfig(classes=CLASSES, sequences_per_class=per_class, frames=frames))
     run = Run.create_or_resume(root, cfg)
     rng = np.random.default_rng(0)
-    uv, rest = flat_sheet(6)
-    faces = np.array([[0, 1, 6]], np.int32)
     for i in range(len(CLASSES) * per_class):
         label = CLASSES[i % len(CLASSES)]
-        signature = rng.normal(size=(36, 3)) * 0.02                      # this sequence's own shape
-        shape = rest + class_signal * CLASSES.index(label) * np.array([0, 0, 0.1]) + signature
-        positions = shape[None] + rng.normal(size=(frames, 36, 3)) * 0.002
-        folder = run.sim_dir("wind-uniform1") / clip_id(i)
-        SimClip.from_fixed({"class_index": label}, positions, faces, uv).save(folder)
-        mark_done(folder)
+        _sheet_clip(run.sim_dir("wind-uniform1") / clip_id(i), {"class_index": label}, CLASSES.index(label),
+                    class_signal, rng, frames)
     return run
 
 
@@ -89,3 +96,31 @@ def test_pixel_probe_reads_rendered_frames(tmp_path):
     assert summary["settings"] == ["wind-uniform1"] and report["source"] == "pixels of paper"
     assert report["features"] == 2 * 16 * 16 * 3 and report["windows"] == 24 * 2
     assert _acc(report, "subsequence", "class", "nearest") > 0.9
+
+
+def test_measured_probe_reads_each_fabric_where_its_geometry_puts_it(tmp_path):
+    from sim.measured import table2_class
+
+    run = _fake_sim_run(tmp_path / "run", class_signal=1.0, per_class=12)
+    with pytest.raises(ConfigError, match="no simulated measured-fabric clips"):
+        probe_measured(run, "wind-uniform1", progress=False)
+    # royal-target's Table 2 class is (20, 20) = class 53 and its clips move like class 53; navy-sparkle-sweat's is
+    # (0.5, 2) = class 2, but its clips move like class 0 = (0.5, 0.5): two bending bins off.
+    rng = np.random.default_rng(1)
+    looks_like = {"royal-target": 53, "navy-sparkle-sweat": 0}
+    for fabric, like in looks_like.items():
+        for n in range(3):
+            _sheet_clip(run.measured_sim_dir("wind-uniform1") / f"{fabric}-{n}",
+                        {"class_index": table2_class(fabric), "fabric": fabric}, CLASSES.index(like), 1.0, rng, 40)
+    report = probe_measured(run, "wind-uniform1", progress=False, classifiers=("linear", "nearest"))
+    assert report["measured_clips"] == 6 and report["measured_windows"] == 6 * 4
+    for result in report["results"]:
+        said = {f["fabric"]: f["pred"] for f in result["fabrics"]}
+        assert said == looks_like
+        rows = {f["fabric"]: f for f in result["fabrics"]}
+        assert rows["royal-target"]["within_one_bin"] == 1 and rows["royal-target"]["class_dist"] == 0
+        assert rows["navy-sparkle-sweat"]["within_one_bin"] == 0 and rows["navy-sparkle-sweat"]["class_dist"] == 2
+        assert result["scores"]["exact"]["value"] == 0.5
+        # no window of navy-sparkle-sweat can be within one bin of (0.5, 2) among the toy's classes
+        assert 0.25 < result["window_within_one_bin"] <= 0.5
+    assert "| royal-target | 3 | (20, 20) | (20, 20) | yes | 0 |" in markdown_measured(report)
