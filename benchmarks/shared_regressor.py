@@ -84,7 +84,7 @@ def main(argv: list[str] | None = None) -> dict:
     _sync(device)
     shape_s = time.perf_counter() - started
     reader_model = build_training_model(shared, device)
-    reader_s = epoch_seconds(forward_net(ShapeReader(reader_model), cfg, device), reader_model,
+    reader_s = epoch_seconds(forward_net(ShapeReader(reader_model), cfg, device, reads_shapes=True), reader_model,
                              lambda: shapes[0].batches(cfg.batch_size, order=order, drop_last=True))
 
     result = {**torch_device(device), "run": str(args.run), "setting": args.setting, "variant": args.variant,

@@ -50,6 +50,7 @@ LEVERS: dict[str, dict] = {
     "last": {"readout": "last"},               # loss and answer from the last step only
     "narrow": {"width": 32, "fc6": 256, "hidden": 128},
     "decay": {"weight_decay": 0.05},
+    "graphs": {"compile": True, "compile_mode": "reduce-overhead"},   # CUDA graphs (speed; rounding only)
 }
 
 

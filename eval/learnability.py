@@ -254,21 +254,21 @@ def probe_measured(run: Run, setting: str, clip_len: int = 10, stride: int = 10,
                          "table2_class": t, "table2_p": float(p_value(t)), "table2_k": float(k_value(t)),
                          "table2_p_est": PAPER_TABLE2[f][0] if f in PAPER_TABLE2 else float("nan"),
                          "table2_k_est": PAPER_TABLE2[f][2] if f in PAPER_TABLE2 else float("nan"),
-                         "exact": float(pred == t), "within_one_bin": float(metrics.within_one_bin([t], [pred])[0]),
+                         "exact": float(pred == t), "within1": float(metrics.within_one_bin([t], [pred])[0]),
                          "class_dist": float(metrics.class_distance([t], [pred])[0]), **measured_values(f)})
         frame = {k: np.array([r[k] for r in rows]) for k in rows[0]}
         scores = {name: metrics.bootstrap_mean(frame[name], frame["fabric"], resamples=cfg.bootstrap,
                                                confidence=cfg.confidence,
                                                rng=seeding.rng(seed, 0, seeding.EVAL, "learnability-measured",
                                                                setting, kind, name)).as_dict("value")
-                  for name in ("exact", "within_one_bin", "class_dist")}
+                  for name in ("exact", "within1", "class_dist")}
         correlations = {f"{a}~{b}": metrics.bootstrap_correlation(
             frame[a], frame[b], method="spearman", resamples=cfg.bootstrap, confidence=cfg.confidence,
             rng=seeding.rng(seed, 0, seeding.EVAL, "learnability-measured", setting, kind, a, b)).as_dict("spearman")
             for a, b in (("pred_k", "bending_N_m"), ("pred_k", "table2_k_est"), ("pred_p", "stretching_N_m"),
                          ("pred_p", "table2_p_est"), ("pred_k", "density_kg_m2"))}
         results.append({"classifier": kind, "fabrics": rows, "scores": scores, "spearman": correlations,
-                        "window_within_one_bin": float(metrics.within_one_bin(mlabels, probs.argmax(1)).mean())})
+                        "window_within1": float(metrics.within_one_bin(mlabels, probs.argmax(1)).mean())})
     return {"setting": setting, "source": "geometry", "clips": int(len(set(clips))),
             "train_windows": int(len(x)), "measured_clips": len(fabric_of), "measured_windows": int(len(mx)),
             "clip_len": clip_len, "stride": stride, "features": int(x.shape[1]), "lattice": LATTICE,
@@ -288,7 +288,7 @@ def markdown_measured(report: dict) -> str:
                   "| Fabric | Clips | Geometry says (p, k) | Table 2 (p, k) | Within one bin | Grid steps | "
                   "Bending (N*m) | Stretching (N/m) | Density (kg/m^2) |", "|---|---|---|---|---|---|---|---|---|"]
         lines += [f"| {f['fabric']} | {f['clips']} | ({f['pred_p']:g}, {f['pred_k']:g}) | ({f['table2_p']:g}, "
-                  f"{f['table2_k']:g}) | {'yes' if f['within_one_bin'] else 'no'} | {f['class_dist']:g} | "
+                  f"{f['table2_k']:g}) | {'yes' if f['within1'] else 'no'} | {f['class_dist']:g} | "
                   f"{f['bending_N_m']:.3g} | {f['stretching_N_m']:.4g} | {f['density_kg_m2']:.3g} |"
                   for f in r["fabrics"]]
         lines += ["", "| Score over fabrics | Value [95% interval] |", "|---|---|"]
@@ -297,7 +297,7 @@ def markdown_measured(report: dict) -> str:
         lines += [f"| Spearman {pair.replace('~', ' vs ')} | "
                   f"{metrics.Estimate(v['spearman'], v['spearman_lo'], v['spearman_hi']).fmt(1.0, 2)} |"
                   for pair, v in c.items()]
-        lines += [f"| windows within one bin of Table 2 | {100 * r['window_within_one_bin']:.1f} % |", ""]
+        lines += [f"| windows within one bin of Table 2 | {100 * r['window_within1']:.1f} % |", ""]
     return "\n".join(lines)
 
 

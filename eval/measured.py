@@ -57,7 +57,7 @@ from eval.trained import TrainedModel, checkpoint_sha256, finished_models
 from sim.phases import timed
 
 DEFAULT_SEQUENCES = 2       # `clothgap eval measured` when the run's eval.measured_sequences is 0
-MATCH_SCORES = ("exact", "p_match", "k_match", "class_dist")
+MATCH_SCORES = ("exact", "p_match", "k_match", "within1", "class_dist")
 LABELS = {
     "pred_bending_N_m": "predicted bending (k x basis, N*m)",
     "pred_stretching_N_m": "predicted stretching (p x basis, N/m)",
@@ -229,6 +229,7 @@ def fabric_table(videos: pd.DataFrame) -> pd.DataFrame:
             "class_source": "paper Table 2" if fabric in PAPER_TABLE2 else "nearest class to estimated ratios",
             "exact": float(pred == truth), "p_match": float(metrics.stretch_correct([truth], [pred])[0]),
             "k_match": float(metrics.bend_correct([truth], [pred])[0]),
+            "within1": float(metrics.within_one_bin([truth], [pred])[0]),
             "class_dist": float(metrics.class_distance([truth], [pred])[0]),
             **values, "pred_stretching_N_m": pred_p * basis["stretching_N_m"],
             "pred_bending_N_m": pred_k * basis["bending_N_m"]})
@@ -294,13 +295,13 @@ def markdown(run: Run, variant: str, heldout: bool, table: pd.DataFrame, corr: p
         mmask = np.logical_and.reduce([match[c] == v for c, v in zip(MODEL_KEYS, key)])
         lines += [f"## {model} trained on {train_v} ({setting}, seed {seed})", "",
                   f"Checkpoint: `{g['checkpoint'].iloc[0]}`", "",
-                  "| Fabric | Clips | Predicted (p, k) | Table 2 (p, k) | Exact | p | k | Grid steps | "
+                  "| Fabric | Clips | Predicted (p, k) | Table 2 (p, k) | Exact | p | k | Within one bin | Grid steps | "
                   "Bending measured / predicted (N*m) | Stretching measured / predicted (N/m) | Density |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for _, r in g.iterrows():
             yes = lambda x: "yes" if x == 1 else "no"  # noqa: E731
             lines.append(f"| {r.fabric} | {r.clips} | ({r.pred_p:g}, {r.pred_k:g}) | ({r.table2_p:g}, {r.table2_k:g}) "
-                         f"| {yes(r.exact)} | {yes(r.p_match)} | {yes(r.k_match)} | {r.class_dist:g} "
+                         f"| {yes(r.exact)} | {yes(r.p_match)} | {yes(r.k_match)} | {yes(r.within1)} | {r.class_dist:g} "
                          f"| {r.bending_N_m:.3g} / {r.pred_bending_N_m:.3g} "
                          f"| {r.stretching_N_m:.4g} / {r.pred_stretching_N_m:.4g} | {r.density_kg_m2:.3g} |")
         lines += ["", "| Score (over fabrics) | Value [95% interval] |", "|---|---|"]

@@ -531,7 +531,8 @@ def _measured_model(run: Run, key: tuple, g: pd.DataFrame, info: dict, corr: pd.
 def _measured_fabrics_table(g: pd.DataFrame) -> str:
     """One model's fabrics: predicted class against Table 2's, and measured against predicted stiffness."""
     head = "".join(f"<th>{h}</th>" for h in ("Fabric", "Clips", "Predicted (p, k)", "Prob.", "Table 2 (p, k)",
-                                              "Exact", "p", "k", "Steps", "Bending measured / predicted",
+                                              "Exact", "p", "k", "Within one bin", "Steps",
+                                              "Bending measured / predicted",
                                               "Stretching measured / predicted", "Density"))
     rows = []
     for _, r in g.iterrows():
@@ -540,6 +541,8 @@ def _measured_fabrics_table(g: pd.DataFrame) -> str:
                     f"<td>({r['pred_p']:g}, {r['pred_k']:g})</td><td class=\"num\">{r['prob']:.2f}</td>"
                     f"<td>({r['table2_p']:g}, {r['table2_k']:g})</td><td>{yes(r['exact'])}</td>"
                     f"<td>{yes(r['p_match'])}</td><td>{yes(r['k_match'])}</td>"
+                    # a measured.csv written before the column has none
+                    f"<td>{yes(r['within1']) if 'within1' in r else 'n/a'}</td>"
                     f"<td class=\"num\">{r['class_dist']:g}</td>"
                     f"<td class=\"num\">{r['bending_N_m']:.3g} / {r['pred_bending_N_m']:.3g}</td>"
                     f"<td class=\"num\">{r['stretching_N_m']:.4g} / {r['pred_stretching_N_m']:.4g}</td>"

@@ -56,6 +56,9 @@ class TrainConfig:
     compile: bool = False                   # torch.compile the model (CUDA only; ignored on CPU)
     compile_mode: str = "default"           # its mode: "reduce-overhead" replays CUDA graphs, which removes the
                                             # per-step launch cost that bounds a small batch on a large GPU
+    compile_readers: bool = True            # with train.shared_regressor, compile the readers on its frozen
+                                            # shapes too (under graphs base2/base3's recurrent layers ran
+                                            # 1.1-1.6x slower: docs/learning.md)
     num_workers: int = 0                    # unused: batches are cut from frames held on the device
                                             # (learn.windows); kept so that older run folders load
     motion: bool = False                    # frame differences beside the frames (6 input channels)

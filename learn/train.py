@@ -551,7 +551,7 @@ def _start(out: Path, cfg: TrainConfig, device: torch.device, resolved: dict, tr
                  metrics=[], best=None, start_epoch=0)
     if state is not None:
         _resume(t, state)
-    t.net = forward_net(ShapeReader(model) if t.reads_shapes else model, cfg, device)
+    t.net = forward_net(ShapeReader(model) if t.reads_shapes else model, cfg, device, t.reads_shapes)
     if is_main():
         # Imported here: TensorBoard is slow to import and only training needs it.
         from torch.utils.tensorboard import SummaryWriter
@@ -597,13 +597,20 @@ def _resume(t: Training, state: dict) -> None:
     t.metrics, t.start_epoch, t.best = state["metrics"], state["epoch"] + 1, state.get("best")
 
 
-def forward_net(model: ClipClassifier, cfg: TrainConfig, device: torch.device) -> torch.nn.Module:
-    """What runs the training forward pass: ``model``, wrapped by DDP under torchrun, compiled on CUDA if asked."""
+def compiles(cfg: TrainConfig, device: torch.device, reads_shapes: bool) -> bool:
+    """Whether a training's forward pass is compiled: asked for, on CUDA, and not a reader on a shared regressor's
+    shapes that ``train.compile_readers`` leaves eager."""
+    return cfg.compile and device.type == "cuda" and (cfg.compile_readers or not reads_shapes)
+
+
+def forward_net(model: ClipClassifier, cfg: TrainConfig, device: torch.device,
+                reads_shapes: bool = False) -> torch.nn.Module:
+    """What runs the training forward pass: ``model``, wrapped by DDP under torchrun, compiled if ``compiles``."""
     on_cuda = device.type == "cuda"
     net: torch.nn.Module = model
     if _world_size() > 1:
         net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if on_cuda else None)
-    if cfg.compile and on_cuda:
+    if compiles(cfg, device, reads_shapes):
         net = torch.compile(net, mode=None if cfg.compile_mode == "default" else cfg.compile_mode)
     return net
 

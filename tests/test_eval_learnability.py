@@ -118,9 +118,9 @@ def test_measured_probe_reads_each_fabric_where_its_geometry_puts_it(tmp_path):
         said = {f["fabric"]: f["pred"] for f in result["fabrics"]}
         assert said == looks_like
         rows = {f["fabric"]: f for f in result["fabrics"]}
-        assert rows["royal-target"]["within_one_bin"] == 1 and rows["royal-target"]["class_dist"] == 0
-        assert rows["navy-sparkle-sweat"]["within_one_bin"] == 0 and rows["navy-sparkle-sweat"]["class_dist"] == 2
+        assert rows["royal-target"]["within1"] == 1 and rows["royal-target"]["class_dist"] == 0
+        assert rows["navy-sparkle-sweat"]["within1"] == 0 and rows["navy-sparkle-sweat"]["class_dist"] == 2
         assert result["scores"]["exact"]["value"] == 0.5
         # no window of navy-sparkle-sweat can be within one bin of (0.5, 2) among the toy's classes
-        assert 0.25 < result["window_within_one_bin"] <= 0.5
+        assert 0.25 < result["window_within1"] <= 0.5
     assert "| royal-target | 3 | (20, 20) | (20, 20) | yes | 0 |" in markdown_measured(report)

@@ -528,3 +528,24 @@ def test_an_unfinished_folder_written_before_a_setting_existed_resumes(tmp_path,
     before = pd.read_csv(out / "metrics.csv")
     train_one(run, SETTING, VARIANT, "lrcn", 0, progress=False)
     assert pd.read_csv(out / "metrics.csv").seconds[0] == before.seconds[0]      # epoch 0 kept, not redone
+
+
+def test_compile_readers_off_compiles_the_cnn_trainings_and_leaves_the_readers_eager(monkeypatch):
+    from dataclasses import replace
+
+    from clothgap.config import StudyConfig
+    from eval.ablation import recipe_config
+    from learn.config import TrainConfig
+
+    compiled = []
+    monkeypatch.setattr(torch, "compile", lambda net, mode=None: compiled.append((net, mode)) or net)
+    cuda, model = torch.device("cuda", 0), torch.nn.Linear(2, 2)     # a device object: no GPU is touched
+    cfg = replace(TrainConfig(), compile=True, compile_mode="reduce-overhead", compile_readers=False)
+    assert learn.train.forward_net(model, cfg, cuda, reads_shapes=True) is model and compiled == []
+    learn.train.forward_net(model, cfg, cuda, reads_shapes=False)
+    assert compiled == [(model, "reduce-overhead")]
+    learn.train.forward_net(model, replace(cfg, compile_readers=True), cuda, reads_shapes=True)   # the default
+    learn.train.forward_net(model, cfg, torch.device("cpu"), reads_shapes=False)                 # never on a CPU
+    assert len(compiled) == 2
+    graphs = recipe_config(StudyConfig(), "graphs")
+    assert (graphs.compile, graphs.compile_mode, graphs.compile_readers) == (True, "reduce-overhead", True)
