@@ -22,9 +22,15 @@ STAGES=${STAGES:-"sim render train eval report"}
 # Batches of 2,592 cloths, adaptive ones too: 3.7 GB of GPU memory per 432 adaptive cloths since the leak fix
 # (docs/simulation.md), ~19 GB for 2,592 (the preset's 192 sequences a class are four batches a setting).
 # BATCH=N cuts a setting into batches of N cloths.
-SETS=(--set sim.motions=${MOTIONS:-wind} --set sim.remeshing=${REMESHING:-uniform1} --set sim.batch_size=${BATCH:-2592}
-      --set render.resolution=${RES:-112} --set render.spp=${SPP:-8}
-      ${SEQ:+--set sim.sequences_per_class=$SEQ} ${EXTRA:-})
+# PRESET=study runs that preset as it is (its twelve datasets; SEQ and EXTRA still apply).
+PRESET=${PRESET:-paper}
+if [ "$PRESET" = paper ]; then
+  SETS=(--set sim.motions=${MOTIONS:-wind} --set sim.remeshing=${REMESHING:-uniform1} --set sim.batch_size=${BATCH:-2592}
+        --set render.resolution=${RES:-112} --set render.spp=${SPP:-8}
+        ${SEQ:+--set sim.sequences_per_class=$SEQ} ${EXTRA:-})
+else
+  SETS=(${BATCH:+--set sim.batch_size=$BATCH} ${SEQ:+--set sim.sequences_per_class=$SEQ} ${EXTRA:-})
+fi
 # Every GPU of the machine: render shards four workers a GPU under MPS,
 # training runs four models at a time per GPU (a model leaves most of an H100 idle). Set to override.
 source "$(dirname "$0")/gpus.sh"
@@ -37,7 +43,7 @@ for stage in $STAGES; do
   [ -n "${LIMIT:-}" ] && [ "$LIMIT" -lt 20 ] && { echo "no time left for $stage: call again"; status=75; break; }
   # (report takes no settings: it shows the run as it is)
   sets=${RUN_SETS:-}; [ "$stage" = report ] && sets=
-  if [ -f "$RUN/config.json" ]; then args=("$RUN" $sets); else args=(--preset paper --out "$RUN" "${SETS[@]}"); fi
+  if [ -f "$RUN/config.json" ]; then args=("$RUN" $sets); else args=(--preset "$PRESET" --out "$RUN" "${SETS[@]}"); fi
   extra=(); [ "$stage" = sim ] && extra=(${SIM_ARGS:-})
   [ "$stage" = render ] && extra=(${RENDER_ARGS:-}); [ "$stage" = train ] && extra=(${TRAIN_ARGS:-})
   # GPU memory and utilisation sampled while the stage runs (after it ends the process has freed it all): the
