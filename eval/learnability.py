@@ -216,27 +216,35 @@ def probe(run: Run, setting: str, clip_len: int = 10, stride: int = 10, test_fra
             "seconds": round(time.perf_counter() - t0, 1)}
 
 
-def probe_measured(run: Run, setting: str, clip_len: int = 10, stride: int = 10,
+def probe_measured(run: Run, setting: str, sequences: int | None = None, clip_len: int = 10, stride: int = 10,
                    classifiers: tuple[str, ...] = CLASSIFIERS, progress: bool = True) -> dict:
     """What the geometry of the measured fabrics' clips says their class is: each classifier trained on every
     simulated clip of the setting (the 54 classes, the basis fabric's density) reads the windows of the clips
     simulated with the fabrics' own tables (``run.measured_sim_dir``); a fabric's class is the argmax of its
     windows' mean probabilities, set beside its Table 2 class as ``eval.measured`` sets a model's.
 
-    The ceiling this gives is the one the measured-fabric goal meets: a network reading the pixels of these clips
-    can place a fabric only where its simulated motion puts it.
+    ``sequences``: read clips 0..N-1 of each fabric (``sim.measured.clip_name``); default every finished one. What
+    this tells is what the measured-fabric goal meets in the simulation itself, read by plain classifiers (a
+    floor on what the geometry carries, like ``probe``).
     """
     from eval.classes import k_value, p_value
     from sim.analysis import PAPER_TABLE2
-    from sim.measured import measured_values
+    from sim.measured import clip_name, measured_values, table2_fabrics, wanted_clips
 
     t0 = time.perf_counter()
     folder = run.measured_sim_dir(setting)
-    if not run.done_clips(folder):
-        raise ConfigError(f"no simulated measured-fabric clips in {folder}: run `clothgap eval learnability "
-                          f"{run.root} --measured N` (it simulates N a fabric) or `clothgap eval measured` first")
+    done = run.done_clips(folder)
+    if sequences is not None:
+        wanted = {clip_name(f, n) for f, n in wanted_clips(table2_fabrics(), sequences)}
+        done = [c for c in done if c in wanted]
+    if not done:
+        raise ConfigError(f"no simulated measured-fabric clips in {folder}"
+                          f"{'' if sequences is None else f' among the first {sequences} of each fabric'} "
+                          f"(`clothgap eval learnability {run.root} --measured N` simulates N a fabric)")
     x, clips, _, labels = load_windows(run, setting, clip_len, stride, progress)
     mx, mclips, _, mlabels = load_windows(run, setting, clip_len, stride, progress, folder=folder)
+    keep = np.isin(mclips, done)
+    mx, mclips, mlabels = mx[keep], mclips[keep], mlabels[keep]
     fabric_of = {c: json.loads((folder / c / "meta.json").read_text())["fabric"] for c in set(mclips)}
     fabrics = sorted(set(fabric_of.values()))
     window_fabric = np.array([fabric_of[c] for c in mclips])
@@ -262,11 +270,18 @@ def probe_measured(run: Run, setting: str, clip_len: int = 10, stride: int = 10,
                                                rng=seeding.rng(seed, 0, seeding.EVAL, "learnability-measured",
                                                                setting, kind, name)).as_dict("value")
                   for name in ("exact", "within1", "class_dist")}
-        correlations = {f"{a}~{b}": metrics.bootstrap_correlation(
-            frame[a], frame[b], method="spearman", resamples=cfg.bootstrap, confidence=cfg.confidence,
-            rng=seeding.rng(seed, 0, seeding.EVAL, "learnability-measured", setting, kind, a, b)).as_dict("spearman")
-            for a, b in (("pred_k", "bending_N_m"), ("pred_k", "table2_k_est"), ("pred_p", "stretching_N_m"),
-                         ("pred_p", "table2_p_est"), ("pred_k", "density_kg_m2"))}
+        def spearman(a: str, b: str) -> dict:
+            both = np.isfinite(frame[a]) & np.isfinite(frame[b])     # a fabric outside Table 2 has no p~, k~
+            return metrics.bootstrap_correlation(
+                frame[a][both], frame[b][both], method="spearman", resamples=cfg.bootstrap,
+                confidence=cfg.confidence,
+                rng=seeding.rng(seed, 0, seeding.EVAL, "learnability-measured", setting, kind, a, b)
+            ).as_dict("spearman") | {"fabrics": int(both.sum())}
+
+        correlations = {f"{a}~{b}": spearman(a, b)
+                        for a, b in (("pred_k", "bending_N_m"), ("pred_k", "table2_k_est"),
+                                     ("pred_p", "stretching_N_m"), ("pred_p", "table2_p_est"),
+                                     ("pred_k", "density_kg_m2"))}
         results.append({"classifier": kind, "fabrics": rows, "scores": scores, "spearman": correlations,
                         "window_within1": float(metrics.within_one_bin(mlabels, probs.argmax(1)).mean())})
     return {"setting": setting, "source": "geometry", "clips": int(len(set(clips))),
@@ -350,7 +365,7 @@ def run_probe_measured(run: Run, sequences: int, settings: list[str] | None = No
 
     simulate_measured(run, table2_fabrics(), sequences, progress)
     settings = settings or [s for s in run.config.sim.settings() if run.done_clips(run.sim_dir(s))]
-    reports = [probe_measured(run, s, progress=progress, **kwargs) for s in settings]
+    reports = [probe_measured(run, s, sequences, progress=progress, **kwargs) for s in settings]
     atomic_write_json(run.eval_dir / "learnability-measured.json", {"sequences": sequences, "settings": reports})
     atomic_write_text(run.eval_dir / "learnability-measured.md", "\n\n".join(markdown_measured(r) for r in reports))
     return {"settings": settings, "written": str(run.eval_dir / "learnability-measured.md")}

@@ -124,3 +124,10 @@ def test_measured_probe_reads_each_fabric_where_its_geometry_puts_it(tmp_path):
         # no window of navy-sparkle-sweat can be within one bin of (0.5, 2) among the toy's classes
         assert 0.25 < result["window_within1"] <= 0.5
     assert "| royal-target | 3 | (20, 20) | (20, 20) | yes | 0 |" in markdown_measured(report)
+    # only the clips asked for: a fourth clip of each fabric, left by an earlier call, is not read with --measured 3
+    for fabric, like in looks_like.items():
+        _sheet_clip(run.measured_sim_dir("wind-uniform1") / f"{fabric}-3",
+                    {"class_index": table2_class(fabric), "fabric": fabric}, CLASSES.index(like), 1.0, rng, 40)
+    three = probe_measured(run, "wind-uniform1", sequences=3, progress=False, classifiers=("nearest",))
+    assert three["measured_clips"] == 6 and all(f["clips"] == 3 for f in three["results"][0]["fabrics"])
+    assert probe_measured(run, "wind-uniform1", progress=False, classifiers=("nearest",))["measured_clips"] == 8

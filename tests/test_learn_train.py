@@ -490,12 +490,15 @@ def test_a_shared_regressor_is_taken_frozen_and_its_readers_train_on_its_shapes(
     assert torch.equal(redone["head_geometry.weight"], checkpoint["model"]["head_geometry.weight"])
 
 
-def test_readers_on_a_shared_regressor_train_their_own_number_of_epochs(tmp_path):
+def test_readers_on_a_shared_regressor_train_their_own_number_of_epochs(tmp_path, monkeypatch):
     cfg = tiny_train_config(bottleneck=True, dropout=0.0, epochs=2, models=("lrcn", "base1"),
                             shared_regressor="lrcn", reader_epochs=5)
     run = synthetic_run(tmp_path / "run", cfg)
     _sim_clips_for(run, cfg.sim.frames)
+    asked, compiles = [], learn.train.compiles      # which trainings ask to compile as readers (compile_readers)
+    monkeypatch.setattr(learn.train, "compiles", lambda c, d, reads: asked.append(reads) or compiles(c, d, reads))
     reader = train_one(run, SETTING, VARIANT, "base1", 0, progress=False)
+    assert asked == [False, True]                   # lrcn trains its CNN first, then base1 reads its shapes
     regressor = run.train_dir(SETTING, VARIANT, "lrcn", 0)
     assert len(pd.read_csv(regressor / "metrics.csv")) == 2 and len(pd.read_csv(reader / "metrics.csv")) == 5
     assert json.loads((reader / "DONE").read_text())["epochs"] == 5
