@@ -181,3 +181,14 @@ def test_ablation_trains_recipes_side_by_side_as_one_process_does(tmp_path):
         for s in x["curves"]:
             assert [{k: v for k, v in e.items() if k != "seconds"} for e in x["curves"][s]] == \
                    [{k: v for k, v in e.items() if k != "seconds"} for e in y["curves"][s]]
+
+
+def test_the_ablation_command_names_every_lever():
+    # The levers are a registry (eval.ablation.LEVERS); the command's help lists them for its users.
+    from click.testing import CliRunner
+
+    from clothgap.cli import cli
+    from eval.ablation import LEVERS
+
+    text = " ".join(CliRunner().invoke(cli, ["eval", "ablation", "--help"]).output.split())
+    assert all(lever in text for lever in LEVERS), [lever for lever in LEVERS if lever not in text]
