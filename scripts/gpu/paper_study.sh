@@ -51,14 +51,24 @@ for stage in $STAGES; do
   samples="/tmp/gpu_samples_$(basename "$RUN")_$stage.txt"
   nvidia-smi ${gpus:+-i $gpus} --query-gpu=memory.used,utilization.gpu --format=csv,noheader,nounits -lms 500 > "$samples" 2>/dev/null &
   sampler=$!
+  # The host's memory in use (MiB, the whole machine: the stage's process tree and its page cache aside), every
+  # half second: the stage's peak over what was in use when it started (issue 14: host memory flat across settings).
+  host_samples="/tmp/host_samples_$(basename "$RUN")_$stage.txt"
+  (while :; do awk '/^MemTotal:/{t=$2} /^MemAvailable:/{a=$2} END{print int((t-a)/1024)}' /proc/meminfo; sleep 0.5; done) \
+    > "$host_samples" 2>/dev/null &
+  host_sampler=$!
   # LIMIT (seconds, optional) stops the stage in time for the call's 10 minutes; it resumes next call.
   ${LIMIT:+timeout -k 10 "$LIMIT"} python3 -m clothgap $stage "${args[@]}" "${extra[@]}" 2>&1 | tr '\r' '\n' | grep -vE "it/s\]|clip/s\]|shard/s\]|s/it\]|clip-frame/s\]" | tail -8
   rc=${PIPESTATUS[0]}
   t1=$(date +%s.%N)
-  kill $sampler 2>/dev/null; wait $sampler 2>/dev/null
-  python3 - "$samples" "$stage" "$rc" "$t0" "$t1" >> "$RUN/gpu_timings.jsonl" <<'PY'
+  kill $sampler $host_sampler 2>/dev/null; wait $sampler $host_sampler 2>/dev/null
+  python3 - "$samples" "$stage" "$rc" "$t0" "$t1" "$host_samples" >> "$RUN/gpu_timings.jsonl" <<'PY'
 import json, sys
-path, stage, rc, t0, t1 = sys.argv[1:]
+path, stage, rc, t0, t1, host_path = sys.argv[1:]
+try:
+    host = [int(x) for x in open(host_path).read().split() if x.isdigit()]
+except OSError:
+    host = []
 rows = []
 try:
     for line in open(path):
@@ -69,7 +79,9 @@ except OSError:
     pass
 print(json.dumps({"stage": stage, "rc": int(rc), "seconds": round(float(t1) - float(t0), 1),
                   "peak_gpu_mib": int(max((m for m, _ in rows), default=0)),
-                  "mean_gpu_util_pct": round(sum(u for _, u in rows) / len(rows), 1) if rows else None}))
+                  "mean_gpu_util_pct": round(sum(u for _, u in rows) / len(rows), 1) if rows else None,
+                  "host_used_mib_at_start": host[0] if host else None,
+                  "peak_host_mib_over_start": max(host) - host[0] if host else None}))
 PY
   case $rc in
     0) ;;
