@@ -51,11 +51,14 @@ for stage in $STAGES; do
   samples="/tmp/gpu_samples_$(basename "$RUN")_$stage.txt"
   nvidia-smi ${gpus:+-i $gpus} --query-gpu=memory.used,utilization.gpu --format=csv,noheader,nounits -lms 500 > "$samples" 2>/dev/null &
   sampler=$!
-  # The host's memory in use (MiB, the whole machine: the stage's process tree and its page cache aside), every
-  # half second: the stage's peak over what was in use when it started (issue 14: host memory flat across settings).
+  # The host's memory in use every half second (MiB, the whole machine, not only the stage; reclaimable page cache
+  # not counted; files in a tmpfs are, so its share, Shmem, is sampled too): the stage's peak over what was in use
+  # when it started (issue 14: host memory flat across settings). The loop ends with this script.
   host_samples="/tmp/host_samples_$(basename "$RUN")_$stage.txt"
-  (while :; do awk '/^MemTotal:/{t=$2} /^MemAvailable:/{a=$2} END{print int((t-a)/1024)}' /proc/meminfo; sleep 0.5; done) \
-    > "$host_samples" 2>/dev/null &
+  rm -f "$host_samples"
+  (while kill -0 $$ 2>/dev/null; do
+     awk '/^MemTotal:/{t=$2} /^MemAvailable:/{a=$2} /^Shmem:/{s=$2} END{print int((t-a)/1024), int(s/1024)}' /proc/meminfo
+     sleep 0.5; done) > "$host_samples" 2>/dev/null &
   host_sampler=$!
   # LIMIT (seconds, optional) stops the stage in time for the call's 10 minutes; it resumes next call.
   ${LIMIT:+timeout -k 10 "$LIMIT"} python3 -m clothgap $stage "${args[@]}" "${extra[@]}" 2>&1 | tr '\r' '\n' | grep -vE "it/s\]|clip/s\]|shard/s\]|s/it\]|clip-frame/s\]" | tail -8
@@ -66,7 +69,8 @@ for stage in $STAGES; do
 import json, sys
 path, stage, rc, t0, t1, host_path = sys.argv[1:]
 try:
-    host = [int(x) for x in open(host_path).read().split() if x.isdigit()]
+    pairs = [line.split() for line in open(host_path)]
+    host = [(int(u), int(m)) for u, m in (p for p in pairs if len(p) == 2 and all(x.isdigit() for x in p))]
 except OSError:
     host = []
 rows = []
@@ -80,8 +84,9 @@ except OSError:
 print(json.dumps({"stage": stage, "rc": int(rc), "seconds": round(float(t1) - float(t0), 1),
                   "peak_gpu_mib": int(max((m for m, _ in rows), default=0)),
                   "mean_gpu_util_pct": round(sum(u for _, u in rows) / len(rows), 1) if rows else None,
-                  "host_used_mib_at_start": host[0] if host else None,
-                  "peak_host_mib_over_start": max(host) - host[0] if host else None}))
+                  "host_used_mib_at_start": host[0][0] if host else None,
+                  "peak_host_mib_over_start": max(u for u, _ in host) - host[0][0] if host else None,
+                  "peak_host_shmem_mib_over_start": max(m for _, m in host) - host[0][1] if host else None}))
 PY
   case $rc in
     0) ;;
