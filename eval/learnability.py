@@ -363,8 +363,8 @@ def run_probe_measured(run: Run, sequences: int, settings: list[str] | None = No
     from sim.measured import table2_fabrics
     from sim.stage import simulate_measured
 
-    simulate_measured(run, table2_fabrics(), sequences, progress)
     settings = settings or [s for s in run.config.sim.settings() if run.done_clips(run.sim_dir(s))]
+    simulate_measured(run, table2_fabrics(), sequences, progress, settings=settings)
     reports = [probe_measured(run, s, sequences, progress=progress, **kwargs) for s in settings]
     atomic_write_json(run.eval_dir / "learnability-measured.json", {"sequences": sequences, "settings": reports})
     atomic_write_text(run.eval_dir / "learnability-measured.md", "\n\n".join(markdown_measured(r) for r in reports))

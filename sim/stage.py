@@ -436,13 +436,15 @@ def _write_clip(folder: Path, meta: dict, result: ClipResult, mesh: ClothMesh) -
     return True
 
 
-def simulate_measured(run: Run, fabrics: Sequence[str], sequences: int, progress: bool = True) -> dict:
-    """Simulate ``sequences`` clips of each fabric under every setting of the run (finished ones skipped)."""
+def simulate_measured(run: Run, fabrics: Sequence[str], sequences: int, progress: bool = True,
+                      settings: Sequence[str] | None = None) -> dict:
+    """Simulate ``sequences`` clips of each fabric under every setting of the run, or those of ``settings``
+    (finished ones skipped)."""
     from sim.measured import MAX_SEQUENCES, check_fabrics, clip_name, measured_index, wanted_clips
 
     check_fabrics(fabrics)
     if not 0 < sequences <= MAX_SEQUENCES:
         raise ConfigError(f"measured sequences must be 1..{MAX_SEQUENCES}, got {sequences}")
     jobs = [ClipJob(measured_index(f, n), clip_name(f, n), n, fabric=f) for f, n in wanted_clips(fabrics, sequences)]
-    return simulate_jobs(run, {s: jobs for s in run.config.sim.settings()}, run.measured_sim_dir, progress,
-                         label="sim measured")
+    settings = run.config.sim.settings() if settings is None else settings
+    return simulate_jobs(run, {s: jobs for s in settings}, run.measured_sim_dir, progress, label="sim measured")

@@ -253,3 +253,16 @@ def test_a_recipes_models_are_scored_where_they_are_and_new_weights_are_predicte
         run_measured(run, models=[own, model], sequences=1, fabrics=fabrics, predictor=stub, progress=False)
     with pytest.raises(ConfigError, match="ablation/<recipe>"):
         model_from_dir(run, run.root / "ablation" / "lrcn")
+
+
+def test_measured_clips_are_simulated_for_the_settings_asked_only(tmp_path):
+    from sim.stage import simulate_measured
+
+    cfg = preset("smoke")
+    cfg = replace(cfg, sim=replace(cfg.sim, motions=("wind", "arm"), grid_vertices=6, frames=3, settle_s=0.04,
+                                   batch_size=2, device="cpu"), train=replace(cfg.train, clip_len=2, clip_stride=1))
+    run = Run.create_or_resume(tmp_path / "run", cfg)
+    summary = simulate_measured(run, ["royal-target"], 1, progress=False, settings=["wind-uniform1"])
+    assert summary["simulated"] == 1
+    assert run.done_clips(run.measured_sim_dir("wind-uniform1")) == ["royal-target-0"]
+    assert run.done_clips(run.measured_sim_dir("arm-uniform1")) == []
