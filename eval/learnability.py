@@ -358,14 +358,18 @@ def run_probe(run: Run, settings: list[str] | None = None, progress: bool = True
 
 def run_probe_measured(run: Run, sequences: int, settings: list[str] | None = None, progress: bool = True,
                        **kwargs) -> dict:
-    """Simulate ``sequences`` clips of each Table 2 fabric under the run's settings (finished ones kept), probe
-    each simulated setting with ``probe_measured``; write ``eval/learnability-measured.{json,md}``."""
+    """Simulate ``sequences`` clips of each Table 2 fabric under each setting probed (``settings``, default every
+    simulated one; finished clips kept), probe each with ``probe_measured``; write
+    ``eval/learnability-measured.{json,md}``."""
     from sim.measured import table2_fabrics
     from sim.stage import simulate_measured
 
     settings = settings or [s for s in run.config.sim.settings() if run.done_clips(run.sim_dir(s))]
     simulate_measured(run, table2_fabrics(), sequences, progress, settings=settings)
-    reports = [probe_measured(run, s, sequences, progress=progress, **kwargs) for s in settings]
-    atomic_write_json(run.eval_dir / "learnability-measured.json", {"sequences": sequences, "settings": reports})
-    atomic_write_text(run.eval_dir / "learnability-measured.md", "\n\n".join(markdown_measured(r) for r in reports))
+    reports = []
+    for setting in settings:          # written after each setting: a later one's failure keeps the earlier ones
+        reports.append(probe_measured(run, setting, sequences, progress=progress, **kwargs))
+        atomic_write_json(run.eval_dir / "learnability-measured.json", {"sequences": sequences, "settings": reports})
+        atomic_write_text(run.eval_dir / "learnability-measured.md",
+                          "\n\n".join(markdown_measured(r) for r in reports))
     return {"settings": settings, "written": str(run.eval_dir / "learnability-measured.md")}
