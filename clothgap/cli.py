@@ -420,7 +420,10 @@ def eval_measured(run_dir: Path, train_dirs: tuple[Path, ...], sequences: int | 
 def eval_learnability(run_dir: Path, settings: tuple[str, ...], clip_len: int, stride: int | None,
                       variant: str | None, measured: int | None) -> None:
     """How well the simulated 3D sequences alone tell the material, split by sequence and by the
-    paper's sub-sequence protocol (writes RUN_DIR/eval/learnability.{json,md}; needs only `clothgap sim`)."""
+    paper's sub-sequence protocol (writes RUN_DIR/eval/learnability.{json,md}; needs only `clothgap sim`);
+    with --measured, where they put the measured fabrics (eval/learnability-measured.{json,md})."""
+    if measured and variant:
+        raise ConfigError("--measured probes the geometry: it does not take --pixels")
     run = Run.open(run_dir)
     run.require(run.root / ("render" if variant else "sim"), "render" if variant else "sim")
     known = run.config.sim.settings()
@@ -430,8 +433,6 @@ def eval_learnability(run_dir: Path, settings: tuple[str, ...], clip_len: int, s
     if stride is not None and stride < clip_len:
         raise ConfigError(f"--stride {stride} < --clip-len {clip_len}: overlapping windows would share frames "
                           "across train and test in the split by sub-sequence")
-    if measured and variant:
-        raise ConfigError("--measured probes the geometry: it does not take --pixels")
     from eval.learnability import run_probe, run_probe_measured
 
     t0 = time.perf_counter()

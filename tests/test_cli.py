@@ -69,6 +69,8 @@ def test_eval_learnability_names_what_is_missing_or_wrong(tmp_path):
     assert_user_error(clothgap("eval", "learnability", str(tmp_path / "r"), "--setting", "arm-uniform9"),
                       "arm-uniform9", "wind-uniform1")
     assert_user_error(clothgap("eval", "learnability", str(tmp_path / "r"), "--stride", "5"), "--stride 5")
+    assert_user_error(clothgap("eval", "learnability", str(tmp_path / "r"), "--measured", "2", "--pixels", "paper"),
+                      "--measured", "--pixels")
 
 
 def test_unknown_option_and_bad_override_are_named(tmp_path):
