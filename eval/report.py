@@ -460,11 +460,42 @@ def _section_sim_analysis(run: Run) -> str:
     return "".join(out)
 
 
-def _section_measured(run: Run) -> str:
-    """The measured-fabric set (eval.measured): per model, fabrics against Table 2, match rates, correlations."""
-    path = run.eval_dir / "measured.csv"
+def _measured_geometry(run: Run) -> str:
+    """What the measured fabrics' simulated geometry tells plain classifiers (``clothgap eval learnability
+    --measured``): per setting and classifier, the fabrics within one bin of Table 2 and the bending rank."""
+    path = run.eval_dir / "learnability-measured.json"
     if not path.is_file():
         return ""
+    try:
+        reports = json.loads(path.read_text())["settings"]
+        rows = []
+        for rep in reports:
+            for r in rep["results"]:
+                within, fabrics = r["scores"]["within1"], r["fabrics"]
+                rank = r["spearman"]["pred_k~bending_N_m"]
+                rows.append(f"<tr><td>{_esc(rep['setting'])}</td><td>{_esc(r['classifier'])}</td>"
+                            f"<td class=\"num\">{round(within['value'] * len(fabrics))} of {len(fabrics)}</td>"
+                            f"<td class=\"num\">{r['scores']['class_dist']['value']:.1f}</td>"
+                            f"<td class=\"num\">{rank['spearman']:.2f} [{rank['spearman_lo']:.2f}, "
+                            f"{rank['spearman_hi']:.2f}]</td><td>{rep['clip_len']} frames</td></tr>")
+    except (KeyError, TypeError, ValueError, UnicodeDecodeError) as e:     # JSONDecodeError is a ValueError
+        return f'<h3>The fabrics\' simulated geometry</h3><p class="note">{_link(run, path)} unreadable: {_esc(e)}</p>'
+    head = "".join(f"<th>{h}</th>" for h in ("Setting", "Classifier", "Fabrics within one bin of Table 2",
+                                             "Grid steps", "Bending rank vs measured bending (Spearman)", "Window"))
+    return ("<h3>The fabrics' simulated geometry</h3><p>Plain classifiers trained on the true 8 x 8 lattices of the "
+            "run's class clips read the measured fabrics' clips (<code>clothgap eval learnability RUN --measured "
+            f"N</code>; {_link(run, path)}): how much of the set the simulation itself carries, before any pixel. "
+            "A floor on it: the classifiers are plain.</p>"
+            f"<table><tr>{head}</tr>{''.join(rows)}</table>")
+
+
+def _section_measured(run: Run) -> str:
+    """The measured-fabric set (eval.measured): per model, fabrics against Table 2, match rates, correlations;
+    and what the fabrics' simulated geometry tells (``_measured_geometry``)."""
+    path = run.eval_dir / "measured.csv"
+    geometry = _measured_geometry(run)
+    if not path.is_file():
+        return ('<h2 id="measured">Measured fabrics (the paper\'s Table 2 classes)</h2>' + geometry) if geometry else ""
     try:
         table = pd.read_csv(path)
         corr_path = run.eval_dir / "measured_correlations.csv"
@@ -493,7 +524,7 @@ def _section_measured(run: Run) -> str:
                    + _img(figures.png_bytes(figures.measured_scatter(table)), "measured fabrics, all models", 760))
     for key, g in table.groupby(_MEASURED_KEYS, sort=True):
         out += _measured_model(run, key, g, info, corr)
-    return "".join(out)
+    return "".join(out) + geometry
 
 
 _MEASURED_KEYS = ["setting", "train_variant", "model", "seed", "test_variant"]   # one model on the measured set

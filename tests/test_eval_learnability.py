@@ -131,3 +131,10 @@ def test_measured_probe_reads_each_fabric_where_its_geometry_puts_it(tmp_path):
     three = probe_measured(run, "wind-uniform1", sequences=3, progress=False, classifiers=("nearest",))
     assert three["measured_clips"] == 6 and all(f["clips"] == 3 for f in three["results"][0]["fabrics"])
     assert probe_measured(run, "wind-uniform1", progress=False, classifiers=("nearest",))["measured_clips"] == 8
+    # the report shows it, in the measured fabrics' section, without any network's predictions of them
+    from clothgap.runs import atomic_write_json
+    from eval.report import write_report
+
+    atomic_write_json(run.eval_dir / "learnability-measured.json", {"sequences": 3, "settings": [report]})
+    doc = write_report(run).read_text()
+    assert "The fabrics' simulated geometry" in doc and doc.count("1 of 2</td>") == 2     # linear and 1-NN
