@@ -217,13 +217,15 @@ def probe(run: Run, setting: str, clip_len: int = 10, stride: int = 10, test_fra
 
 
 def probe_measured(run: Run, setting: str, sequences: int | None = None, clip_len: int = 10, stride: int = 10,
-                   classifiers: tuple[str, ...] = CLASSIFIERS, progress: bool = True) -> dict:
+                   classifiers: tuple[str, ...] = CLASSIFIERS, progress: bool = True,
+                   folder: Path | None = None) -> dict:
     """What the geometry of the measured fabrics' clips says their class is: each classifier trained on every
     simulated clip of the setting (the 54 classes, the basis fabric's density) reads the windows of the clips
     simulated with the fabrics' own tables (``run.measured_sim_dir``); a fabric's class is the argmax of its
     windows' mean probabilities, set beside its Table 2 class as ``eval.measured`` sets a model's.
 
-    ``sequences``: read clips 0..N-1 of each fabric (``sim.measured.clip_name``); default every finished one. What
+    ``sequences``: read clips 0..N-1 of each fabric (``sim.measured.clip_name``); default every finished one.
+    ``folder``: the measured clips' folder, if not ``run.measured_sim_dir(setting)``. What
     this tells is what the measured-fabric goal meets in the simulation itself, read by plain classifiers (a
     floor on what the geometry carries, like ``probe``).
     """
@@ -232,7 +234,7 @@ def probe_measured(run: Run, setting: str, sequences: int | None = None, clip_le
     from sim.measured import clip_name, measured_values, table2_fabrics, wanted_clips
 
     t0 = time.perf_counter()
-    folder = run.measured_sim_dir(setting)
+    folder = folder or run.measured_sim_dir(setting)
     done = run.done_clips(folder)
     if sequences is not None:
         wanted = {clip_name(f, n) for f, n in wanted_clips(table2_fabrics(), sequences)}

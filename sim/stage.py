@@ -26,7 +26,7 @@ import shutil
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -234,13 +234,15 @@ def clip_material(cfg: SimConfig, seed: int, index: int) -> tuple[int, float, fl
 
 
 def build_scene(cfg: SimConfig, seed: int, index: int, setting: Setting, mesh: ClothMesh,
-                fabric: str | None = None) -> tuple[ClipScene, dict]:
+                fabric: str | None = None, density: float | None = None) -> tuple[ClipScene, dict]:
     """The scene of one clip and the label part of its meta.
 
     ``fabric`` overrides the material: the named measured fabric (``assets/materials``)
     with its own full Wang tables, not the basis scaled by a class's (p, k). Its
     labels are then the paper's Table 2 class (``sim.measured``) and the estimated
-    ratios p~, k~ to the basis; the motion draws are the clip index's as usual.
+    ratios p~, k~ to the basis; the motion draws are the clip index's as usual. ``density`` (kg/m^2) replaces
+    the fabric's own area density (a diagnostic: how much of a fabric's motion its density makes); the meta
+    keeps its own as ``density_own``.
     """
     motion_rng = seeding.rng(seed, index, seeding.SIM, f"motion-{setting.motion}")
     if fabric is None:
@@ -255,6 +257,9 @@ def build_scene(cfg: SimConfig, seed: int, index: int, setting: Setting, mesh: C
 
         material = load_material(fabric)
         meta = fabric_labels(fabric)
+        if density is not None:
+            material = replace(material, density=float(density))
+            meta = {**meta, "density": float(density), "density_own": meta["density"]}
     return get_motion(setting.motion).scene(mesh, material, motion_rng, cfg), meta
 
 
@@ -266,6 +271,7 @@ class ClipJob:
     name: str                   # folder name: clip_id(index), or <fabric>-<n> for a measured fabric
     sequence: int
     fabric: str | None = None   # a measured fabric simulated with its own tables (build_scene)
+    density: float | None = None    # the measured fabric's density replaced by this (build_scene)
 
 
 def run_sim(run: Run, progress: bool = True, indices: Sequence[int] | None = None) -> dict:
@@ -322,7 +328,8 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
         for b in range(0, len(todo), cfg.batch_size):
             batch = todo[b:b + cfg.batch_size]
             with timed(phases, "scenes"):
-                built = [build_scene(cfg, run.config.seed, j.index, setting, mesh, j.fabric) for j in batch]
+                built = [build_scene(cfg, run.config.seed, j.index, setting, mesh, j.fabric, j.density)
+                         for j in batch]
             scenes = [s for s, _ in built]
             with timed(phases, "simulate"):
                 results, substeps = simulate_batch(cfg, simulate, scenes, device,
@@ -437,14 +444,20 @@ def _write_clip(folder: Path, meta: dict, result: ClipResult, mesh: ClothMesh) -
 
 
 def simulate_measured(run: Run, fabrics: Sequence[str], sequences: int, progress: bool = True,
-                      settings: Sequence[str] | None = None) -> dict:
+                      settings: Sequence[str] | None = None, density: float | None = None,
+                      folder_of: Callable[[str], Path] | None = None) -> dict:
     """Simulate ``sequences`` clips of each fabric under every setting of the run, or those of ``settings``
-    (finished ones skipped)."""
+    (finished ones skipped), into ``run.measured_sim_dir`` or ``folder_of(setting)``; ``density`` replaces each
+    fabric's own (``build_scene``: then give a folder of their own)."""
     from sim.measured import MAX_SEQUENCES, check_fabrics, clip_name, measured_index, wanted_clips
 
     check_fabrics(fabrics)
     if not 0 < sequences <= MAX_SEQUENCES:
         raise ConfigError(f"measured sequences must be 1..{MAX_SEQUENCES}, got {sequences}")
-    jobs = [ClipJob(measured_index(f, n), clip_name(f, n), n, fabric=f) for f, n in wanted_clips(fabrics, sequences)]
+    if density is not None and folder_of is None:
+        raise ConfigError("measured clips at another density than their own need a folder of their own (folder_of)")
+    jobs = [ClipJob(measured_index(f, n), clip_name(f, n), n, fabric=f, density=density)
+            for f, n in wanted_clips(fabrics, sequences)]
     settings = run.config.sim.settings() if settings is None else settings
-    return simulate_jobs(run, {s: jobs for s in settings}, run.measured_sim_dir, progress, label="sim measured")
+    return simulate_jobs(run, {s: jobs for s in settings}, folder_of or run.measured_sim_dir, progress,
+                         label="sim measured")

@@ -16,6 +16,7 @@ from PIL import Image
 from scipy import stats
 
 from clothgap.config import preset
+from clothgap.errors import ConfigError
 from clothgap.runs import Run, mark_done
 
 SETTING = "wind-uniform1"
@@ -266,3 +267,18 @@ def test_measured_clips_are_simulated_for_the_settings_asked_only(tmp_path):
     assert summary["simulated"] == 1
     assert run.done_clips(run.measured_sim_dir("wind-uniform1")) == ["royal-target-0"]
     assert run.done_clips(run.measured_sim_dir("arm-uniform1")) == []
+
+    # the same fabric at another density (scripts/measured_density.py): its own folder, the density in the meta
+    # and in the simulation (the same draws and tables, another weight: another motion)
+    from sim.clip import SimClip
+
+    with pytest.raises(ConfigError, match="folder of their own"):
+        simulate_measured(run, ["royal-target"], 1, progress=False, settings=["wind-uniform1"], density=0.05)
+    light = tmp_path / "light"
+    simulate_measured(run, ["royal-target"], 1, progress=False, settings=["wind-uniform1"], density=0.05,
+                      folder_of=lambda s: light / s)
+    own = SimClip.load(run.measured_sim_dir("wind-uniform1") / "royal-target-0")
+    other = SimClip.load(light / "wind-uniform1" / "royal-target-0")
+    assert other.meta["density"] == 0.05 and other.meta["density_own"] == own.meta["density"] != 0.05
+    assert other.meta["motion_params"] == own.meta["motion_params"]
+    assert not np.allclose(other.positions, own.positions)
