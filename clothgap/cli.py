@@ -436,14 +436,10 @@ def eval_learnability(run_dir: Path, settings: tuple[str, ...], clip_len: int, s
     from eval.learnability import run_probe, run_probe_measured
 
     t0 = time.perf_counter()
-    if measured:
-        _echo_summary("eval learnability", run_probe_measured(run, measured, list(settings) or None,
-                                                              clip_len=clip_len, stride=stride or clip_len),
-                      time.perf_counter() - t0)
-        return
-    _echo_summary("eval learnability", run_probe(run, list(settings) or None, clip_len=clip_len,
-                                                 stride=stride or clip_len, pixels=variant),
-                  time.perf_counter() - t0)
+    options = {"clip_len": clip_len, "stride": stride or clip_len}
+    summary = (run_probe_measured(run, measured, list(settings) or None, **options) if measured
+               else run_probe(run, list(settings) or None, pixels=variant, **options))
+    _echo_summary("eval learnability", summary, time.perf_counter() - t0)
 
 
 @eval.command("ablation")

@@ -349,3 +349,7 @@ class Run:
         if not folder.is_dir():
             return []
         return sorted(p.name for p in folder.iterdir() if p.is_dir() and is_done(p))
+
+    def simulated_settings(self) -> list[str]:
+        """The run's settings with at least one finished sim clip, in the config's order."""
+        return [s for s in self.config.sim.settings() if self.done_clips(self.sim_dir(s))]

@@ -31,6 +31,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import torch
 from tqdm import tqdm
 
@@ -76,11 +77,11 @@ def pixel_windows(run: Run, variant: str, setting: str, clip_len: int, stride: i
 
 
 def load_windows(run: Run, setting: str, clip_len: int, stride: int, progress: bool = True,
-                 folder: Path | None = None):
+                 folder: Path | None = None, ids: list[str] | None = None):
     """Features (N, D), clip ids (N,), window starts (N,), classes (N,) of every finished sim clip
-    (of the setting's folder, or of ``folder``: e.g. the measured fabrics')."""
+    (of the setting's folder, or of ``folder``: e.g. the measured fabrics'; or of those ``ids`` there)."""
     folder = folder or run.sim_dir(setting)
-    ids = run.done_clips(folder)
+    ids = run.done_clips(folder) if ids is None else ids
     if not ids:
         raise ConfigError(f"no finished sim clips in {folder}: run `clothgap sim {run.root}` first")
     feats, clips, starts, labels = [], [], [], []
@@ -216,22 +217,42 @@ def probe(run: Run, setting: str, clip_len: int = 10, stride: int = 10, test_fra
             "seconds": round(time.perf_counter() - t0, 1)}
 
 
+def fit_classes(run: Run, setting: str, clip_len: int = 10, stride: int = 10,
+                classifiers: tuple[str, ...] = CLASSIFIERS, progress: bool = True) -> dict:
+    """Each classifier trained on the windows of every simulated clip of the setting (the 54 classes): what
+    ``probe_measured`` reads measured clips with, fitted once for any number of measured folders."""
+    x, clips, _, labels = load_windows(run, setting, clip_len, stride, progress)
+    return {"setting": setting, "clip_len": clip_len, "stride": stride, "clips": int(len(set(clips))),
+            "train_windows": int(len(x)), "features": int(x.shape[1]),
+            "classifiers": {kind: fit(kind, x, labels, TARGETS["class"], run.config.seed) for kind in classifiers}}
+
+
+def _spearman(frame: pd.DataFrame, a: str, b: str, resamples: int, confidence: float,
+              rng: np.random.Generator) -> dict:
+    both = frame[[a, b]].dropna()          # a fabric outside Table 2 has no p~, k~
+    return (metrics.bootstrap_correlation(both[a], both[b], method="spearman", resamples=resamples,
+                                          confidence=confidence, rng=rng).as_dict("spearman")
+            | {"fabrics": len(both)})
+
+
 def probe_measured(run: Run, setting: str, sequences: int | None = None, clip_len: int = 10, stride: int = 10,
                    classifiers: tuple[str, ...] = CLASSIFIERS, progress: bool = True,
-                   folder: Path | None = None) -> dict:
+                   folder: Path | None = None, fitted: dict | None = None) -> dict:
     """What the geometry of the measured fabrics' clips says their class is: each classifier trained on every
-    simulated clip of the setting (the 54 classes, the basis fabric's density) reads the windows of the clips
-    simulated with the fabrics' own tables (``run.measured_sim_dir``); a fabric's class is the argmax of its
-    windows' mean probabilities, set beside its Table 2 class as ``eval.measured`` sets a model's.
+    simulated clip of the setting (``fit_classes``: the 54 classes, the basis fabric's density) reads the windows
+    of the clips simulated with the fabrics' own tables (``run.measured_sim_dir``); a fabric's class is the argmax
+    of its clips' mean probabilities, set beside its Table 2 class by ``eval.measured.fabric_table``, as for a
+    network's predictions.
 
     ``sequences``: read clips 0..N-1 of each fabric (``sim.measured.clip_name``); default every finished one.
-    ``folder``: the measured clips' folder, if not ``run.measured_sim_dir(setting)``. What
-    this tells is what the measured-fabric goal meets in the simulation itself, read by plain classifiers (a
-    floor on what the geometry carries, like ``probe``).
+    ``folder``: the measured clips' folder, if not ``run.measured_sim_dir(setting)``; a clip's density is its
+    meta's (a folder simulated at another density reports that one). ``fitted``: ``fit_classes``'s result, to
+    read several folders with one fit. What this tells is what the measured-fabric goal meets in the simulation
+    itself, read by plain classifiers (a floor on what the geometry carries, like ``probe``).
     """
-    from eval.classes import k_value, p_value
-    from sim.analysis import PAPER_TABLE2
-    from sim.measured import clip_name, measured_values, table2_fabrics, wanted_clips
+    from eval import predictions as preds
+    from eval.measured import fabric_table, match_table
+    from sim.measured import clip_name, table2_fabrics, wanted_clips
 
     t0 = time.perf_counter()
     folder = folder or run.measured_sim_dir(setting)
@@ -243,53 +264,40 @@ def probe_measured(run: Run, setting: str, sequences: int | None = None, clip_le
         raise ConfigError(f"no simulated measured-fabric clips in {folder}"
                           f"{'' if sequences is None else f' among the first {sequences} of each fabric'} "
                           f"(`clothgap eval learnability {run.root} --measured N` simulates N a fabric)")
-    x, clips, _, labels = load_windows(run, setting, clip_len, stride, progress)
-    mx, mclips, _, mlabels = load_windows(run, setting, clip_len, stride, progress, folder=folder)
-    keep = np.isin(mclips, done)
-    mx, mclips, mlabels = mx[keep], mclips[keep], mlabels[keep]
-    fabric_of = {c: json.loads((folder / c / "meta.json").read_text())["fabric"] for c in set(mclips)}
-    fabrics = sorted(set(fabric_of.values()))
-    window_fabric = np.array([fabric_of[c] for c in mclips])
-    truth = {f: int(mlabels[window_fabric == f][0]) for f in fabrics}
+    fitted = fitted or fit_classes(run, setting, clip_len, stride, classifiers, progress)
+    mx, mclips, _, mlabels = load_windows(run, setting, fitted["clip_len"], fitted["stride"], progress,
+                                          folder=folder, ids=done)
+    metas = {c: json.loads((folder / c / "meta.json").read_text()) for c in done}
     cfg, seed = run.config.eval, run.config.seed
     results = []
-    for kind in classifiers:
-        probs = fit(kind, x, labels, TARGETS["class"], seed)(mx)
-        rows = []
-        for f in fabrics:
-            pred = int(probs[window_fabric == f].mean(0).argmax())
-            t = truth[f]
-            rows.append({"fabric": f, "clips": int(len({c for c, w in zip(mclips, window_fabric) if w == f})),
-                         "pred": pred, "pred_p": float(p_value(pred)), "pred_k": float(k_value(pred)),
-                         "table2_class": t, "table2_p": float(p_value(t)), "table2_k": float(k_value(t)),
-                         "table2_p_est": PAPER_TABLE2[f][0] if f in PAPER_TABLE2 else float("nan"),
-                         "table2_k_est": PAPER_TABLE2[f][2] if f in PAPER_TABLE2 else float("nan"),
-                         "exact": float(pred == t), "within1": float(metrics.within_one_bin([t], [pred])[0]),
-                         "class_dist": float(metrics.class_distance([t], [pred])[0]), **measured_values(f)})
-        frame = {k: np.array([r[k] for r in rows]) for k in rows[0]}
-        scores = {name: metrics.bootstrap_mean(frame[name], frame["fabric"], resamples=cfg.bootstrap,
-                                               confidence=cfg.confidence,
-                                               rng=seeding.rng(seed, 0, seeding.EVAL, "learnability-measured",
-                                                               setting, kind, name)).as_dict("value")
-                  for name in ("exact", "within1", "class_dist")}
-        def spearman(a: str, b: str) -> dict:
-            both = np.isfinite(frame[a]) & np.isfinite(frame[b])     # a fabric outside Table 2 has no p~, k~
-            return metrics.bootstrap_correlation(
-                frame[a][both], frame[b][both], method="spearman", resamples=cfg.bootstrap,
-                confidence=cfg.confidence,
-                rng=seeding.rng(seed, 0, seeding.EVAL, "learnability-measured", setting, kind, a, b)
-            ).as_dict("spearman") | {"fabrics": int(both.sum())}
+    for kind, classify in fitted["classifiers"].items():
+        probs = classify(mx)
+        # per clip: the mean of its windows' probabilities, as eval.real does for a video's sub-sequences
+        per_clip = pd.DataFrame(probs, columns=preds.PROB_COLUMNS).groupby(mclips, sort=True).mean()
+        videos = per_clip.assign(video=per_clip.index, pred=per_clip.to_numpy().argmax(1),
+                                 fabric=[metas[c]["fabric"] for c in per_clip.index])
+        table = fabric_table(videos)
+        density = {f: float(np.mean([metas[c]["density"] for c in g.index])) for f, g in videos.groupby("fabric")}
+        table["density_kg_m2"] = table["fabric"].map(density)
 
-        correlations = {f"{a}~{b}": spearman(a, b)
+        def rng_for(*parts: str, kind=kind) -> np.random.Generator:
+            return seeding.rng(seed, 0, seeding.EVAL, "learnability-measured", setting, kind, *parts)
+
+        match = match_table(table, resamples=cfg.bootstrap, confidence=cfg.confidence,
+                            rng_for=lambda _match, score: rng_for(score))
+        scores = {r.score: {"value": r.value, "value_lo": r.value_lo, "value_hi": r.value_hi}
+                  for r in match.itertuples() if r.score in ("exact", "within1", "class_dist")}
+        correlations = {f"{a}~{b}": _spearman(table, a, b, cfg.bootstrap, cfg.confidence, rng_for(a, b))
                         for a, b in (("pred_k", "bending_N_m"), ("pred_k", "table2_k_est"),
                                      ("pred_p", "stretching_N_m"), ("pred_p", "table2_p_est"),
                                      ("pred_k", "density_kg_m2"))}
+        rows = json.loads(table.drop(columns=["class_source"]).to_json(orient="records"))
         results.append({"classifier": kind, "fabrics": rows, "scores": scores, "spearman": correlations,
                         "window_within1": float(metrics.within_one_bin(mlabels, probs.argmax(1)).mean())})
-    return {"setting": setting, "source": "geometry", "clips": int(len(set(clips))),
-            "train_windows": int(len(x)), "measured_clips": len(fabric_of), "measured_windows": int(len(mx)),
-            "clip_len": clip_len, "stride": stride, "features": int(x.shape[1]), "lattice": LATTICE,
-            "results": results, "seconds": round(time.perf_counter() - t0, 1)}
+    return {"setting": setting, "source": "geometry", "clips": fitted["clips"],
+            "train_windows": fitted["train_windows"], "measured_clips": len(done), "measured_windows": int(len(mx)),
+            "clip_len": fitted["clip_len"], "stride": fitted["stride"], "features": fitted["features"],
+            "lattice": LATTICE, "results": results, "seconds": round(time.perf_counter() - t0, 1)}
 
 
 def markdown_measured(report: dict) -> str:
@@ -366,7 +374,7 @@ def run_probe_measured(run: Run, sequences: int, settings: list[str] | None = No
     from sim.measured import table2_fabrics
     from sim.stage import simulate_measured
 
-    settings = settings or [s for s in run.config.sim.settings() if run.done_clips(run.sim_dir(s))]
+    settings = settings or run.simulated_settings()
     simulate_measured(run, table2_fabrics(), sequences, progress, settings=settings)
     reports = []
     for setting in settings:          # written after each setting: a later one's failure keeps the earlier ones

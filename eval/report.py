@@ -30,7 +30,7 @@ import pandas as pd
 from clothgap.errors import ConfigError
 from clothgap.runs import Run, atomic_write_text, is_done
 from clothgap.settings import to_dict
-from eval import figures, tables
+from eval import figures, metrics, tables
 from eval.metrics import Estimate
 from eval.trained import grid_models
 
@@ -471,13 +471,12 @@ def _measured_geometry(run: Run) -> str:
         rows = []
         for rep in reports:
             for r in rep["results"]:
-                within, fabrics = r["scores"]["within1"], r["fabrics"]
-                rank = r["spearman"]["pred_k~bending_N_m"]
+                fabrics = r["fabrics"]
                 rows.append(f"<tr><td>{_esc(rep['setting'])}</td><td>{_esc(r['classifier'])}</td>"
-                            f"<td class=\"num\">{round(within['value'] * len(fabrics))} of {len(fabrics)}</td>"
+                            f"<td class=\"num\">{int(sum(f['within1'] for f in fabrics))} of {len(fabrics)}</td>"
                             f"<td class=\"num\">{r['scores']['class_dist']['value']:.1f}</td>"
-                            f"<td class=\"num\">{rank['spearman']:.2f} [{rank['spearman_lo']:.2f}, "
-                            f"{rank['spearman_hi']:.2f}]</td><td>{rep['clip_len']} frames</td></tr>")
+                            + _est(r["spearman"]["pred_k~bending_N_m"], "spearman", 1.0, 2, _CORRELATION_WHY)
+                            + f"<td>{rep['clip_len']} frames</td></tr>")
     except (KeyError, TypeError, ValueError, UnicodeDecodeError) as e:     # JSONDecodeError is a ValueError
         return f'<h3>The fabrics\' simulated geometry</h3><p class="note">{_link(run, path)} unreadable: {_esc(e)}</p>'
     head = "".join(f"<th>{h}</th>" for h in ("Setting", "Classifier", "Fabrics within one bin of Table 2",
@@ -503,7 +502,8 @@ def _section_measured(run: Run) -> str:
         info = json.loads((run.eval_dir / "measured.json").read_text()) if (run.eval_dir / "measured.json").is_file() \
             else {}
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        return f'<h2 id="measured">Measured fabrics</h2><p class="note">measured tables unreadable: {_esc(e)}</p>'
+        return (f'<h2 id="measured">Measured fabrics</h2><p class="note">measured tables unreadable: {_esc(e)}</p>'
+                + geometry)
     variant = info.get("variant", table["test_variant"].iloc[0] if len(table) else "?")
     note = "" if info.get("heldout", True) else (' <span class="note">This variant is also a training variant: '
                                                   "the set is not held out.</span>")
@@ -572,8 +572,8 @@ def _measured_fabrics_table(g: pd.DataFrame) -> str:
                     f"<td>({r['pred_p']:g}, {r['pred_k']:g})</td><td class=\"num\">{r['prob']:.2f}</td>"
                     f"<td>({r['table2_p']:g}, {r['table2_k']:g})</td><td>{yes(r['exact'])}</td>"
                     f"<td>{yes(r['p_match'])}</td><td>{yes(r['k_match'])}</td>"
-                    # a measured.csv written before the column has none
-                    f"<td>{yes(r['within1']) if 'within1' in r else 'n/a'}</td>"
+                    # (derived: a measured.csv written before the column has none)
+                    f"<td>{yes(metrics.within_one_bin([r['table2_class']], [r['pred']])[0])}</td>"
                     f"<td class=\"num\">{r['class_dist']:g}</td>"
                     f"<td class=\"num\">{r['bending_N_m']:.3g} / {r['pred_bending_N_m']:.3g}</td>"
                     f"<td class=\"num\">{r['stretching_N_m']:.4g} / {r['pred_stretching_N_m']:.4g}</td>"

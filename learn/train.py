@@ -551,7 +551,7 @@ def _start(out: Path, cfg: TrainConfig, device: torch.device, resolved: dict, tr
                  metrics=[], best=None, start_epoch=0)
     if state is not None:
         _resume(t, state)
-    t.net = forward_net(ShapeReader(model) if t.reads_shapes else model, cfg, device, t.reads_shapes)
+    t.net = forward_net(t.evaluator, cfg, device, t.reads_shapes)
     if is_main():
         # Imported here: TensorBoard is slow to import and only training needs it.
         from torch.utils.tensorboard import SummaryWriter

@@ -4,9 +4,10 @@ The 54 classes scale the basis fabric's tables at the basis's area density (0.28
 fabrics have their own (0.113-0.324). A cloth in wind or on an arm moves by its stiffness against its weight, so a
 light fabric may move like a stiffer class. This simulates the Table 2 fabrics with their own tables but at one
 density (default the basis fabric's) into ``RUN/measured-density-<value>/sim/<setting>/``, and reads them with
-the geometry probe of ``clothgap eval learnability --measured`` (``eval.learnability.probe_measured``) beside the
-same fabrics at their own density (``RUN/measured/sim``, simulated here if missing): the classifiers, windows and
-class clips are the same, so the difference is the density's.
+the geometry probe of ``clothgap eval learnability --measured`` (``eval.learnability.probe_measured``; one fit
+of ``fit_classes`` reads both folders) beside the same fabrics at their own density (``RUN/measured/sim``,
+simulated here if missing): the classifiers, windows and class clips are the same, so the difference is the
+density's.
 
     python scripts/measured_density.py RUN [--setting wind-uniform1] [--sequences 8] [--density basis|KG_M2]
         [--out FILE.json]
@@ -32,7 +33,7 @@ def summary(report: dict) -> dict:
     for r in report["results"]:
         fabrics = r["fabrics"]
         out[r["classifier"]] = {
-            "within1_fabrics": round(r["scores"]["within1"]["value"] * len(fabrics)), "fabrics": len(fabrics),
+            "within1_fabrics": int(sum(f["within1"] for f in fabrics)), "fabrics": len(fabrics),
             "class_dist": r["scores"]["class_dist"]["value"],
             "spearman_k_vs_measured_bending": r["spearman"]["pred_k~bending_N_m"]["spearman"],
             "spearman_k_vs_table2_k": r["spearman"]["pred_k~table2_k_est"]["spearman"],
@@ -50,13 +51,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
 
-    from eval.learnability import probe_measured
+    from eval.learnability import fit_classes, probe_measured
     from sim.materials import load_material
     from sim.measured import table2_fabrics
     from sim.stage import simulate_measured
 
     run = Run.open(args.run)
-    setting = args.setting or next(s for s in run.config.sim.settings() if run.done_clips(run.sim_dir(s)))
+    simulated = run.simulated_settings()
+    if not simulated:
+        raise SystemExit(f"{run.root}: no simulated clips (run `clothgap sim {run.root}` first)")
+    setting = args.setting or simulated[0]
     density = load_material(run.config.sim.basis).density if args.density == "basis" else float(args.density)
     root = run.root / f"measured-density-{density:g}" / "sim"
     t0 = time.perf_counter()
@@ -64,9 +68,11 @@ def main(argv: list[str] | None = None) -> int:
     simulate_measured(run, table2_fabrics(), args.sequences, settings=[setting], density=density,
                       folder_of=lambda s: root / s)
     sim_s = time.perf_counter() - t0
-    own = probe_measured(run, setting, args.sequences, progress=False)
-    fixed = probe_measured(run, setting, args.sequences, progress=False, folder=root / setting)
-    result = {"command": " ".join(["python", "scripts/measured_density.py", *(argv or sys.argv[1:])]),
+    fitted = fit_classes(run, setting, progress=False)       # one fit reads both folders
+    own = probe_measured(run, setting, args.sequences, progress=False, fitted=fitted)
+    fixed = probe_measured(run, setting, args.sequences, progress=False, folder=root / setting, fitted=fitted)
+    command = sys.argv[1:] if argv is None else argv
+    result = {"command": " ".join(["python", "scripts/measured_density.py", *command]),
               "run": str(run.root), "setting": setting, "sequences": args.sequences, "density_kg_m2": density,
               "own_density": summary(own), "one_density": summary(fixed),
               "seconds": {"sim": round(sim_s, 1), "total": round(time.perf_counter() - t0, 1)},

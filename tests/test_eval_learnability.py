@@ -60,6 +60,7 @@ def test_probe_reads_the_class_when_the_geometry_carries_it(tmp_path):
                ("sequence", "stretching", "linear"))
     bins = row["accuracy_by_true_bin"]
     assert len(bins) >= 2 and all(0.0 <= a <= 1.0 for a in bins.values())
+    assert set(bins) == {0, 5}                       # the stretching bins of classes 0, 8 (p 0.5) and 45, 53 (p 20)
     assert min(bins.values()) <= row["accuracy"] <= max(bins.values())
     assert all("accuracy_by_true_bin" not in r for r in report["results"] if r["target"] == "class")
 
@@ -99,7 +100,11 @@ def test_pixel_probe_reads_rendered_frames(tmp_path):
 
 
 def test_measured_probe_reads_each_fabric_where_its_geometry_puts_it(tmp_path):
-    from sim.measured import table2_class
+    from sim.measured import measured_values, table2_class
+
+    def measured_meta(fabric: str) -> dict:        # the label part of a measured clip's meta (sim.measured)
+        return {"class_index": table2_class(fabric), "fabric": fabric,
+                "density": measured_values(fabric)["density_kg_m2"]}
 
     run = _fake_sim_run(tmp_path / "run", class_signal=1.0, per_class=12)
     with pytest.raises(ConfigError, match="no simulated measured-fabric clips"):
@@ -111,7 +116,7 @@ def test_measured_probe_reads_each_fabric_where_its_geometry_puts_it(tmp_path):
     for fabric, like in looks_like.items():
         for n in range(3):
             _sheet_clip(run.measured_sim_dir("wind-uniform1") / f"{fabric}-{n}",
-                        {"class_index": table2_class(fabric), "fabric": fabric}, CLASSES.index(like), 1.0, rng, 40)
+                        measured_meta(fabric), CLASSES.index(like), 1.0, rng, 40)
     report = probe_measured(run, "wind-uniform1", progress=False, classifiers=("linear", "nearest"))
     assert report["measured_clips"] == 6 and report["measured_windows"] == 6 * 4
     for result in report["results"]:
@@ -127,7 +132,7 @@ def test_measured_probe_reads_each_fabric_where_its_geometry_puts_it(tmp_path):
     # only the clips asked for: a fourth clip of each fabric, left by an earlier call, is not read with --measured 3
     for fabric, like in looks_like.items():
         _sheet_clip(run.measured_sim_dir("wind-uniform1") / f"{fabric}-3",
-                    {"class_index": table2_class(fabric), "fabric": fabric}, CLASSES.index(like), 1.0, rng, 40)
+                    measured_meta(fabric), CLASSES.index(like), 1.0, rng, 40)
     three = probe_measured(run, "wind-uniform1", sequences=3, progress=False, classifiers=("nearest",))
     assert three["measured_clips"] == 6 and all(f["clips"] == 3 for f in three["results"][0]["fabrics"])
     assert probe_measured(run, "wind-uniform1", progress=False, classifiers=("nearest",))["measured_clips"] == 8
