@@ -36,7 +36,15 @@ SHAPES = ("mean_height_m", "vertical_extent_m", "horizontal_extent_m", "speed_m_
 def load_clip(folder: Path) -> tuple[dict, np.ndarray]:
     """A uniform clip's meta and positions, (frames, vertices, 3), read once."""
     clip = SimClip.load(folder)
-    return clip.meta, np.stack([positions for positions, _, _ in clip.frames()])
+    if len(set(np.diff(clip.vertex_offsets))) != 1:
+        raise SystemExit(f"compare_sim_runs: {folder} changes its mesh between frames (an adaptive clip): "
+                         "only uniform settings compare vertex by vertex")
+    return clip.meta, clip.positions.reshape(clip.num_frames, -1, 3)
+
+
+def rms_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Root mean square distance between two frames' vertices (V, 3), metres."""
+    return float(np.sqrt(((a - b) ** 2).sum(-1).mean()))
 
 
 def shape_summary(frames: np.ndarray) -> dict[str, float]:
@@ -69,10 +77,9 @@ def compare(old_run: Path, new_run: Path, setting: str) -> dict:
         for k in SHAPES:
             differences[k].append(s_new[k] - s_old[k])
             old_values[k].append(s_old[k])
-        drift.append(float(np.sqrt(((new[-1] - old[-1]) ** 2).sum(-1).mean())))
+        drift.append(rms_distance(new[-1], old[-1]))
         by_class.setdefault(old_meta["class_index"], []).append(old[-1])
-    between = [float(np.sqrt(((a - b) ** 2).sum(-1).mean()))
-               for last in by_class.values() for i, a in enumerate(last) for b in last[i + 1:]]
+    between = [rms_distance(a, b) for last in by_class.values() for i, a in enumerate(last) for b in last[i + 1:]]
     def interval(values) -> dict[str, float]:             # one value a clip: resampled clip by clip
         estimate = bootstrap_mean(values, ids)
         return {"mean": estimate.value, "lo": estimate.low, "hi": estimate.high}
