@@ -17,6 +17,7 @@ warning naming the clip and the file, and left out.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 import warnings
@@ -29,10 +30,14 @@ from tqdm import tqdm
 
 from clothgap.errors import MissingInputError, StorageError
 from clothgap.files import atomic_path
+from clothgap.parallel import chunk_size, pool_size, spawn_pool
 from clothgap.runs import Run, atomic_write_json, read_meta
 from render.frames import FrameError, frame_count, open_clip_frames, read_clip_frames, resize_frames
 
 CACHE_VERSION = 1
+# A pool builds a cache of at least this many clips on a host of at least this many CPUs (spawning costs ~1 s).
+POOL_MIN_CLIPS = 256
+POOL_MIN_CPUS = 4
 
 
 @dataclass(frozen=True)
@@ -86,8 +91,13 @@ def _signature(render_dir: Path, clip_ids: list[str]) -> list:
     return [[cid, (render_dir / cid / "DONE").stat().st_mtime_ns] for cid in clip_ids]
 
 
-def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool = True) -> FrameCache:
-    """The frame cache of a (variant, setting): reused when it matches the finished clips, else rebuilt."""
+def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool = True,
+                processes: int | None = None) -> FrameCache:
+    """The frame cache of a (variant, setting): reused when it matches the finished clips, else rebuilt.
+
+    Clips are copied (or resized) into the array in a spawned process pool when there are many (``processes``
+    None picks by ``clothgap.parallel.pool_size``; 0 copies them here), each clip at the row where it would be in
+    any case; a clip left out leaves its rows unused."""
     render_dir = run.require(run.render_dir(variant, setting), "render")
     clip_ids = run.done_clips(render_dir)
     if not clip_ids:
@@ -104,37 +114,63 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
         index_path.unlink(missing_ok=True)   # stale: rebuilt below
 
     metas = {cid: read_meta(render_dir / cid, "render") for cid in clip_ids}
-    counts = {cid: frame_count(render_dir / cid, metas[cid]) for cid in clip_ids}
-    total = sum(counts.values())
+    counts = [frame_count(render_dir / cid, metas[cid]) for cid in clip_ids]
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(int).tolist()
+    total = offsets[-1]
     array_path.parent.mkdir(parents=True, exist_ok=True)
     # A memmap written past a full disk dies of SIGBUS with no message: check the space first.
     need, free = total * size * size * 3, shutil.disk_usage(array_path.parent).free
     if need > free:
         raise StorageError(f"the frame cache {array_path} needs {need / 2**30:.2f} GiB but {array_path.parent} "
                            f"has {free / 2**30:.2f} GiB free: free some space and run the same command again")
-    clips, skipped, offset = [], {}, 0
+    tasks = [(str(render_dir / cid), counts[i], offsets[i]) for i, cid in enumerate(clip_ids)]
+    if processes is None:
+        processes = pool_size(len(tasks), POOL_MIN_CLIPS, POOL_MIN_CPUS)
+    skipped: dict[str, str] = {}
     # A killed or failed build leaves no multi-GB temporary behind (a kill -9's is removed by the next build).
     with atomic_path(array_path, keep_suffix=True) as tmp:
-        array = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=(max(total, 1), size, size, 3))
-        for cid in tqdm(clip_ids, desc=f"cache {variant}/{setting} {size}px", disable=not progress, leave=False):
-            try:
-                frames = open_clip_frames(render_dir / cid, counts[cid])
-                rows = array[offset:offset + len(frames)]
-                if frames.shape[1:3] == (size, size):
-                    rows[:] = frames        # the render resolution: the clip's array as it is
-                else:
-                    resize_frames(frames, size, out=rows)
-            except FrameError as err:
-                warnings.warn(f"{err}; clip left out of {variant}/{setting}", stacklevel=2)
-                skipped[cid] = str(err)
-                continue
-            clips.append(CachedClip(cid, int(metas[cid]["class_index"]), offset, len(frames)))
-            offset += len(frames)
-        array.flush()
-        del array
+        np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=(max(total, 1), size, size, 3)).flush()
+        bar = tqdm(total=len(tasks), desc=f"cache {variant}/{setting} {size}px", disable=not progress, leave=False)
+        with contextlib.ExitStack() as stack:
+            if processes > 1 and len(tasks) > 1:
+                pool = stack.enter_context(spawn_pool(min(processes, len(tasks))))
+                step = chunk_size(len(tasks), processes)
+                chunks = [tasks[i:i + step] for i in range(0, len(tasks), step)]
+                parts = pool.map(_copy_clips, [str(tmp)] * len(chunks), chunks, [size] * len(chunks))
+            else:
+                parts = (_copy_clips(str(tmp), [task], size) for task in tasks)
+            for part in parts:
+                skipped.update(part["skipped"])
+                bar.update(part["clips"])
+        bar.close()
+    for cid, reason in skipped.items():
+        warnings.warn(f"{reason}; clip left out of {variant}/{setting}", stacklevel=2)
+    clips = [CachedClip(cid, int(metas[cid]["class_index"]), offsets[i], counts[i])
+             for i, cid in enumerate(clip_ids) if cid not in skipped]
     atomic_write_json(index_path, {"version": CACHE_VERSION, "size": size, "signature": signature,
                                    "clips": [c.__dict__ for c in clips], "skipped": skipped})
     return FrameCache(array_path, clips)
+
+
+def _copy_clips(array_path: str, tasks: list[tuple[str, int, int]], size: int) -> dict:
+    """Copy clips (their folder, frame count and first row) into the cache array being built, resizing their
+    frames to ``size`` where needed; a pool's task. Returns how many clips it handled and the reason each clip
+    it could not read was left out."""
+    array = np.load(array_path, mmap_mode="r+")
+    skipped = {}
+    for clip_dir, count, offset in tasks:
+        try:
+            frames = open_clip_frames(Path(clip_dir), count)
+            rows = array[offset:offset + len(frames)]
+            if frames.shape[1:3] == (size, size):
+                rows[:] = frames        # the render resolution: the clip's array as it is
+            else:
+                resize_frames(frames, size, out=rows)
+        except FrameError as err:
+            skipped[Path(clip_dir).name] = str(err)
+    array.flush()
+    del array
+    return {"clips": len(tasks), "skipped": skipped}
 
 
 # ---------------------------------------------------------------- samples

@@ -148,3 +148,22 @@ def test_a_killed_cache_build_leaves_no_temporary_after_the_next_build(run):
     alive.write_bytes(b"in progress")
     build_cache(run, VARIANT, SETTING, 32, progress=False)
     assert sorted(p.name for p in folder.iterdir() if ".tmp" in p.name) == [alive.name]
+
+
+def test_a_cache_built_in_a_process_pool_is_the_one_built_here(tmp_path):
+    """Two runs of the same synthetic clips, one clip corrupt in each: the pool's cache holds every clip's frames
+    at the rows the in-process build gives them and leaves the same clip out, naming it."""
+    cfg = StudyConfig(sim=SimConfig(classes=(0, 53), sequences_per_class=3, frames=12),
+                      render=RenderConfig(resolution=40), train=TrainConfig(image_size=32))
+    caches = {}
+    for processes in (0, 2):
+        run = synthetic_run(tmp_path / f"run{processes}", cfg)
+        (run.render_dir(VARIANT, SETTING) / "c00002" / "ldr" / "0005.png").write_bytes(b"not a png")
+        with pytest.warns(UserWarning, match="c00002.*0005.png"):
+            caches[processes] = build_cache(run, VARIANT, SETTING, 32, progress=False, processes=processes)
+    here, pooled = caches[0], caches[2]
+    assert pooled.clips == here.clips and "c00002" not in pooled.clips and len(pooled.clips) == 5
+    for clip in here.clips.values():
+        rows = slice(clip.offset, clip.offset + clip.num_frames)
+        assert np.array_equal(pooled.frames[rows], here.frames[rows])
+        assert pooled.frames[rows].std() > 0                     # the clip's frames, not an empty stretch

@@ -182,6 +182,44 @@ def test_geometry_targets_follow_the_frame_cache_and_train_an_auxiliary_head(tmp
     assert shape.notna().all().all() and (shape > 0).all().all()   # how well the lattice is read, per epoch
 
 
+def test_lattices_read_in_a_process_pool_are_those_read_here(tmp_path):
+    import numpy as np
+
+    from learn.geometry import clip_lattices
+    from sim.clip import SimClip
+
+    cfg = tiny_train_config(aux_geometry=1.0, epochs=1)
+    run = synthetic_run(tmp_path / "run", cfg)
+    _sim_clips_for(run, cfg.sim.frames)
+    # one clip whose mesh changes every frame, as an adaptive clip's does
+    rng = np.random.default_rng(0)
+    frames = [(rng.normal(size=(n, 3)).astype(np.float32), np.array([[0, 1, n - 1]], np.int32),
+               rng.uniform(size=(n, 2)).astype(np.float32)) for n in rng.integers(40, 90, cfg.sim.frames)]
+    SimClip.from_frames({"class_index": 0}, frames).save(run.sim_dir(SETTING) / "c00001")
+    ids = run.done_clips(run.render_dir(VARIANT, SETTING))
+    pooled = clip_lattices(run, SETTING, ids, progress=False, processes=2)
+    run.lattice_cache_path(SETTING, 8).unlink()
+    here = clip_lattices(run, SETTING, ids, progress=False, processes=0)
+    assert list(pooled) == list(here) == ids
+    assert all(np.array_equal(pooled[c], here[c]) for c in ids)
+    first = here["c00001"][0]                                     # each point is a vertex of its own frame
+    assert all(any(np.array_equal(p, q) for q in frames[0][0]) for p in first)
+
+
+def test_a_lattice_point_is_the_vertex_nearest_to_it_in_uv():
+    import numpy as np
+
+    from sim.lattice import lattice_vertices
+
+    uv = np.random.default_rng(1).uniform([0.0, -0.5], [2.0, 0.5], size=(500, 2)).astype(np.float32)
+    index = lattice_vertices(uv, 8)
+    grid = (np.arange(8) + 0.5) / 8
+    lo, hi = uv.min(0).astype(np.float64), uv.max(0).astype(np.float64)
+    for k, (i, j) in enumerate(np.ndindex(8, 8)):
+        point = lo + np.array([grid[i], grid[j]]) * (hi - lo)
+        assert index[k] == np.argmin(np.linalg.norm(uv - point, axis=1))
+
+
 def test_frame_centred_targets_leave_out_what_every_clip_does_at_that_frame(tmp_path):
     import numpy as np
 
