@@ -313,7 +313,10 @@ def run_train_parallel(run: Run, grid: Sequence[TrainEntry], parallel: int = 1, 
     pending = list(dict.fromkeys(e for e, folder in zip(grid, folders) if not (folder / "DONE").is_file()))
     if pending:
         configs = [settings[e][0] for e in pending]
+        started = time.perf_counter()
         prepare_shared_inputs(run, [e[:4] for e in pending], progress, configs=configs)
+        # (a study's twelve caches and eight settings' lattices: its time before any model starts)
+        _say(f"train: splits, frame caches and lattices ready in {time.perf_counter() - started:.1f} s")
         slots = gpus = None
         mode = mps_mode(options, "train")       # before the default path replaces the options
         if options is None or (options.executor == "process" and not options.gpus_per_worker):

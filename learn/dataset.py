@@ -32,7 +32,7 @@ from clothgap.errors import MissingInputError, StorageError
 from clothgap.files import atomic_path
 from clothgap.parallel import chunk_size, pool_size, spawn_pool
 from clothgap.runs import Run, atomic_write_json, read_meta
-from render.frames import FrameError, frame_count, open_clip_frames, read_clip_frames, resize_frames
+from render.frames import copy_frames_into, frame_count, read_clip_frames
 
 CACHE_VERSION = 1
 # A pool builds a cache of at least this many clips on a host of at least this many CPUs (spawning costs ~1 s).
@@ -136,9 +136,9 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
                 pool = stack.enter_context(spawn_pool(min(processes, len(tasks))))
                 step = chunk_size(len(tasks), processes)
                 chunks = [tasks[i:i + step] for i in range(0, len(tasks), step)]
-                parts = pool.map(_copy_clips, [str(tmp)] * len(chunks), chunks, [size] * len(chunks))
+                parts = pool.map(copy_frames_into, [str(tmp)] * len(chunks), chunks, [size] * len(chunks))
             else:
-                parts = (_copy_clips(str(tmp), [task], size) for task in tasks)
+                parts = (copy_frames_into(str(tmp), [task], size) for task in tasks)
             for part in parts:
                 skipped.update(part["skipped"])
                 bar.update(part["clips"])
@@ -150,27 +150,6 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
     atomic_write_json(index_path, {"version": CACHE_VERSION, "size": size, "signature": signature,
                                    "clips": [c.__dict__ for c in clips], "skipped": skipped})
     return FrameCache(array_path, clips)
-
-
-def _copy_clips(array_path: str, tasks: list[tuple[str, int, int]], size: int) -> dict:
-    """Copy clips (their folder, frame count and first row) into the cache array being built, resizing their
-    frames to ``size`` where needed; a pool's task. Returns how many clips it handled and the reason each clip
-    it could not read was left out."""
-    array = np.load(array_path, mmap_mode="r+")
-    skipped = {}
-    for clip_dir, count, offset in tasks:
-        try:
-            frames = open_clip_frames(Path(clip_dir), count)
-            rows = array[offset:offset + len(frames)]
-            if frames.shape[1:3] == (size, size):
-                rows[:] = frames        # the render resolution: the clip's array as it is
-            else:
-                resize_frames(frames, size, out=rows)
-        except FrameError as err:
-            skipped[Path(clip_dir).name] = str(err)
-    array.flush()
-    del array
-    return {"clips": len(tasks), "skipped": skipped}
 
 
 # ---------------------------------------------------------------- samples

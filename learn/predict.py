@@ -18,11 +18,12 @@ import torch
 
 from clothgap.errors import InputError, MissingInputError, UserError
 from clothgap.runs import read_meta
-from learn.dataset import FrameCache, FrameError, read_frames, subsequence_starts, to_input
+from learn.dataset import FrameCache, read_frames, subsequence_starts, to_input
 from learn.models import ClipClassifier, build_model
 from learn import predictions
 from learn.train import resolve_device
 from learn.windows import WindowSet
+from render.frames import FrameError
 
 
 CHECKPOINT_KEYS = ("model", "model_name", "model_args", "config")

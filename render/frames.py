@@ -89,6 +89,28 @@ def open_clip_frames(clip_dir: Path, num_frames: int | None = None) -> np.ndarra
     return frames
 
 
+def copy_frames_into(array_path: str, tasks: list[tuple[str, int, int]], size: int) -> dict:
+    """Copy clips' frames into rows of the (N, size, size, 3) uint8 ``.npy`` at ``array_path`` (opened read-write):
+    each task is a clip folder, its frame count and its first row; frames of another size are resized. A pool's
+    task (``learn.dataset.build_cache``: this module imports no torch, so spawned workers start quickly). Returns
+    how many clips it handled and, by clip id, why each clip it could not read was left out."""
+    array = np.load(array_path, mmap_mode="r+")
+    skipped = {}
+    for clip_dir, count, offset in tasks:
+        try:
+            frames = open_clip_frames(Path(clip_dir), count)
+            rows = array[offset:offset + len(frames)]
+            if frames.shape[1:3] == (size, size):
+                rows[:] = frames        # the render resolution: the clip's array as it is
+            else:
+                resize_frames(frames, size, out=rows)
+        except FrameError as err:
+            skipped[Path(clip_dir).name] = str(err)
+    array.flush()
+    del array
+    return {"clips": len(tasks), "skipped": skipped}
+
+
 def read_clip_frames(clip_dir: Path, num_frames: int | None = None, size: int | None = None) -> np.ndarray:
     """A clip's frames as an owned (T, H, W, 3) uint8 array, each resized to (size, size) when ``size`` is given.
 

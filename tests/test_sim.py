@@ -555,6 +555,47 @@ def test_a_batch_written_by_processes_is_the_batch_written_by_threads(tmp_path, 
         assert (a / "meta.json").read_text() == (b / "meta.json").read_text()
 
 
+def test_a_batch_is_written_while_the_next_simulates_and_a_failed_write_still_stops_the_stage(tmp_path, monkeypatch):
+    import threading
+
+    import sim.stage
+    from clothgap.errors import StorageError
+    from sim.stage import run_sim
+
+    events, real_write, real_simulate = [], sim.stage.write_clips, sim.stage.simulate_batch
+    finished_first = threading.Event()
+
+    def slow_write(folders, *args, **kwargs):
+        events.append(("write", folders[0].name))
+        ok = real_write(folders, *args, **kwargs)
+        if folders[0].name == "c00000":
+            finished_first.wait(timeout=20)          # held until the second batch has started simulating
+        events.append(("written", folders[0].name))
+        return ok
+
+    def simulate(*args, **kwargs):
+        if events:
+            events.append(("simulate", "second"))
+            finished_first.set()
+        return real_simulate(*args, **kwargs)
+
+    monkeypatch.setattr(sim.stage, "write_clips", slow_write)
+    monkeypatch.setattr(sim.stage, "simulate_batch", simulate)
+    run = tiny_sim_run(tmp_path / "overlap", batch_size=1)
+    assert run_sim(run, progress=False)["simulated"] == 2
+    assert events.index(("simulate", "second")) < events.index(("written", "c00000"))
+    assert all(is_done(run.sim_dir("wind-uniform1") / c) for c in ("c00000", "c00001"))
+
+    def full_disk(folders, *args, **kwargs):
+        raise StorageError(f"{folders[0]}: no space left on the device")
+
+    monkeypatch.setattr(sim.stage, "write_clips", full_disk)
+    monkeypatch.setattr(sim.stage, "simulate_batch", real_simulate)
+    failing = tiny_sim_run(tmp_path / "full", batch_size=1)
+    with pytest.raises(StorageError, match="c00000"):
+        run_sim(failing, progress=False)
+
+
 def test_run_sim_writes_skips_and_redoes(tmp_path):
     from sim.stage import run_sim
 
@@ -562,8 +603,11 @@ def test_run_sim_writes_skips_and_redoes(tmp_path):
     first = run_sim(run, progress=False)
     assert first["simulated"] == 2
     phases = first["phases_s"]                 # where the stage's seconds went
-    assert set(phases) == {"scenes", "kernels", "solver", "settle", "record", "simulate", "write"}
-    assert min(phases.values()) >= 0 and sum(phases[k] for k in ("scenes", "simulate", "write")) <= first["seconds"] + 0.02
+    assert set(phases) == {"scenes", "kernels", "solver", "settle", "record", "simulate", "write", "write_wait"}
+    # (the writing runs beside the next batch's simulation: what the stage waited for it is write_wait)
+    assert min(phases.values()) >= 0
+    assert sum(phases[k] for k in ("scenes", "simulate", "write_wait")) <= first["seconds"] + 0.02
+    assert phases["write_wait"] <= phases["write"] + 0.02
     assert phases["simulate"] >= phases["solver"] + phases["record"] - 0.02     # (rounded to 0.01 s)
     folder = run.sim_dir("wind-uniform1")
     assert [p.name for p in sorted(folder.iterdir())] == ["c00000", "c00001"]
