@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import shutil
 import warnings
 from dataclasses import dataclass
@@ -38,6 +39,7 @@ CACHE_VERSION = 1
 # A pool builds a cache of at least this many clips on a host of at least this many CPUs (spawning costs ~1 s).
 POOL_MIN_CLIPS = 256
 POOL_MIN_CPUS = 4
+IN_PROCESS_CHUNK = 64       # clips a call copies in this process (the progress bar moves between calls)
 
 
 @dataclass(frozen=True)
@@ -129,20 +131,23 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
     skipped: dict[str, str] = {}
     # A killed or failed build leaves no multi-GB temporary behind (a kill -9's is removed by the next build).
     with atomic_path(array_path, keep_suffix=True) as tmp:
-        np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=(max(total, 1), size, size, 3)).flush()
+        np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=(max(total, 1), size, size, 3))  # sized, zero
         bar = tqdm(total=len(tasks), desc=f"cache {variant}/{setting} {size}px", disable=not progress, leave=False)
+        pooled = processes > 1 and len(tasks) > 1
+        step = chunk_size(len(tasks), processes) if pooled else IN_PROCESS_CHUNK
+        chunks = [tasks[i:i + step] for i in range(0, len(tasks), step)]
         with contextlib.ExitStack() as stack:
-            if processes > 1 and len(tasks) > 1:
-                pool = stack.enter_context(spawn_pool(min(processes, len(tasks))))
-                step = chunk_size(len(tasks), processes)
-                chunks = [tasks[i:i + step] for i in range(0, len(tasks), step)]
+            if pooled:
+                pool = stack.enter_context(spawn_pool(min(processes, len(chunks))))
                 parts = pool.map(copy_frames_into, [str(tmp)] * len(chunks), chunks, [size] * len(chunks))
             else:
-                parts = (copy_frames_into(str(tmp), [task], size) for task in tasks)
+                parts = (copy_frames_into(str(tmp), chunk, size) for chunk in chunks)
             for part in parts:
                 skipped.update(part["skipped"])
                 bar.update(part["clips"])
         bar.close()
+        with open(tmp, "rb+") as f:          # every process's rows on disk before the array is renamed into place
+            os.fsync(f.fileno())
     for cid, reason in skipped.items():
         warnings.warn(f"{reason}; clip left out of {variant}/{setting}", stacklevel=2)
     clips = [CachedClip(cid, int(metas[cid]["class_index"]), offsets[i], counts[i])

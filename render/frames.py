@@ -94,6 +94,8 @@ def copy_frames_into(array_path: str, tasks: list[tuple[str, int, int]], size: i
     each task is a clip folder, its frame count and its first row; frames of another size are resized. A pool's
     task (``learn.dataset.build_cache``: this module imports no torch, so spawned workers start quickly). Returns
     how many clips it handled and, by clip id, why each clip it could not read was left out."""
+    # No flush here: the rows are in the host's page cache, which every process mapping the file shares; the
+    # builder syncs the whole file once at the end (a flush a call would write each chunk to disk before the next).
     array = np.load(array_path, mmap_mode="r+")
     skipped = {}
     for clip_dir, count, offset in tasks:
@@ -106,7 +108,6 @@ def copy_frames_into(array_path: str, tasks: list[tuple[str, int, int]], size: i
                 resize_frames(frames, size, out=rows)
         except FrameError as err:
             skipped[Path(clip_dir).name] = str(err)
-    array.flush()
     del array
     return {"clips": len(tasks), "skipped": skipped}
 

@@ -1,5 +1,6 @@
-"""Where a stage's time goes: named phases whose wall seconds add up (the sim stage's ``phases_s``, the seconds
-`clothgap eval` prints)."""
+"""Where a stage's time goes: named phases and their wall seconds (the sim stage's ``phases_s``, the seconds
+`clothgap eval` prints). Phases timed in one thread add up; one timed in another thread (the sim stage's ``write``)
+overlaps them."""
 
 from __future__ import annotations
 

@@ -21,6 +21,7 @@ is retried once with twice the substeps; if it fails again its folder gets a
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import shutil
 import time
@@ -314,7 +315,8 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
     device = resolve_device(cfg.device)
     summary = {"simulated": 0, "skipped": 0, "failed": 0, "retried": 0, "failed_clips": [], "seconds": 0.0}
     # Where the seconds went: building scenes, the batch's simulation (its kernels, solver, settle and record
-    # on uniform meshes; a retry's included) and checking and writing the clips.
+    # on uniform meshes; a retry's included), waiting for the previous batch's clips to be written
+    # (write_wait), and, beside them in the writer's thread, checking and writing the clips (write).
     phases: dict[str, float] = {}
     start = time.perf_counter()
 
@@ -333,9 +335,9 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
         summary["failed_clips"] += [{"setting": setting, "clip_id": j.name, "error": r.reason}
                                     for j, r, good in zip(batch, results, ok) if not good]
 
-    # A batch is written in this thread's writer while the next simulates (one batch at most waits to be
-    # written): with four sim workers on a 64-core host writing took a fifth of each worker's time.
-    # ``write`` is the writing's own time, ``write_wait`` what the simulation waited for it.
+    # A batch is written in a writer thread while the next simulates (one batch at most waits to be written):
+    # with four sim workers on a 64-core host writing took a fifth of each worker's time. A failed write is
+    # raised once the next batch has simulated; leaving the block waits for a write still running.
     pending = None
     with ThreadPoolExecutor(max_workers=1) as writer:
         for setting in [parse_setting(s) for s in jobs]:
@@ -352,7 +354,7 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
                     built = [build_scene(cfg, run.config.seed, j.index, setting, mesh, j.fabric, j.density)
                              for j in batch]
                 scenes = [s for s, _ in built]
-                with timed(phases, "simulate"):
+                with timed(phases, "simulate"), _noting_failed_write(pending):
                     results, substeps = simulate_batch(cfg, simulate, scenes, device,
                                                        on_frame=lambda n=len(batch): bar.update(n), phases=phases)
                 summary["retried"] += sum(sub != cfg.substeps for sub in substeps)   # simulated a second time
@@ -366,6 +368,19 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
     summary["seconds"] = round(time.perf_counter() - start, 3)
     summary["phases_s"] = {k: round(v, 2) for k, v in phases.items()}
     return summary
+
+
+@contextlib.contextmanager
+def _noting_failed_write(pending):
+    """An error of the block also says whether the previous batch's write (``pending``: its future first) failed,
+    which would otherwise be lost behind it."""
+    try:
+        yield
+    except BaseException as err:
+        failed = pending[0].exception() if pending is not None else None
+        if failed is not None:
+            err.add_note(f"writing the previous batch's clips failed too: {failed!r}")
+        raise
 
 
 def simulate_batch(cfg: SimConfig, simulate: Callable[..., list[ClipResult]], scenes: list[ClipScene], device: str,

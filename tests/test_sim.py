@@ -573,8 +573,11 @@ def test_a_batch_is_written_while_the_next_simulates_and_a_failed_write_still_st
         events.append(("written", folders[0].name))
         return ok
 
+    calls = []
+
     def simulate(*args, **kwargs):
-        if events:
+        calls.append(1)
+        if len(calls) == 2:
             events.append(("simulate", "second"))
             finished_first.set()
         return real_simulate(*args, **kwargs)
@@ -594,6 +597,18 @@ def test_a_batch_is_written_while_the_next_simulates_and_a_failed_write_still_st
     failing = tiny_sim_run(tmp_path / "full", batch_size=1)
     with pytest.raises(StorageError, match="c00000"):
         run_sim(failing, progress=False)
+
+    def simulate_fails_second(*args, **kwargs):          # the next batch fails while the write fails behind it
+        calls.append(1)
+        if len(calls) % 2 == 0:
+            raise RuntimeError("the solver diverged")
+        return real_simulate(*args, **kwargs)
+
+    calls.clear()
+    monkeypatch.setattr(sim.stage, "simulate_batch", simulate_fails_second)
+    with pytest.raises(RuntimeError, match="diverged") as caught:
+        run_sim(tiny_sim_run(tmp_path / "both", batch_size=1), progress=False)
+    assert any("previous batch" in note and "c00000" in note for note in caught.value.__notes__)
 
 
 def test_run_sim_writes_skips_and_redoes(tmp_path):
