@@ -36,9 +36,10 @@ from clothgap.runs import Run, atomic_write_json, read_meta
 from render.frames import copy_frames_into, frame_count, read_clip_frames
 
 CACHE_VERSION = 1
-# A pool builds a cache of at least this many clips on a host of at least this many CPUs (spawning costs ~1 s).
+# A pool builds a cache of at least this many clips on a host of at least this many CPUs: copying is bound by
+# memory and disk, and on 2 cores a pool lost (benchmarks/train_inputs.py); spawning costs ~1 s.
 POOL_MIN_CLIPS = 256
-POOL_MIN_CPUS = 4
+POOL_MIN_CPUS = 8
 IN_PROCESS_CHUNK = 64       # clips a call copies in this process (the progress bar moves between calls)
 
 

@@ -24,7 +24,7 @@ def lattice_vertices(uv: np.ndarray, n: int = LATTICE) -> np.ndarray:
     pts = lo + np.stack(np.meshgrid(grid, grid, indexing="ij"), -1).reshape(-1, 2) * (hi - lo)
     # Squared distances axis by axis in two buffers: the same sums as ((uv - pts) ** 2).sum(-1), bit for bit,
     # without its (points, vertices, 2) temporaries (an adaptive clip needs an index every frame: its lattice
-    # takes 12 ms instead of 86 on the 2-core CPU, benchmarks/train_inputs.py).
+    # takes 12 ms instead of 82 on the 2-core CPU, benchmarks/train_inputs.py).
     d = np.subtract.outer(pts[:, 0], uv[:, 0])
     d *= d
     e = np.subtract.outer(pts[:, 1], uv[:, 1])
