@@ -1,6 +1,6 @@
 """Where a stage's time goes: named phases and their wall seconds (the sim stage's ``phases_s``, the seconds
-`clothgap eval` prints). Phases timed in one thread add up; one timed in another thread (the sim stage's ``write``)
-overlaps them."""
+`clothgap eval` prints). A stage's top phases add up (sim: scenes, simulate, write_wait); others lie inside one of
+them (solver, record, remesh... inside simulate) or run beside them in another thread (sim's write)."""
 
 from __future__ import annotations
 

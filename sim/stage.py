@@ -350,13 +350,15 @@ def simulate_jobs(run: Run, jobs: dict[str, list[ClipJob]], folder_of: Callable[
                        unit_scale=True, disable=not progress)
             for b in range(0, len(todo), cfg.batch_size):
                 batch = todo[b:b + cfg.batch_size]
-                with timed(phases, "scenes"):
-                    built = [build_scene(cfg, run.config.seed, j.index, setting, mesh, j.fabric, j.density)
-                             for j in batch]
-                scenes = [s for s, _ in built]
-                with timed(phases, "simulate"), _noting_failed_write(pending):
-                    results, substeps = simulate_batch(cfg, simulate, scenes, device,
-                                                       on_frame=lambda n=len(batch): bar.update(n), phases=phases)
+                with _noting_failed_write(pending):
+                    with timed(phases, "scenes"):
+                        built = [build_scene(cfg, run.config.seed, j.index, setting, mesh, j.fabric, j.density)
+                                 for j in batch]
+                    scenes = [s for s, _ in built]
+                    with timed(phases, "simulate"):
+                        results, substeps = simulate_batch(cfg, simulate, scenes, device,
+                                                           on_frame=lambda n=len(batch): bar.update(n),
+                                                           phases=phases)
                 summary["retried"] += sum(sub != cfg.substeps for sub in substeps)   # simulated a second time
                 if pending is not None:
                     written(pending)

@@ -557,6 +557,7 @@ def test_a_batch_written_by_processes_is_the_batch_written_by_threads(tmp_path, 
 
 def test_a_batch_is_written_while_the_next_simulates_and_a_failed_write_still_stops_the_stage(tmp_path, monkeypatch):
     import threading
+    import time
 
     import sim.stage
     from clothgap.errors import StorageError
@@ -577,7 +578,10 @@ def test_a_batch_is_written_while_the_next_simulates_and_a_failed_write_still_st
 
     def simulate(*args, **kwargs):
         calls.append(1)
-        if len(calls) == 2:
+        if len(calls) == 2:                  # the first batch's write has begun elsewhere, not after this batch
+            deadline = time.monotonic() + 20
+            while ("write", "c00000") not in events and time.monotonic() < deadline:
+                time.sleep(0.01)
             events.append(("simulate", "second"))
             finished_first.set()
         return real_simulate(*args, **kwargs)
@@ -586,7 +590,7 @@ def test_a_batch_is_written_while_the_next_simulates_and_a_failed_write_still_st
     monkeypatch.setattr(sim.stage, "simulate_batch", simulate)
     run = tiny_sim_run(tmp_path / "overlap", batch_size=1)
     assert run_sim(run, progress=False)["simulated"] == 2
-    assert events.index(("simulate", "second")) < events.index(("written", "c00000"))
+    assert events.index(("write", "c00000")) < events.index(("simulate", "second")) < events.index(("written", "c00000"))
     assert all(is_done(run.sim_dir("wind-uniform1") / c) for c in ("c00000", "c00001"))
 
     def full_disk(folders, *args, **kwargs):

@@ -61,13 +61,14 @@ for stage in $STAGES; do
      sleep 0.5; done) > "$host_samples" 2>/dev/null &
   host_sampler=$!
   # LIMIT (seconds, optional) stops the stage in time for the call's 10 minutes; it resumes next call.
-  # The stage's log (progress bars left out) in full beside the run, its last lines here, and the train stage's
-  # time before any model started, which would otherwise scroll past.
+  # The stage's log (progress bars left out) in full to $OUT (this call's; a resumed stage starts a new one), its
+  # last lines here, and the train stage's time before any model started, which would otherwise scroll past.
   stage_log="/tmp/stage_log_$(basename "$RUN")_$stage.txt"
   ${LIMIT:+timeout -k 10 "$LIMIT"} python3 -m clothgap $stage "${args[@]}" "${extra[@]}" 2>&1 | tr '\r' '\n' | grep -vE "it/s\]|clip/s\]|shard/s\]|s/it\]|clip-frame/s\]" > "$stage_log"
   rc=${PIPESTATUS[0]}
-  grep -E "inputs took|ready in" "$stage_log" | tail -1
+  grep -E "ready in" "$stage_log" | tail -1
   tail -8 "$stage_log"
+  cp "$stage_log" "$OUT/" 2>/dev/null
   t1=$(date +%s.%N)
   kill $sampler $host_sampler 2>/dev/null; wait $sampler $host_sampler 2>/dev/null
   python3 - "$samples" "$stage" "$rc" "$t0" "$t1" "$host_samples" >> "$RUN/gpu_timings.jsonl" <<'PY'
