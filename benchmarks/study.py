@@ -20,6 +20,13 @@ Two parts, in one run on one machine:
   number of clips.
 
 Writes ``benchmarks/results/study-<device>-<time>.json`` and a Markdown table beside it.
+
+A study too long for one call (the device's calls last at most 10 minutes) is measured by
+``scripts/gpu/paper_study.sh`` stage by stage across resumable calls, each call's stage a line of
+``RUN/gpu_timings.jsonl``; ``--timings RUN`` sums those per stage (calls, seconds, whether it finished, peak GPU
+memory, peak host memory over the stage's start, GPU utilisation weighted by time) into the same kind of file:
+
+    python benchmarks/study.py --timings /tmp/study --out benchmarks/results/study-h100x4.json
 """
 
 from __future__ import annotations
@@ -166,6 +173,63 @@ def scaling(args, work: Path) -> list[dict]:
     return rows
 
 
+TIMED_STAGES = (*STAGES, "report")
+
+
+def study_datasets(config: dict) -> list[str]:
+    """The (variant:setting) datasets of a run's config.json: every variant on every setting, except a variant
+    named in ``render.variant_settings``, which renders only the settings it is paired with there."""
+    settings = [f"{m}-{r}" for m in config["sim"]["motions"] for r in config["sim"]["remeshing"]]
+    pairs: dict[str, list[str]] = {}
+    for pair in config["render"].get("variant_settings") or []:
+        variant, setting = pair.split(":", 1)
+        pairs.setdefault(variant, []).append(setting)
+    return [f"{v}:{s}" for v in config["render"]["variants"] for s in pairs.get(v, settings)]
+
+
+def from_timings(run: Path) -> dict:
+    """A study measured in resumable calls: ``RUN/gpu_timings.jsonl`` summed per stage (see the module's doc)."""
+    path = run / "gpu_timings.jsonl"
+    if not path.is_file():
+        raise SystemExit(f"error: {path} does not exist: --timings takes a run folder that "
+                         "scripts/gpu/paper_study.sh measured")
+    calls = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    config = json.loads((run / "config.json").read_text())
+    stages = {}
+    for name in TIMED_STAGES:
+        mine = [c for c in calls if c["stage"] == name]
+        if not mine:
+            continue
+        seconds = sum(c["seconds"] for c in mine)
+        utils = [(c["mean_gpu_util_pct"], c["seconds"]) for c in mine if c.get("mean_gpu_util_pct") is not None]
+        stages[name] = {
+            "calls": len(mine), "seconds": round(seconds, 1), "finished": mine[-1]["rc"] == 0,
+            "peak_gpu_mib": max(c.get("peak_gpu_mib") or 0 for c in mine),
+            "peak_host_mib_over_start": max((c.get("peak_host_mib_over_start") or 0) for c in mine),
+            "mean_gpu_util_pct": round(sum(u * t for u, t in utils) / sum(t for _, t in utils), 1)
+            if utils and sum(t for _, t in utils) > 0 else None}
+    finished = all(stages.get(s, {}).get("finished") for s in TIMED_STAGES)
+    return {"run": str(run), "preset": config.get("name"), "sequences_per_class": config["sim"]["sequences_per_class"],
+            "datasets": study_datasets(config), "stages": stages,
+            "stage_seconds": round(sum(st["seconds"] for st in stages.values()), 1),
+            "finished": finished, "unfinished": [s for s in TIMED_STAGES if not stages.get(s, {}).get("finished")]}
+
+
+def timings_markdown(report: dict) -> str:
+    t = report["timings"]
+    lines = [f"# Study cost, measured across calls ({report['time']})", "", f"`{report['command']}`", "",
+             f"Preset `{t['preset']}`, {len(t['datasets'])} datasets, {t['sequences_per_class']} sequences a class; "
+             f"stage time {t['stage_seconds']} s, " + ("every stage finished." if t["finished"] else
+                                                        f"unfinished: {', '.join(t['unfinished'])}."), "",
+             "| stage | calls | seconds | finished | peak GPU MiB | peak host MiB over its start | mean GPU util % |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
+    for name, st in t["stages"].items():
+        lines.append(f"| {name} | {st['calls']} | {st['seconds']} | {'yes' if st['finished'] else 'no'} | "
+                     f"{st['peak_gpu_mib']} | {st['peak_host_mib_over_start']} | "
+                     f"{'-' if st['mean_gpu_util_pct'] is None else st['mean_gpu_util_pct']} |")
+    return "\n".join(lines) + "\n"
+
+
 def _cell(stage: dict | None) -> str:
     if stage is None:
         return "-"
@@ -225,7 +289,21 @@ def main() -> None:
     ap.add_argument("--keep", action="store_true", help="keep the run folders (under --work)")
     ap.add_argument("--work", type=Path, help="folder for the runs (default: a temporary folder)")
     ap.add_argument("--out", type=Path, help="JSON path (default: benchmarks/results/study-<device>-<time>.json)")
+    ap.add_argument("--timings", type=Path, metavar="RUN", help="summarise RUN/gpu_timings.jsonl (a study measured "
+                    "by scripts/gpu/paper_study.sh across calls) instead of running anything")
     args = ap.parse_args()
+    if args.timings is not None:
+        report = {"command": shlex.join([Path(sys.executable).name, *sys.argv]),
+                  "time": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                  "timings": from_timings(args.timings)}
+        out = args.out or RESULTS / f"study-timings-{datetime.now(timezone.utc).strftime('%Y%m%dT%H%M%S')}.json"
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(report, indent=2) + "\n")
+        table = timings_markdown(report)
+        out.with_suffix(".md").write_text(table)
+        print(table)
+        print(f"wrote {out}")
+        return
     args.sizes = [int(s) for s in args.sizes.split(",") if s]
     device = args.device if args.device != "auto" else ("cuda" if gpu_used_mib() is not None else "cpu")
     work = args.work or Path(tempfile.mkdtemp(prefix="clothgap-study-"))

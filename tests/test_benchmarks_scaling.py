@@ -136,3 +136,32 @@ def test_conv1_input_padded_to_eight_channels_computes_the_same_sums(channels_la
     assert conv1.weight.shape[1] == 6      # the parameters keep their shape: checkpoints unchanged
     torch.testing.assert_close(padded, plain, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(padded_grad, plain_grad, rtol=1e-4, atol=1e-5)
+
+
+def test_a_study_measured_across_calls_is_summed_per_stage_and_says_what_did_not_finish(tmp_path):
+    from clothgap.config import preset
+    from clothgap.runs import Run
+
+    run = Run.create_or_resume(tmp_path / "study", preset("study"))
+    calls = [{"stage": "sim", "rc": 0, "seconds": 393.0, "peak_gpu_mib": 7315, "mean_gpu_util_pct": 31.6,
+              "peak_host_mib_over_start": 30380},
+             {"stage": "render", "rc": 124, "seconds": 100.0, "peak_gpu_mib": 3992, "mean_gpu_util_pct": 80.0,
+              "peak_host_mib_over_start": 8371},
+             {"stage": "render", "rc": 0, "seconds": 300.0, "peak_gpu_mib": 4174, "mean_gpu_util_pct": 60.0,
+              "peak_host_mib_over_start": 13759},
+             {"stage": "train", "rc": 124, "seconds": 500.0, "peak_gpu_mib": 0, "mean_gpu_util_pct": 0.0,
+              "peak_host_mib_over_start": 640}]
+    (run.root / "gpu_timings.jsonl").write_text("".join(json.dumps(c) + "\n" for c in calls))
+    out = tmp_path / "timings.json"
+    _bench("study.py", "--timings", str(run.root), "--out", str(out))
+    t = json.loads(out.read_text())["timings"]
+    assert len(t["datasets"]) == 12 and "grid:wind-adaptive" in t["datasets"] and "grid:wind-uniform1" not in t["datasets"]
+    render = t["stages"]["render"]
+    assert render["calls"] == 2 and render["seconds"] == 400.0 and render["finished"] and render["peak_gpu_mib"] == 4174
+    assert render["mean_gpu_util_pct"] == 65.0                        # weighted by each call's seconds
+    assert not t["stages"]["train"]["finished"] and not t["finished"]
+    assert t["unfinished"] == ["train", "eval", "report"] and t["stage_seconds"] == 1293.0
+    assert "| render | 2 | 400.0 | yes |" in out.with_suffix(".md").read_text()
+    missing = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "study.py"), "--timings", str(tmp_path)],
+                             capture_output=True, text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert missing.returncode != 0 and "gpu_timings.jsonl does not exist" in missing.stderr

@@ -101,6 +101,8 @@ PY
   esac
 done
 cat "$RUN/gpu_timings.jsonl"
+# The calls so far summed per stage (benchmarks/study.py --timings): the study's cost as one result file.
+python3 benchmarks/study.py --timings "$RUN" --out "$OUT/study-timings.json" > /dev/null 2>&1 || true
 # The report (images embedded) and the eval's per-clip predictions in tarballs of their own: the device brings back
 # files of at most 16 MiB (the queue leaves out the largest first), and the numbers must come back even when those
 # do not.
