@@ -274,6 +274,15 @@ def markdown(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def write_report(report: dict, out: Path, table: str) -> None:
+    """The report as JSON at ``out`` and its Markdown table beside it, shown and said where."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(report, indent=2) + "\n")
+    out.with_suffix(".md").write_text(table)
+    print(table)
+    print(f"wrote {out}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--preset", default="paper")
@@ -296,13 +305,8 @@ def main() -> None:
         report = {"command": shlex.join([Path(sys.executable).name, *sys.argv]),
                   "time": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                   "timings": from_timings(args.timings)}
-        out = args.out or RESULTS / f"study-timings-{datetime.now(timezone.utc).strftime('%Y%m%dT%H%M%S')}.json"
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(report, indent=2) + "\n")
-        table = timings_markdown(report)
-        out.with_suffix(".md").write_text(table)
-        print(table)
-        print(f"wrote {out}")
+        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S")
+        write_report(report, args.out or RESULTS / f"study-timings-{stamp}.json", timings_markdown(report))
         return
     args.sizes = [int(s) for s in args.sizes.split(",") if s]
     device = args.device if args.device != "auto" else ("cuda" if gpu_used_mib() is not None else "cpu")
@@ -316,13 +320,7 @@ def main() -> None:
         report["baselines"] = baselines(args, device, work)
     report["scaling"] = scaling(args, work)
     stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S")
-    out = args.out or RESULTS / f"study-{device.replace(':', '')}-{stamp}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=2) + "\n")
-    table = markdown(report)
-    out.with_suffix(".md").write_text(table)
-    print(table)
-    print(f"wrote {out}")
+    write_report(report, args.out or RESULTS / f"study-{device.replace(':', '')}-{stamp}.json", markdown(report))
     if args.work is None and not args.keep:
         shutil.rmtree(work, ignore_errors=True)
 
