@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import multiprocessing as mp
 import os
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 
 HOST_PROCESSES_ENV = "CLOTHGAP_HOST_PROCESSES"
@@ -43,3 +44,16 @@ def spawn_pool(processes: int) -> ProcessPoolExecutor:
 def chunk_size(items: int, processes: int) -> int:
     """Items per task of ``pool.map``: about four tasks a process, so that a slow chunk does not hold the rest."""
     return max(1, math.ceil(items / (4 * max(1, processes))))
+
+
+def pool_map(fn: Callable, *iterables: Iterable, processes: int, chunksize: int | None = None) -> Iterator:
+    """``map(fn, *iterables)`` in a spawned pool of up to ``processes`` when that is more than one and there are two
+    or more items, else in this process; results in order, the pool shut when they are all read. ``chunksize``:
+    items a task (default ``chunk_size``)."""
+    columns = [list(it) for it in iterables]
+    items = len(columns[0]) if columns else 0
+    if processes <= 1 or items < 2:
+        yield from map(fn, *columns)
+        return
+    with spawn_pool(min(processes, items)) as pool:
+        yield from pool.map(fn, *columns, chunksize=chunksize or chunk_size(items, processes))

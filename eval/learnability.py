@@ -366,6 +366,16 @@ def run_probe(run: Run, settings: list[str] | None = None, progress: bool = True
     return {"settings": settings, "written": str(run.eval_dir / f"{name}.md")}
 
 
+def measured_reading(result: dict) -> dict:
+    """One classifier's reading of the measured fabrics (an item of ``probe_measured``'s ``results``) in short:
+    fabrics within one bin of Table 2, of how many, mean grid steps, and the bending rank against the measured
+    bending (its estimate with interval)."""
+    fabrics = result["fabrics"]
+    return {"within1_fabrics": int(sum(f["within1"] for f in fabrics)), "fabrics": len(fabrics),
+            "class_dist": result["scores"]["class_dist"]["value"],
+            "bending_rank": result["spearman"]["pred_k~bending_N_m"]}
+
+
 def run_probe_measured(run: Run, sequences: int, settings: list[str] | None = None, progress: bool = True,
                        **kwargs) -> dict:
     """Simulate ``sequences`` clips of each Table 2 fabric under each setting probed (``settings``, default every

@@ -466,16 +466,18 @@ def _measured_geometry(run: Run) -> str:
     path = run.eval_dir / "learnability-measured.json"
     if not path.is_file():
         return ""
+    from eval.learnability import measured_reading      # (imports torch: only when there is something to show)
+
     try:
         reports = json.loads(path.read_text())["settings"]
         rows = []
         for rep in reports:
             for r in rep["results"]:
-                fabrics = r["fabrics"]
+                read = measured_reading(r)
                 rows.append(f"<tr><td>{_esc(rep['setting'])}</td><td>{_esc(r['classifier'])}</td>"
-                            f"<td class=\"num\">{int(sum(f['within1'] for f in fabrics))} of {len(fabrics)}</td>"
-                            f"<td class=\"num\">{r['scores']['class_dist']['value']:.1f}</td>"
-                            + _est(r["spearman"]["pred_k~bending_N_m"], "spearman", 1.0, 2, _CORRELATION_WHY)
+                            f"<td class=\"num\">{read['within1_fabrics']} of {read['fabrics']}</td>"
+                            f"<td class=\"num\">{read['class_dist']:.1f}</td>"
+                            + _est(read["bending_rank"], "spearman", 1.0, 2, _CORRELATION_WHY)
                             + f"<td>{rep['clip_len']} frames</td></tr>")
     except (KeyError, TypeError, ValueError, UnicodeDecodeError) as e:     # JSONDecodeError is a ValueError
         return f'<h3>The fabrics\' simulated geometry</h3><p class="note">{_link(run, path)} unreadable: {_esc(e)}</p>'

@@ -17,7 +17,6 @@ warning naming the clip and the file, and left out.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import shutil
@@ -31,7 +30,7 @@ from tqdm import tqdm
 
 from clothgap.errors import MissingInputError, StorageError
 from clothgap.files import atomic_path
-from clothgap.parallel import chunk_size, pool_size, spawn_pool
+from clothgap.parallel import chunk_size, pool_map, pool_size
 from clothgap.runs import Run, atomic_write_json, read_meta
 from render.frames import copy_frames_into, frame_count, read_clip_frames
 
@@ -137,15 +136,11 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
         pooled = processes > 1 and len(tasks) > 1
         step = chunk_size(len(tasks), processes) if pooled else IN_PROCESS_CHUNK
         chunks = [tasks[i:i + step] for i in range(0, len(tasks), step)]
-        with contextlib.ExitStack() as stack:
-            if pooled:
-                pool = stack.enter_context(spawn_pool(min(processes, len(chunks))))
-                parts = pool.map(copy_frames_into, [str(tmp)] * len(chunks), chunks, [size] * len(chunks))
-            else:
-                parts = (copy_frames_into(str(tmp), chunk, size) for chunk in chunks)
-            for part in parts:
-                skipped.update(part["skipped"])
-                bar.update(part["clips"])
+        parts = pool_map(copy_frames_into, [str(tmp)] * len(chunks), chunks, [size] * len(chunks),
+                         processes=processes, chunksize=1)
+        for part in parts:
+            skipped.update(part["skipped"])
+            bar.update(part["clips"])
         bar.close()
         with open(tmp, "rb+") as f:          # every process's rows on disk before the array is renamed into place
             os.fsync(f.fileno())

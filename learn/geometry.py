@@ -21,7 +21,6 @@ setting. Targets are cached per setting in
 
 from __future__ import annotations
 
-import contextlib
 import warnings
 
 import numpy as np
@@ -29,7 +28,7 @@ from tqdm import tqdm
 
 from clothgap.errors import MissingInputError
 from clothgap.files import atomic_path
-from clothgap.parallel import chunk_size, pool_size, spawn_pool
+from clothgap.parallel import pool_map, pool_size
 from clothgap.runs import Run
 from learn.dataset import FrameCache
 from learn.models import GEOMETRY_DIM
@@ -64,17 +63,10 @@ def clip_lattices(run: Run, setting: str, clip_ids: list[str], progress: bool = 
                                     f"comes from the simulation), but it is missing or unfinished")
     if processes is None:
         processes = pool_size(len(missing), POOL_MIN_CLIPS, POOL_MIN_CPUS)
-    folders = [sim_dir / cid for cid in missing]
     bar = tqdm(total=len(missing), desc=f"lattice {setting}", unit="clip", disable=not progress, leave=False)
-    with contextlib.ExitStack() as stack:
-        if processes > 1 and len(missing) > 1:
-            pool = stack.enter_context(spawn_pool(min(processes, len(missing))))
-            lattices = pool.map(clip_lattice, folders, chunksize=chunk_size(len(missing), processes))
-        else:
-            lattices = map(clip_lattice, folders)
-        for cid, lattice in zip(missing, lattices):
-            stored[cid] = lattice
-            bar.update()
+    for cid, lattice in zip(missing, pool_map(clip_lattice, [sim_dir / cid for cid in missing], processes=processes)):
+        stored[cid] = lattice
+        bar.update()
     bar.close()
     if missing:
         with atomic_path(path, keep_suffix=True) as tmp:

@@ -29,15 +29,16 @@ from clothgap.runs import Run  # noqa: E402
 
 def summary(report: dict) -> dict:
     """Per classifier: fabrics within one bin, grid steps, and the bending rank against the measured bending."""
+    from eval.learnability import measured_reading
+
     out = {}
     for r in report["results"]:
-        fabrics = r["fabrics"]
+        read = measured_reading(r)
         out[r["classifier"]] = {
-            "within1_fabrics": int(sum(f["within1"] for f in fabrics)), "fabrics": len(fabrics),
-            "class_dist": r["scores"]["class_dist"]["value"],
-            "spearman_k_vs_measured_bending": r["spearman"]["pred_k~bending_N_m"]["spearman"],
+            "within1_fabrics": read["within1_fabrics"], "fabrics": read["fabrics"], "class_dist": read["class_dist"],
+            "spearman_k_vs_measured_bending": read["bending_rank"]["spearman"],
             "spearman_k_vs_table2_k": r["spearman"]["pred_k~table2_k_est"]["spearman"],
-            "read_as": {f["fabric"]: [f["pred_p"], f["pred_k"]] for f in fabrics}}
+            "read_as": {f["fabric"]: [f["pred_p"], f["pred_k"]] for f in r["fabrics"]}}
     return out
 
 

@@ -34,7 +34,7 @@ import numpy as np
 
 from clothgap import seeding
 from clothgap.errors import ConfigError
-from clothgap.parallel import chunk_size, host_processes, pool_size, spawn_pool
+from clothgap.parallel import host_processes, pool_map, pool_size
 from clothgap.runs import (Run, atomic_write_json, clip_id, fresh_dir, is_done, mark_done, select_clips,
                            storage_error)
 from sim import classes
@@ -444,9 +444,7 @@ def write_clips(folders: list[Path], metas: list[dict], results: list[ClipResult
         with ThreadPoolExecutor(max_workers=min(32, host_processes(), max(len(folders), 1))) as pool:
             return list(pool.map(write_clip, folders, metas, results, [mesh] * len(folders)))
     # Results travel as arrays (~0.1 MB a clip).
-    with spawn_pool(min(processes, len(folders))) as pool:
-        return list(pool.map(write_clip, folders, metas, results, [mesh] * len(folders),
-                             chunksize=chunk_size(len(folders), processes)))
+    return list(pool_map(write_clip, folders, metas, results, [mesh] * len(folders), processes=processes))
 
 
 def write_clip(folder: Path, meta: dict, result: ClipResult, mesh: ClothMesh) -> bool:
