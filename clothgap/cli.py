@@ -115,6 +115,17 @@ def executor_options(executor: str, workers: int | None, address: str | None, gp
                            shard_size=shard_size, cuda_mps=cuda_mps).validate()
 
 
+def make_measured_clips(run: Run, options) -> None:
+    """The measured-fabric clips that eval scores (when the run's config asks for them), made beforehand through
+    ``options``' executor when it is not this process (``run_eval`` then finds them made)."""
+    if run.config.eval.measured_sequences <= 0 or (options.executor == "local" and options.shard_size is None):
+        return
+    from clothgap.executor import run_stage
+
+    t0 = time.perf_counter()
+    _echo_summary("measured clips", run_stage(run, "measured", options), time.perf_counter() - t0)
+
+
 def resolve_run(run_dir: Path | None, preset_name: str | None, out: Path | None,
                 overrides: tuple[str, ...], config_file: Path | None = None) -> Run:
     """Open an existing run, or create/resume one from a preset, a config file and overrides.
@@ -346,16 +357,21 @@ def eval() -> None:  # noqa: A001 - the subcommand is called eval
 @eval.command("run")
 @_run_options
 @_allow_failures_option
-def eval_run(run_dir, preset_name, out, overrides, config_file, allow_failures) -> None:
+@_executor_options
+def eval_run(run_dir, preset_name, out, overrides, config_file, allow_failures, **execution) -> None:
     """Accuracy tables (the paper's Table 3) and the domain-gap matrix for a run.
 
     Test clips of the split with no prediction (not rendered, unreadable) are listed in
-    eval/summary.json ("left_out") and make the command exit 1 unless --allow-failures."""
+    eval/summary.json ("left_out") and make the command exit 1 unless --allow-failures.
+    --executor/--workers/--gpus-per-worker spread the simulation and rendering of the measured-fabric
+    set (eval.measured_sequences > 0) as they do the sim and render stages'."""
     run = resolve_run(run_dir, preset_name, out, overrides, config_file)
     run.require(run.train_root, "train")
     from eval.stage import run_eval
 
     t0 = time.perf_counter()
+    opts = executor_options(**execution)
+    make_measured_clips(run, opts)
     summary = run_eval(run)
     _echo_summary("eval", summary, time.perf_counter() - t0)
     check_failures("eval", summary, allow_failures)
@@ -577,7 +593,11 @@ def pipeline(run_dir, preset_name, out, overrides, config_file, allow_failures, 
     stage("train", lambda r: train_all(r, parallel=train_parallel, options=train_opts))
     from eval.stage import run_eval
 
-    stage("eval", run_eval)
+    def evaluate(r: Run) -> dict:
+        make_measured_clips(r, opts)          # through the executor, as sim and render
+        return run_eval(r)
+
+    stage("eval", evaluate)
     from eval.report import write_report
 
     stage("report", lambda r: str(write_report(r)))

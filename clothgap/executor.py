@@ -1,8 +1,10 @@
 """Where generation work runs: in this process, a local process pool, or a Ray cluster.
 
-The sim and render stages are cut into shards of clip indices (``shard``). A
-shard is handled by a plain, picklable function ``fn(run_root: str, indices:
-list[int]) -> dict`` (``sim_shard``, ``render_shard``) that calls the stage
+The sim and render stages are cut into shards of clip indices (``shard``), as is
+the generation of the measured-fabric set (``measured``: its (setting, fabric,
+sequence) units, ``eval.measured.generation_units``). A shard is handled by a
+plain, picklable function ``fn(run_root: str, indices: list[int]) -> dict``
+(``sim_shard``, ``render_shard``, ``measured_shard``) that calls the stage
 restricted to those indices; the stage skips finished clips and writes every
 clip folder with its ``DONE`` marker last. That makes every executor idempotent
 and resumable: a worker killed mid-shard loses only the clip it was writing, a
@@ -13,7 +15,7 @@ touch the same folder.
 
 The stages write nothing at stage level: each shard returns its summary, and
 the driver (``run_stage``) merges them once all shards are finished with the
-stage's own ``merge_shard_summaries`` (``sim.stage``, ``render.stage``), so
+stage's own ``merge_shard_summaries`` (``sim.stage``, ``render.stage``, ``eval.measured``), so
 this module knows no stage's summary.
 
     local     in this process (default; what CPU runs and tests use)
@@ -55,8 +57,8 @@ from clothgap.parallel import HOST_PROCESSES_ENV, host_processes, share_of_host
 from clothgap.runs import Run
 
 EXECUTORS = ("local", "process", "ray")
-MPS_AUTO_STAGES = ("render",)       # measured faster under MPS (the stage 2.2x); sim and training not measured
-STAGES = ("sim", "render")
+MPS_AUTO_STAGES = ("render",)       # measured faster under MPS (the stage 2.2x); sim, the measured set and training not
+STAGES = ("sim", "render", "measured")
 ShardFn = Callable[[str, list[int]], dict]
 RAY_MISSING = "the ray executor needs Ray: pip install 'clothgap[ray]' (or pip install 'ray[default]')"
 
@@ -129,7 +131,15 @@ def render_shard(run_root: str, indices: list[int]) -> dict:
     return run_render(Run.open(run_root, check=False), progress=False, indices=indices)
 
 
-SHARD_FNS: dict[str, ShardFn] = {"sim": sim_shard, "render": render_shard}
+def measured_shard(run_root: str, indices: list[int]) -> dict:
+    """Simulate and render the unfinished measured-fabric clips among ``indices`` (``eval.measured.generation_units``:
+    (setting, fabric, sequence) in the run's config)."""
+    from eval.measured import make_measured_clips
+
+    return make_measured_clips(Run.open(run_root, check=False), progress=False, indices=indices)
+
+
+SHARD_FNS: dict[str, ShardFn] = {"sim": sim_shard, "render": render_shard, "measured": measured_shard}
 
 
 def _stage_functions(stage: str) -> tuple[Callable[..., dict], Callable[[list[dict]], dict]]:
@@ -139,15 +149,30 @@ def _stage_functions(stage: str) -> tuple[Callable[..., dict], Callable[[list[di
         from sim.stage import merge_shard_summaries, run_sim
 
         return run_sim, merge_shard_summaries
+    if stage == "measured":
+        from eval.measured import make_measured_clips, merge_shard_summaries
+
+        return make_measured_clips, merge_shard_summaries
     from render.stage import merge_shard_summaries, run_render
 
     return run_render, merge_shard_summaries
 
 
-def run_stage(run: Run, stage: str, options: ExecutorOptions = ExecutorOptions()) -> dict:
-    """Run the sim or render stage of ``run`` through an executor; returns the merged summary.
+def stage_units(run: Run, stage: str) -> int:
+    """How many units a shardable stage's indices number: the run's clips, or for ``measured`` its measured-fabric
+    clips under every setting."""
+    if stage == "measured":
+        from eval.measured import generation_units
 
-    With the default options this is the plain ``run_sim(run)`` / ``run_render(run)``.
+        return len(generation_units(run))
+    return run.config.sim.num_clips()
+
+
+def run_stage(run: Run, stage: str, options: ExecutorOptions = ExecutorOptions()) -> dict:
+    """Run the sim or render stage of ``run``, or the generation of its measured-fabric set (``measured``), through
+    an executor; returns the merged summary.
+
+    With the default options this is the plain ``run_sim(run)`` / ``run_render(run)`` / ``make_measured_clips(run)``.
     """
     if stage not in STAGES:
         raise ConfigError(f"stage {stage!r} cannot be sharded; shardable: {', '.join(STAGES)}")
@@ -162,7 +187,7 @@ def run_stage(run: Run, stage: str, options: ExecutorOptions = ExecutorOptions()
     # is a config error here, not a failed shard later.
     validate(run.config)
     start = time.perf_counter()
-    indices = list(range(run.config.sim.num_clips()))
+    indices = list(range(stage_units(run, stage)))
     mps_state = None
     with ray_session(options) as ray, contextlib.ExitStack() as stack:
         env = None

@@ -50,13 +50,21 @@ import pandas as pd
 
 from clothgap import seeding
 from clothgap.errors import ConfigError
-from clothgap.runs import Run, atomic_write_json, atomic_write_text, fresh_dir, is_done, mark_done
+from clothgap.parallel import host_processes, pool_map
+from clothgap.runs import Run, atomic_write_json, atomic_write_text, fresh_dir, is_done, mark_done, select_clips
 from eval import classes, metrics, real
 from eval import predictions as preds
 from eval.trained import TrainedModel, checkpoint_sha256, finished_models
 from sim.phases import timed
 
 DEFAULT_SEQUENCES = 2       # `clothgap eval measured` when the run's eval.measured_sequences is 0
+# Scoring a model is mostly host work: its copy of the clips at its image size, its figures and bootstraps
+# (~3 s of a 2-core CPU's time a model for 40 clips besides the network's). A study scores dozens of models
+# (48 in the `study` preset), so on a host of POOL_MIN_CPUS or more they are scored in a spawned pool, a process
+# for every CPUS_PER_SCORER CPUs, when there are POOL_MIN_MODELS or more.
+POOL_MIN_MODELS = 4
+POOL_MIN_CPUS = 8
+CPUS_PER_SCORER = 4
 MATCH_SCORES = ("exact", "p_match", "k_match", "within1", "class_dist")
 LABELS = {
     "pred_bending_N_m": "predicted bending (k x basis, N*m)",
@@ -142,6 +150,46 @@ def make_clips(run: Run, sequences: int, fabrics: Sequence[str], variant: str, p
     names = [clip_name(f, n) for f, n in wanted_clips(fabrics, sequences)]
     render_summary = render_measured(run, variant, names, progress)
     return {"sim": sim_summary, "render": render_summary}
+
+
+def generation_units(run: Run) -> list[tuple[str, str, int]]:
+    """(setting, fabric, sequence) of every measured clip the run's config asks for, setting by setting: what a
+    sharded generation (``clothgap eval --executor``) splits, so that a shard holds few settings and a GPU batch
+    of each."""
+    from sim.measured import wanted_clips
+
+    sequences, fabrics, _ = resolve(run)
+    return [(s, f, n) for s in run.config.sim.settings() for f, n in wanted_clips(fabrics, sequences)]
+
+
+def make_measured_clips(run: Run, progress: bool = True, indices: Sequence[int] | None = None) -> dict:
+    """The measured clips of the run's config (``eval.measured_*``), or those of ``indices`` into
+    ``generation_units``, simulated then rendered where not finished; returns both summaries (a shard's, for
+    ``merge_shard_summaries``)."""
+    from render.stage import merge_shard_summaries as merge_render
+    from render.stage import render_measured
+    from sim.measured import clip_name
+    from sim.stage import merge_shard_summaries as merge_sim
+    from sim.stage import simulate_measured
+
+    sequences, fabrics, variant = resolve(run)
+    units = generation_units(run)
+    by_setting: dict[str, list[tuple[str, int]]] = {}
+    for i in select_clips(len(units), indices):
+        setting, fabric, n = units[i]
+        by_setting.setdefault(setting, []).append((fabric, n))
+    sims = [simulate_measured(run, fabrics, sequences, progress, settings=[s], clips=c) for s, c in by_setting.items()]
+    renders = [render_measured(run, variant, [clip_name(f, n) for f, n in c], progress, settings=[s])
+               for s, c in by_setting.items()]
+    return {"sim": merge_sim(sims), "render": merge_render(renders)}
+
+
+def merge_shard_summaries(parts: list[dict]) -> dict:
+    """One ``make_measured_clips`` summary from its shards': the sim and render stages' own merges."""
+    from render.stage import merge_shard_summaries as merge_render
+    from sim.stage import merge_shard_summaries as merge_sim
+
+    return {"sim": merge_sim([p["sim"] for p in parts]), "render": merge_render([p["render"] for p in parts])}
 
 
 # ------------------------------------------------------------------ prediction (the real-video path)
@@ -331,7 +379,8 @@ DEFINITIONS = {
 
 def run_measured(run: Run, *, models: list | None = None, sequences: int | None = None,
                  fabrics: Sequence[str] | None = None, variant: str | None = None,
-                 predictor: Predictor | None = None, activations: int = 2, progress: bool = True) -> dict:
+                 predictor: Predictor | None = None, activations: int = 2, progress: bool = True,
+                 processes: int | None = None) -> dict:
     """Make (or reuse) the measured-fabric clips, predict them with every finished model (or ``models``),
     and write ``eval/measured.{csv,md,json}`` and ``eval/measured_correlations.csv``.
 
@@ -343,6 +392,8 @@ def run_measured(run: Run, *, models: list | None = None, sequences: int | None 
         predictor: Replaces ``learn.predict.predict_clips`` (tests).
         activations: Clips whose CNN activations are drawn per model.
         progress: Print progress.
+        processes: Score the models in a spawned pool of this many processes (0 or 1: in this process; default
+            ``scorer_processes``); the tables are the same either way.
 
     Returns:
         A short summary: the variant, whether it is held out, counts, and each model's exact-match rate.
@@ -359,10 +410,13 @@ def run_measured(run: Run, *, models: list | None = None, sequences: int | None 
         generation = make_clips(run, sequences, fabrics, variant, progress)
     names = [clip_name(f, n) for f, n in wanted_clips(fabrics, sequences)]
     tables, corrs, matches, entries = [], [], [], []
+    if predictor is not None:
+        processes = 0           # a test's stub predictor stays in this process
+    elif processes is None:
+        processes = scorer_processes(len(models))
     with timed(seconds, "predict_and_score"):
-        for m in models:
-            entry, scored = score_model(run, m, variant, names, predictor=predictor, activations=activations,
-                                        progress=progress)
+        for entry, scored in score_models(run, models, variant, names, predictor=predictor,
+                                          activations=activations, progress=progress, processes=processes):
             entries.append(entry)
             if scored is not None:
                 tables.append(scored[0])
@@ -441,6 +495,47 @@ def score_model(run: Run, m, variant: str, names: list[str], *, predictor: Predi
                   "correlations": json.loads(corr.to_json(orient="records"))})
     return entry, (table.assign(**key, checkpoint=_rel(run, m.checkpoint), folder=_rel(run, folder)),
                    corr.assign(**key), match.assign(**key))
+
+
+def scorer_processes(models: int) -> int:
+    """Processes to score ``models`` models in: one for every CPUS_PER_SCORER of this process's CPUs, at most one a
+    model, when there are POOL_MIN_MODELS models or more on a host of POOL_MIN_CPUS or more; else 0."""
+    cpus = host_processes()
+    if models < POOL_MIN_MODELS or cpus < POOL_MIN_CPUS:
+        return 0
+    return min(models, cpus // CPUS_PER_SCORER)
+
+
+def score_models(run: Run, models: list, variant: str, names: list[str], *, predictor: Predictor | None = None,
+                 activations: int = 2, progress: bool = True, processes: int = 0):
+    """``score_model`` of each model, in order: in this process, or in a spawned pool of ``processes`` (each with
+    its share of the CPUs for torch; the network runs on the GPU its process sees first)."""
+    if processes <= 1 or len(models) < 2:
+        for m in models:
+            yield score_model(run, m, variant, names, predictor=predictor, activations=activations,
+                              progress=progress)
+        return
+    threads = max(1, host_processes() // processes)
+    n = len(models)
+    results = pool_map(_score_in_worker, [run] * n, models, [variant] * n, [names] * n,
+                       [activations] * n, [threads] * n, processes=processes, chunksize=1)
+    for m, (entry, scored, spent) in zip(models, results):
+        if progress and entry["status"] == "predicted":
+            print(f"[eval measured] {m.setting}/{m.variant}/{m.model}/s{m.seed} on {variant}: "
+                  f"{entry.get('clips', 0)} clips, {spent:.1f} s (one of {processes} processes)", flush=True)
+        yield entry, scored
+
+
+def _score_in_worker(run: Run, m, variant: str, names: list[str], activations: int,
+                     threads: int) -> tuple[dict, tuple | None, float]:
+    """``score_model`` in a pool's process (its torch limited to ``threads``); also its seconds. The run comes
+    pickled with its config, whose class brings its own module."""
+    import torch
+
+    torch.set_num_threads(threads)
+    t0 = time.perf_counter()
+    entry, scored = score_model(run, m, variant, names, activations=activations, progress=False)
+    return entry, scored, time.perf_counter() - t0
 
 
 def _ordered(frames: list[pd.DataFrame]) -> pd.DataFrame:

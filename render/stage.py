@@ -276,16 +276,17 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
     return summary
 
 
-def render_measured(run: Run, variant: str, names: Sequence[str] | None = None, progress: bool = True) -> dict:
+def render_measured(run: Run, variant: str, names: Sequence[str] | None = None, progress: bool = True,
+                    settings: Sequence[str] | None = None) -> dict:
     """Render the run's finished measured-fabric sim clips (``sim.measured``) under ``variant``.
 
     ``RUN/measured/sim/<setting>/<fabric>-<n>/`` -> ``RUN/measured/render/<variant>/<setting>/<fabric>-<n>/``,
     the render clip contract (the meta keeps the sim meta's ``fabric``); ``names``
-    limits it to those clip folders. Resolution, spp and backend are the run's.
+    limits it to those clip folders, ``settings`` to those settings. Resolution, spp and backend are the run's.
     """
     chosen = get_variant(variant)
     jobs = [(chosen, setting, run.measured_sim_dir(setting) / name, run.measured_render_dir(variant, setting) / name)
-            for setting in run.config.sim.settings()
+            for setting in (run.config.sim.settings() if settings is None else settings)
             for name in run.done_clips(run.measured_sim_dir(setting)) if names is None or name in names]
     # The measured set is read as image folders through the real-video path (eval.measured): it keeps PNGs.
     return render_jobs(run, jobs, progress, label="render measured", variants=[chosen],

@@ -479,10 +479,12 @@ def _write_clip(folder: Path, meta: dict, result: ClipResult, mesh: ClothMesh) -
 
 def simulate_measured(run: Run, fabrics: Sequence[str], sequences: int, progress: bool = True,
                       settings: Sequence[str] | None = None, density: float | None = None,
-                      folder_of: Callable[[str], Path] | None = None) -> dict:
+                      folder_of: Callable[[str], Path] | None = None,
+                      clips: Sequence[tuple[str, int]] | None = None) -> dict:
     """Simulate ``sequences`` clips of each fabric under every setting of the run, or those of ``settings``
     (finished ones skipped), into ``run.measured_sim_dir`` or ``folder_of(setting)``; ``density`` replaces each
-    fabric's own (``build_scene``: then give a folder of their own)."""
+    fabric's own (``build_scene``: then give a folder of their own). ``clips`` ((fabric, sequence) pairs among
+    those) limits it to those clips (a shard)."""
     from sim.measured import MAX_SEQUENCES, check_fabrics, clip_name, measured_index, wanted_clips
 
     check_fabrics(fabrics)
@@ -490,8 +492,13 @@ def simulate_measured(run: Run, fabrics: Sequence[str], sequences: int, progress
         raise ConfigError(f"measured sequences must be 1..{MAX_SEQUENCES}, got {sequences}")
     if density is not None and folder_of is None:
         raise ConfigError("measured clips at another density than their own need a folder of their own (folder_of)")
-    jobs = [ClipJob(measured_index(f, n), clip_name(f, n), n, fabric=f, density=density)
-            for f, n in wanted_clips(fabrics, sequences)]
+    wanted = wanted_clips(fabrics, sequences)
+    if clips is not None:
+        outside = sorted(set(map(tuple, clips)) - set(wanted))
+        if outside:
+            raise ConfigError(f"measured clips {outside[:3]} are not among {len(fabrics)} fabric(s) x {sequences}")
+        wanted = [c for c in wanted if c in set(map(tuple, clips))]
+    jobs = [ClipJob(measured_index(f, n), clip_name(f, n), n, fabric=f, density=density) for f, n in wanted]
     settings = run.config.sim.settings() if settings is None else settings
     return simulate_jobs(run, {s: jobs for s in settings}, folder_of or run.measured_sim_dir, progress,
                          label="sim measured")

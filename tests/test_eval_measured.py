@@ -26,8 +26,16 @@ FABRICS = ("navy-sparkle-sweat", "royal-target")       # the softest and the sti
 def tiny_run(root: Path) -> Run:
     """Synthetic training clips, a tiny lrcn trained on them for real, and a config asking for a tiny
     measured set: 2 fabrics x 1 sequence, 6 frames of 16 px, 1 spp, in the held-out variant."""
-    from learn.synthetic import synthetic_run
     from learn.train import train_one
+
+    run = tiny_untrained_run(root)
+    train_one(run, SETTING, "paper", "lrcn", 0, progress=False)
+    return run
+
+
+def tiny_untrained_run(root: Path) -> Run:
+    """``tiny_run`` before its model is trained."""
+    from learn.synthetic import synthetic_run
 
     cfg = preset("smoke")
     cfg = replace(cfg, sim=replace(cfg.sim, sequences_per_class=3, grid_vertices=6, frames=6, settle_s=0.04,
@@ -38,9 +46,7 @@ def tiny_run(root: Path) -> Run:
                   train=replace(cfg.train, image_size=32, clip_len=4, clip_stride=2, epochs=1, batch_size=8,
                                 width=4, fc6=16, hidden=8, val_fraction=0.0, num_threads=2),
                   eval=replace(cfg.eval, bootstrap=50, measured_sequences=1, measured_fabrics=FABRICS))
-    run = synthetic_run(root, cfg)
-    train_one(run, SETTING, "paper", "lrcn", 0, progress=False)
-    return run
+    return synthetic_run(root, cfg)
 
 
 @pytest.mark.slow
@@ -282,3 +288,66 @@ def test_measured_clips_are_simulated_for_the_settings_asked_only(tmp_path):
     assert other.meta["density"] == 0.05 and other.meta["density_own"] == own.meta["density"] != 0.05
     assert other.meta["motion_params"] == own.meta["motion_params"]
     assert not np.allclose(other.positions, own.positions)
+
+
+def test_models_scored_in_a_pool_give_the_same_tables(tmp_path):
+    """A study scores dozens of models on the measured clips; in a spawned pool (the real network, figures and
+    bootstraps in each process) the tables and each model's per-clip predictions are those of one process."""
+    import shutil
+
+    from eval.measured import run_measured
+    from eval.stage import TrainedModel
+    from tests.test_eval_real import fresh_model
+
+    train_dir = fresh_model(tmp_path / "run")
+    run = Run.open(tmp_path / "run")
+    fake_measured_clips(run, list(FABRICS), sequences=2)
+    models = [TrainedModel(SETTING, "paper", "lrcn", seed, train_dir) for seed in (0, 1)]
+    outputs = {}
+    for processes in (0, 2):
+        shutil.rmtree(run.eval_dir / "measured", ignore_errors=True)
+        out = run_measured(run, models=models, sequences=2, fabrics=FABRICS, progress=False, activations=1,
+                           processes=processes)
+        assert (out["predicted"], out["reused"]) == (2, 0)
+        outputs[processes] = {name: (run.eval_dir / name).read_text()
+                              for name in ("measured.csv", "measured_correlations.csv")}
+        for seed in (0, 1):
+            folder = run.eval_dir / "measured" / "heldout" / SETTING / "paper" / "lrcn" / f"s{seed}"
+            outputs[processes][seed] = (folder / "videos.csv").read_text()
+            assert (folder / "activations.png").is_file() and (folder / "DONE").is_file()
+    assert outputs[2] == outputs[0]
+    assert len(outputs[0]["measured.csv"].splitlines()) == 1 + 2 * len(FABRICS)      # a row per model and fabric
+
+
+@pytest.mark.slow
+def test_measured_clips_made_in_shards_are_those_of_one_process(tmp_path):
+    """`clothgap eval --executor process` makes the measured clips in shards of (setting, fabric, sequence) before
+    the eval: the same files as in one process, and a second call makes none again."""
+    from clothgap.executor import ExecutorOptions, run_stage
+    from eval.measured import generation_units, make_measured_clips
+
+    one, pooled = tiny_untrained_run(tmp_path / "one"), tiny_untrained_run(tmp_path / "pooled")
+    units = generation_units(one)
+    assert len(units) == len(one.config.sim.settings()) * len(FABRICS)
+    made = make_measured_clips(one, progress=False)
+    assert (made["sim"]["simulated"], made["render"]["rendered"]) == (len(units), len(units))
+    options = ExecutorOptions("process", workers=2)
+    summary = run_stage(pooled, "measured", options)
+    assert (summary["sim"]["simulated"], summary["render"]["rendered"]) == (len(units), len(units))
+    assert summary["executor"]["shards"] == 2
+
+    def timeless(value):
+        """A meta without the seconds it took."""
+        if isinstance(value, dict):
+            return {k: timeless(v) for k, v in value.items() if k != "seconds"}
+        return value
+
+    def files(run: Run) -> dict[str, object]:
+        root = run.root / "measured"
+        return {str(f.relative_to(root)): timeless(json.loads(f.read_text())) if f.name == "meta.json"
+                else f.read_bytes() for f in sorted(root.rglob("*")) if f.is_file()}
+
+    assert files(pooled) == files(one) and any(name.endswith(".png") for name in files(one))
+    again = run_stage(pooled, "measured", options)
+    assert (again["sim"]["simulated"], again["render"]["rendered"]) == (0, 0)
+    assert again["sim"]["skipped"] == len(units) and again["render"]["skipped"] == len(units)

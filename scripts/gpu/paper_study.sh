@@ -4,6 +4,7 @@
 #   SEQ=48 simulates the paper's 48 sequences per class instead of the preset's 192 (a quarter of the render time).
 #   RENDER_ARGS: the default is gpus.sh's gpu_render_args (four workers a GPU under clothgap's MPS daemon).
 #   TRAIN_ARGS (default "--parallel <4 x GPUs>") trains that many models at once over the machine's GPUs.
+#   EVAL_ARGS (default RENDER_ARGS) spreads the simulation and rendering of the measured-fabric set the same way.
 #   SIM_ARGS="--executor process --workers 2 --gpus-per-worker 0.5" simulates two shards on one GPU, so one's
 #   host work (an adaptive setting's health, remesh and rebuild: a third of its stage) overlaps the other's steps.
 #   The paper preset writes each clip's frames.npy alone; EXTRA='--set render.write_png=true' adds the PNGs
@@ -36,6 +37,7 @@ fi
 source "$(dirname "$0")/gpus.sh"
 RENDER_ARGS=${RENDER_ARGS-$gpu_render_args}
 TRAIN_ARGS=${TRAIN_ARGS-"--parallel $((4 * ngpu))"}
+EVAL_ARGS=${EVAL_ARGS-$RENDER_ARGS}
 started=$(date +%s) status=0 fixed_limit=${LIMIT:-}
 for stage in $STAGES; do
   t0=$(date +%s.%N)
@@ -46,6 +48,7 @@ for stage in $STAGES; do
   if [ -f "$RUN/config.json" ]; then args=("$RUN" $sets); else args=(--preset "$PRESET" --out "$RUN" "${SETS[@]}"); fi
   extra=(); [ "$stage" = sim ] && extra=(${SIM_ARGS:-})
   [ "$stage" = render ] && extra=(${RENDER_ARGS:-}); [ "$stage" = train ] && extra=(${TRAIN_ARGS:-})
+  [ "$stage" = eval ] && extra=(${EVAL_ARGS:-})
   # GPU memory and utilisation sampled while the stage runs (after it ends the process has freed it all): the
   # peak memory of any GPU, and the mean share of time a kernel ran (whether a stage keeps its GPUs busy).
   samples="/tmp/gpu_samples_$(basename "$RUN")_$stage.txt"

@@ -1,0 +1,85 @@
+"""Scoring a run's models on the measured fabrics, in one process against a spawned pool (``eval.measured``).
+
+    python benchmarks/measured_scoring.py RUN [--processes N] [--repeats 2] [--out FILE]
+
+RUN is a run folder with finished models whose measured clips are already simulated and rendered (``clothgap eval
+measured RUN`` made them once). Every model's measured folder is removed before each scoring, so each model is
+predicted and scored again: its copy of the clips at its image size, the network, its figures and its bootstraps,
+the part of ``clothgap eval`` that grows with the number of models (48 in the `study` preset). One process and a
+pool of ``--processes`` (default ``eval.measured.scorer_processes`` of this host, at least 2) alternate,
+``--repeats`` times each; the tables of both are compared byte for byte.
+
+Writes benchmarks/results/measured_scoring-<host>-m<models>.json with the command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import shutil
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from common import RESULTS, write_result  # noqa: E402  (benchmarks/common.py)
+import clothgap.config  # noqa: E402,F401  (registers the study config a run folder is read with)
+from clothgap.parallel import host_processes  # noqa: E402
+from clothgap.runs import Run  # noqa: E402
+from eval.measured import resolve, run_measured, scorer_processes  # noqa: E402
+from eval.trained import finished_models  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("run", type=Path)
+    ap.add_argument("--processes", type=int, default=None, help="pool size (default: this host's scorer_processes)")
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args(argv)
+
+    run = Run.open(args.run)
+    models = finished_models(run)
+    if len(models) < 2:
+        raise SystemExit(f"{args.run} has {len(models)} finished model(s); the comparison needs two or more")
+    sequences, fabrics, variant = resolve(run)
+    processes = args.processes or max(2, scorer_processes(len(models)))
+    run_measured(run, models=models, progress=False, processes=0)     # the clips made (or found) before timing
+
+    seconds: dict[str, list[float]] = {"one_process": [], "pool": []}
+    tables: dict[str, str] = {}
+    for _ in range(args.repeats):
+        for way, n in (("one_process", 0), ("pool", processes)):
+            shutil.rmtree(run.eval_dir / "measured" / variant, ignore_errors=True)
+            t0 = time.perf_counter()
+            out = run_measured(run, models=models, progress=False, processes=n)
+            seconds[way].append(round(time.perf_counter() - t0, 2))
+            assert out["predicted"] == len(models), out
+            text = (run.eval_dir / "measured.csv").read_text() + (run.eval_dir / "measured_correlations.csv").read_text()
+            if tables.setdefault(way, text) != text:
+                raise SystemExit(f"{way}: the tables differ between repeats")
+            print(f"{way}: {seconds[way][-1]} s", flush=True)
+    median = {way: statistics.median(s) for way, s in seconds.items()}
+    result = {
+        "host": platform.node(), "cpus": host_processes(), "run": str(args.run), "models": len(models),
+        "fabrics": len(fabrics), "sequences": sequences, "variant": variant, "processes": processes,
+        "seconds": seconds, "median_s": median,
+        "speedup": round(median["one_process"] / median["pool"], 2),
+        "same_tables": tables["one_process"] == tables["pool"],
+    }
+    out = args.out or RESULTS / f"measured_scoring-{'cpu' if not _cuda() else 'cuda'}{host_processes()}-m{len(models)}.json"
+    write_result("measured_scoring.py", argv, result, out)
+    if not result["same_tables"]:
+        raise SystemExit("the pool's tables differ from one process's")
+
+
+def _cuda() -> bool:
+    import torch
+
+    return torch.cuda.is_available()
+
+
+if __name__ == "__main__":
+    main()
