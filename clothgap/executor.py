@@ -339,9 +339,10 @@ def run_train_parallel(run: Run, grid: Sequence[TrainEntry], parallel: int = 1, 
     if pending:
         configs = [settings[e][0] for e in pending]
         started = time.perf_counter()
-        prepare_shared_inputs(run, [e[:4] for e in pending], progress, configs=configs)
+        parts = prepare_shared_inputs(run, [e[:4] for e in pending], progress, configs=configs)
         # (a study's twelve caches and eight settings' lattices: its time before any model starts)
-        _say(f"train: splits, frame caches and lattices ready in {time.perf_counter() - started:.1f} s")
+        _say(f"train: splits, frame caches and lattices ready in {time.perf_counter() - started:.1f} s ("
+             + ", ".join(f"{name} {s:.1f} s" for name, s in parts.items()) + ")")
         slots = gpus = None
         mode = mps_mode(options, "train")       # before the default path replaces the options
         if options is None or (options.executor == "process" and not options.gpus_per_worker):
@@ -360,10 +361,14 @@ def run_train_parallel(run: Run, grid: Sequence[TrainEntry], parallel: int = 1, 
         waves = train_waves(train_jobs(pending, shared_of, trained), shared_of)
         # (`on` without GPUs is refused by cuda_mps: its workers would have none to share)
         with cuda_mps(slots, gpus or [], mode, say=_say) as mps:
-            for wave in waves:
+            for n, wave in enumerate(waves, 1):
+                started = time.perf_counter()
                 run_shards(train_shard, str(run.root.resolve()), wave,
                            options=dataclasses.replace(options, progress=progress), label="train",
                            gpu_slots=mps.slots, describe=describe_models, worker_env=mps.env)
+                # (a wave's models start together: its first finishes after their start-up and its own epochs)
+                _say(f"train: wave {n} of {len(waves)}, {sum(map(len, wave))} model(s) in {len(wave)} job(s), "
+                     f"{time.perf_counter() - started:.1f} s")
     return folders
 
 

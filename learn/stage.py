@@ -14,6 +14,7 @@ from clothgap.runs import Run, atomic_write_json, is_done
 from learn.registry import MODEL_NAMES
 from learn.registry import training_grid as registry_grid
 from learn.train import is_main, train_one
+from sim.phases import timed
 
 
 def training_grid(run: Run) -> list[tuple[str, str, str, int]]:
@@ -27,24 +28,30 @@ def training_grid(run: Run) -> list[tuple[str, str, str, int]]:
 
 
 def prepare_shared_inputs(run: Run, grid: list[tuple[str, str, str, int]], progress: bool = True,
-                          configs: list | None = None) -> None:
+                          configs: list | None = None) -> dict[str, float]:
     """What several trainings of ``grid`` read and the first would write: each setting's split, each
     (variant, setting)'s frame cache at each image size and each setting's simulated lattices (when a recipe
     regresses them). ``configs``: each entry's train settings (default: the run's). Built once here, so
-    that trainings running at once only read them."""
+    that trainings running at once only read them. Returns the seconds each kind took (``splits``, ``caches``,
+    ``lattices``)."""
     from learn.dataset import build_cache
     from learn.geometry import clip_lattices
     from learn.split import get_or_make_split
 
+    seconds: dict[str, float] = {"splits": 0.0, "caches": 0.0, "lattices": 0.0}
     configs = configs or [run.config.train] * len(grid)
-    for setting in dict.fromkeys(s for s, _, _, _ in grid):
-        get_or_make_split(run, setting)
+    with timed(seconds, "splits"):
+        for setting in dict.fromkeys(s for s, _, _, _ in grid):
+            get_or_make_split(run, setting)
     needs = dict.fromkeys((s, v, c.image_size, c.geometry_weight > 0) for (s, v, _, _), c in zip(grid, configs))
     for setting, variant, size, lattices in needs:
-        cache = build_cache(run, variant, setting, size, progress)
+        with timed(seconds, "caches"):
+            cache = build_cache(run, variant, setting, size, progress)
         if lattices:
-            clip_lattices(run, setting, sorted(cache.clips), progress)
+            with timed(seconds, "lattices"):
+                clip_lattices(run, setting, sorted(cache.clips), progress)
         del cache
+    return seconds
 
 
 def run_train(run: Run, progress: bool = True) -> dict:

@@ -33,8 +33,8 @@ def tiny_run(root: Path) -> Run:
     return run
 
 
-def tiny_untrained_run(root: Path) -> Run:
-    """``tiny_run`` before its model is trained."""
+def tiny_untrained_run(root: Path, measured_variant: str = "heldout") -> Run:
+    """``tiny_run`` before its model is trained (its measured set rendered in ``measured_variant``)."""
     from learn.synthetic import synthetic_run
 
     cfg = preset("smoke")
@@ -45,7 +45,8 @@ def tiny_untrained_run(root: Path) -> Run:
                   render=replace(cfg.render, resolution=16, spp=1, backend="auto", write_png=False),
                   train=replace(cfg.train, image_size=32, clip_len=4, clip_stride=2, epochs=1, batch_size=8,
                                 width=4, fc6=16, hidden=8, val_fraction=0.0, num_threads=2),
-                  eval=replace(cfg.eval, bootstrap=50, measured_sequences=1, measured_fabrics=FABRICS))
+                  eval=replace(cfg.eval, bootstrap=50, measured_sequences=1, measured_fabrics=FABRICS,
+                               measured_variant=measured_variant))
     return synthetic_run(root, cfg)
 
 
@@ -322,11 +323,12 @@ def test_models_scored_in_a_pool_give_the_same_tables(tmp_path):
 @pytest.mark.slow
 def test_measured_clips_made_in_shards_are_those_of_one_process(tmp_path):
     """`clothgap eval --executor process` makes the measured clips in shards of (setting, fabric, sequence) before
-    the eval: the same files as in one process, and a second call makes none again."""
+    the eval: the same files as in one process, and a second call makes none again. (In `paper`'s fixed lighting:
+    `heldout`'s random lighting renders some scene builds differently, test_render_output's known xfail.)"""
     from clothgap.executor import ExecutorOptions, run_stage
     from eval.measured import generation_units, make_measured_clips
 
-    one, pooled = tiny_untrained_run(tmp_path / "one"), tiny_untrained_run(tmp_path / "pooled")
+    one, pooled = (tiny_untrained_run(tmp_path / name, measured_variant="paper") for name in ("one", "pooled"))
     units = generation_units(one)
     assert len(units) == len(one.config.sim.settings()) * len(FABRICS)
     made = make_measured_clips(one, progress=False)
@@ -337,17 +339,34 @@ def test_measured_clips_made_in_shards_are_those_of_one_process(tmp_path):
     assert summary["executor"]["shards"] == 2
 
     def timeless(value):
-        """A meta without the seconds it took."""
+        """A meta without what it took: seconds, and scene builds (one process reuses a scene across clips)."""
         if isinstance(value, dict):
-            return {k: timeless(v) for k, v in value.items() if k != "seconds"}
+            return {k: timeless(v) for k, v in value.items() if k not in ("seconds", "scene_builds")}
         return value
 
     def files(run: Run) -> dict[str, object]:
-        root = run.root / "measured"
-        return {str(f.relative_to(root)): timeless(json.loads(f.read_text())) if f.name == "meta.json"
-                else f.read_bytes() for f in sorted(root.rglob("*")) if f.is_file()}
+        """Each file's bytes; a meta's content; an HDR frame's pixels (a clip rendered in a reused scene differs
+        from a fresh build's in the last float bits: 9e-8 at most, its PNGs byte for byte the same)."""
+        from render.exr import read_exr
 
-    assert files(pooled) == files(one) and any(name.endswith(".png") for name in files(one))
+        root = run.root / "measured"
+        out: dict[str, object] = {}
+        for f in sorted(root.rglob("*")):
+            if f.name == "meta.json":
+                out[str(f.relative_to(root))] = timeless(json.loads(f.read_text()))
+            elif f.suffix == ".exr":
+                out[str(f.relative_to(root))] = np.asarray(read_exr(f), dtype=np.float64)
+            elif f.is_file():
+                out[str(f.relative_to(root))] = f.read_bytes()
+        return out
+
+    made_once, made_in_shards = files(one), files(pooled)
+    assert made_in_shards.keys() == made_once.keys()
+    for name, value in made_once.items():
+        other = made_in_shards[name]
+        same = np.allclose(other, value, rtol=0, atol=1e-6) if isinstance(value, np.ndarray) else other == value
+        assert same, name
+    assert any(name.endswith(".png") for name in made_once) and any(name.startswith("sim/") for name in made_once)
     again = run_stage(pooled, "measured", options)
     assert (again["sim"]["simulated"], again["render"]["rendered"]) == (0, 0)
     assert again["sim"]["skipped"] == len(units) and again["render"]["skipped"] == len(units)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import pandas as pd
 import pytest
@@ -347,7 +348,7 @@ def test_keep_best_checkpoints_the_best_validation_epoch(tmp_path):
 
 
 @pytest.mark.slow
-def test_parallel_training_trains_the_grid_side_by_side_as_one_process_does(tmp_path):
+def test_parallel_training_trains_the_grid_side_by_side_as_one_process_does(tmp_path, capfd):
     from clothgap.api import train_selected
     from clothgap.executor import train_jobs
 
@@ -358,6 +359,9 @@ def test_parallel_training_trains_the_grid_side_by_side_as_one_process_does(tmp_
     alone = synthetic_run(tmp_path / "alone", cfg)
     side_by_side = synthetic_run(tmp_path / "side", cfg)
     folders = train_selected(side_by_side, progress=False, parallel=2)
+    said = capfd.readouterr().err       # where a study's train stage spends its time, said as it goes
+    assert re.search(r"ready in [\d.]+ s \(splits [\d.]+ s, caches [\d.]+ s, lattices [\d.]+ s\)", said), said
+    assert re.search(r"train: wave 1 of 1, 3 model\(s\) in 2 job\(s\), [\d.]+ s", said), said
     train_selected(alone, progress=False)
     index = json.loads(side_by_side.train_index_path.read_text())
     assert [(e["model"], e["done"]) for e in index["entries"]] == [("lrcn", True), ("base1", True), ("base2", True)]

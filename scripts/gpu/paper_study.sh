@@ -65,11 +65,12 @@ for stage in $STAGES; do
   host_sampler=$!
   # LIMIT (seconds, optional) stops the stage in time for the call's 10 minutes; it resumes next call.
   # The stage's log (progress bars left out) in full to $OUT (this call's; a resumed stage starts a new one), its
-  # last lines here, and the train stage's time before any model started, which would otherwise scroll past.
+  # last lines here, and the train stage's time before any model started and each wave's time, which would
+  # otherwise scroll past.
   stage_log="/tmp/stage_log_$(basename "$RUN")_$stage.txt"
   ${LIMIT:+timeout -k 10 "$LIMIT"} python3 -m clothgap $stage "${args[@]}" "${extra[@]}" 2>&1 | tr '\r' '\n' | grep -vE "it/s\]|clip/s\]|shard/s\]|s/it\]|clip-frame/s\]" > "$stage_log"
   rc=${PIPESTATUS[0]}
-  grep -E "ready in" "$stage_log" | tail -1
+  grep -E "ready in|^train: wave" "$stage_log" | tail -3
   tail -8 "$stage_log"
   cp "$stage_log" "$OUT/" 2>/dev/null
   t1=$(date +%s.%N)
