@@ -115,15 +115,22 @@ def executor_options(executor: str, workers: int | None, address: str | None, gp
                            shard_size=shard_size, cuda_mps=cuda_mps).validate()
 
 
-def make_measured_clips(run: Run, options) -> None:
-    """The measured-fabric clips that eval scores (when the run's config asks for them), made beforehand through
-    ``options``' executor when it is not this process (``run_eval`` then finds them made)."""
+def measured_clips_beforehand(run: Run, options) -> dict | None:
+    """The measured-fabric clips that eval scores (when the run's config asks for them and a model is trained),
+    made through ``options``' executor when it is not this process; ``run_eval`` then finds them made (its
+    measured.json's generation counts them as skipped). Returns the executor's summary, or None."""
     if run.config.eval.measured_sequences <= 0 or (options.executor == "local" and options.shard_size is None):
-        return
+        return None
+    from eval.trained import finished_models
+
+    if not finished_models(run):
+        return None             # run_eval says so, before anything is simulated
     from clothgap.executor import run_stage
 
     t0 = time.perf_counter()
-    _echo_summary("measured clips", run_stage(run, "measured", options), time.perf_counter() - t0)
+    summary = run_stage(run, "measured", options)
+    _echo_summary("measured clips", summary, time.perf_counter() - t0)
+    return summary
 
 
 def resolve_run(run_dir: Path | None, preset_name: str | None, out: Path | None,
@@ -371,7 +378,7 @@ def eval_run(run_dir, preset_name, out, overrides, config_file, allow_failures, 
 
     t0 = time.perf_counter()
     opts = executor_options(**execution)
-    make_measured_clips(run, opts)
+    measured_clips_beforehand(run, opts)
     summary = run_eval(run)
     _echo_summary("eval", summary, time.perf_counter() - t0)
     check_failures("eval", summary, allow_failures)
@@ -594,7 +601,9 @@ def pipeline(run_dir, preset_name, out, overrides, config_file, allow_failures, 
     from eval.stage import run_eval
 
     def evaluate(r: Run) -> dict:
-        make_measured_clips(r, opts)          # through the executor, as sim and render
+        made = measured_clips_beforehand(r, opts)          # through the executor, as sim and render
+        if made is not None:
+            summaries["measured clips"] = made
         return run_eval(r)
 
     stage("eval", evaluate)

@@ -509,8 +509,9 @@ def scorer_processes(models: int) -> int:
 def score_models(run: Run, models: list, variant: str, names: list[str], *, predictor: Predictor | None = None,
                  activations: int = 2, progress: bool = True, processes: int = 0):
     """``score_model`` of each model, in order: in this process, or in a spawned pool of ``processes`` (each with
-    its share of the CPUs for torch; the network runs on the GPU its process sees first)."""
-    if processes <= 1 or len(models) < 2:
+    its share of the CPUs for torch; model i's network on visible GPU i mod their count). A ``predictor`` (a
+    test's stub) keeps it in this process."""
+    if processes <= 1 or len(models) < 2 or predictor is not None:
         for m in models:
             yield score_model(run, m, variant, names, predictor=predictor, activations=activations,
                               progress=progress)
@@ -518,7 +519,7 @@ def score_models(run: Run, models: list, variant: str, names: list[str], *, pred
     threads = max(1, host_processes() // processes)
     n = len(models)
     results = pool_map(_score_in_worker, [run] * n, models, [variant] * n, [names] * n,
-                       [activations] * n, [threads] * n, processes=processes, chunksize=1)
+                       [activations] * n, [threads] * n, range(n), processes=processes, chunksize=1)
     for m, (entry, scored, spent) in zip(models, results):
         if progress and entry["status"] == "predicted":
             print(f"[eval measured] {m.setting}/{m.variant}/{m.model}/s{m.seed} on {variant}: "
@@ -526,13 +527,16 @@ def score_models(run: Run, models: list, variant: str, names: list[str], *, pred
         yield entry, scored
 
 
-def _score_in_worker(run: Run, m, variant: str, names: list[str], activations: int,
-                     threads: int) -> tuple[dict, tuple | None, float]:
-    """``score_model`` in a pool's process (its torch limited to ``threads``); also its seconds. The run comes
-    pickled with its config, whose class brings its own module."""
+def _score_in_worker(run: Run, m, variant: str, names: list[str], activations: int, threads: int,
+                     task: int) -> tuple[dict, tuple | None, float]:
+    """``score_model`` in a pool's process (its torch limited to ``threads``, task ``task``'s network on visible
+    GPU ``task`` mod their count); also its seconds. The run comes pickled with its config, whose class brings
+    its own module."""
     import torch
 
     torch.set_num_threads(threads)
+    if torch.cuda.is_available():
+        torch.cuda.set_device(task % torch.cuda.device_count())
     t0 = time.perf_counter()
     entry, scored = score_model(run, m, variant, names, activations=activations, progress=False)
     return entry, scored, time.perf_counter() - t0

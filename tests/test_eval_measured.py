@@ -291,10 +291,12 @@ def test_measured_clips_are_simulated_for_the_settings_asked_only(tmp_path):
     assert not np.allclose(other.positions, own.positions)
 
 
-def test_models_scored_in_a_pool_give_the_same_tables(tmp_path):
+def test_models_scored_in_a_pool_give_the_same_tables(tmp_path, capsys):
     """A study scores dozens of models on the measured clips; in a spawned pool (the real network, figures and
     bootstraps in each process) the tables and each model's per-clip predictions are those of one process."""
     import shutil
+
+    import torch
 
     from eval.measured import run_measured
     from eval.stage import TrainedModel
@@ -302,14 +304,21 @@ def test_models_scored_in_a_pool_give_the_same_tables(tmp_path):
 
     train_dir = fresh_model(tmp_path / "run")
     run = Run.open(tmp_path / "run")
+    other = train_dir.parent / "s1"                   # a second model with other weights
+    other.mkdir()
+    ckpt = torch.load(train_dir / "checkpoint.pt", weights_only=False)
+    ckpt["model"] = {k: v + 0.05 if v.is_floating_point() else v for k, v in ckpt["model"].items()}
+    torch.save({**ckpt, "seed": 1}, other / "checkpoint.pt")
     fake_measured_clips(run, list(FABRICS), sequences=2)
-    models = [TrainedModel(SETTING, "paper", "lrcn", seed, train_dir) for seed in (0, 1)]
+    models = [TrainedModel(SETTING, "paper", "lrcn", seed, folder) for seed, folder in ((0, train_dir), (1, other))]
     outputs = {}
     for processes in (0, 2):
         shutil.rmtree(run.eval_dir / "measured", ignore_errors=True)
-        out = run_measured(run, models=models, sequences=2, fabrics=FABRICS, progress=False, activations=1,
+        out = run_measured(run, models=models, sequences=2, fabrics=FABRICS, progress=True, activations=1,
                            processes=processes)
         assert (out["predicted"], out["reused"]) == (2, 0)
+        said = capsys.readouterr().out
+        assert ("(one of 2 processes)" in said) == (processes == 2), said
         outputs[processes] = {name: (run.eval_dir / name).read_text()
                               for name in ("measured.csv", "measured_correlations.csv")}
         for seed in (0, 1):
@@ -317,6 +326,7 @@ def test_models_scored_in_a_pool_give_the_same_tables(tmp_path):
             outputs[processes][seed] = (folder / "videos.csv").read_text()
             assert (folder / "activations.png").is_file() and (folder / "DONE").is_file()
     assert outputs[2] == outputs[0]
+    assert outputs[0][0] != outputs[0][1]             # the two models' predictions are their own
     assert len(outputs[0]["measured.csv"].splitlines()) == 1 + 2 * len(FABRICS)      # a row per model and fabric
 
 

@@ -4,7 +4,8 @@
 #   SEQ=48 simulates the paper's 48 sequences per class instead of the preset's 192 (a quarter of the render time).
 #   RENDER_ARGS: the default is gpus.sh's gpu_render_args (four workers a GPU under clothgap's MPS daemon).
 #   TRAIN_ARGS (default "--parallel <4 x GPUs>") trains that many models at once over the machine's GPUs.
-#   EVAL_ARGS (default RENDER_ARGS) spreads the simulation and rendering of the measured-fabric set the same way.
+#   EVAL_ARGS (default RENDER_ARGS) spreads the simulation and rendering of the measured-fabric set over the same
+#   workers (without MPS unless it adds --cuda-mps on: --cuda-mps auto serves the render stage only).
 #   SIM_ARGS="--executor process --workers 2 --gpus-per-worker 0.5" simulates two shards on one GPU, so one's
 #   host work (an adaptive setting's health, remesh and rebuild: a third of its stage) overlaps the other's steps.
 #   The paper preset writes each clip's frames.npy alone; EXTRA='--set render.write_png=true' adds the PNGs
