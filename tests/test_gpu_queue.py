@@ -73,6 +73,34 @@ def test_files_too_large_to_bring_back_are_left_out_of_the_tarball_by_name_and_t
     assert not (out / "queue.tgz.tmp").exists()
 
 
+def test_what_queue_tgz_cannot_hold_comes_back_in_a_second_tarball(tmp_path):
+    # two 60 kB random files do not fit one 150 kB tarball (less its 64 kB margin) together: the second takes one;
+    # a 200 kB file fits neither and is named as left out of both
+    plan = tmp_path / "big.plan"
+    plan.write_text("eval: head -c 60000 /dev/urandom > $OUT/predictions.tgz; head -c 60000 /dev/urandom > "
+                    "\"$OUT/report 1.tgz\"; head -c 200000 /dev/urandom > $OUT/huge.bin; echo 0.767 > $OUT/results.csv\n")
+    for overflow in ("1", "0"):
+        state, out = tmp_path / f"state{overflow}", tmp_path / f"out{overflow}"
+        r = _queue(plan, state, out, QUEUE_TGZ_BYTES="150000", QUEUE_OVERFLOW=overflow)
+        assert r.returncode == 0, r.stderr
+        with tarfile.open(out / "queue.tgz") as t:
+            first = {Path(n).as_posix().lstrip("./") for n in t.getnames()}
+            left_out = t.extractfile("./LEFT_OUT.txt").read().decode()
+        assert "eval/results.csv" in first and "eval/huge.bin" not in first
+        assert (out / "queue.tgz").stat().st_size <= 150000
+        if overflow == "0":
+            assert not (out / "queue-2.tgz").exists() and left_out.count("left out of queue.tgz") == 2
+            continue
+        with tarfile.open(out / "queue-2.tgz") as t:
+            second = {Path(n).as_posix().lstrip("./") for n in t.getnames()}
+        assert (out / "queue-2.tgz").stat().st_size <= 150000
+        big = {"eval/predictions.tgz", "eval/report 1.tgz"}
+        assert len(second) == 1 and second < big and big - second <= first       # each big file in one tarball
+        assert f"{next(iter(second))}: in queue-2.tgz" in left_out
+        assert "eval/huge.bin: left out of queue.tgz and queue-2.tgz" in left_out
+        assert not (out / "queue-2.tgz.tmp").exists()
+
+
 @pytest.mark.slow
 def test_a_step_cut_off_by_the_budget_goes_on_next_call_and_a_bad_plan_is_refused(tmp_path):
     plan = tmp_path / "slow.plan"

@@ -6,8 +6,9 @@
 # GPUs are split evenly between the lanes (the first lanes get the remainder; with fewer GPUs than lanes, lanes
 # share them round robin; with none, every lane runs with CUDA_VISIBLE_DEVICES empty, a CPU dry run), pinned with
 # CUDA_VISIBLE_DEVICES, so each plan sizes its render workers and trainings by its own GPUs. Each lane's queue has
-# its own state (QUEUE_STATE/laneN) and output ($OUT/laneN/queue.log and queue.tgz: two of the device's eight files
-# a lane), resumable across calls. Lanes must not share a run folder: their plans' RUN paths differ.
+# its own state (QUEUE_STATE/laneN) and output ($OUT/laneN/queue.log and queue.tgz, with one or two lanes also
+# queue-2.tgz for what queue.tgz cannot hold: at most three of the device's eight files a lane), resumable across
+# calls. Lanes must not share a run folder: their plans' RUN paths differ.
 # Exit status: 0 when every lane's queue returned 0 (steps that fail are recorded by the queue), 2 for a bad
 # plan (before any lane starts), else 1.
 set -uo pipefail
@@ -43,7 +44,7 @@ for i in $(seq 1 "$nlanes"); do
   echo "lanes: $name on GPUs ${mine:-(none)}: ${!i}"
   rm -f "$state/$name.rc"
   lane=${!i}
-  ( CUDA_VISIBLE_DEVICES=$mine QUEUE_STATE="$state/$name" OUT="$out/$name" \
+  ( CUDA_VISIBLE_DEVICES=$mine QUEUE_STATE="$state/$name" OUT="$out/$name" QUEUE_OVERFLOW=$((nlanes <= 2)) \
       bash "$here/queue.sh" ${lane//+/ } > /dev/null 2>&1; echo $? > "$state/$name.rc" ) &
   pids+=($!)
 done

@@ -71,8 +71,9 @@ for stage in $STAGES; do
   stage_log="/tmp/stage_log_$(basename "$RUN")_$stage.txt"
   ${LIMIT:+timeout -k 10 "$LIMIT"} python3 -m clothgap $stage "${args[@]}" "${extra[@]}" 2>&1 | tr '\r' '\n' | grep -vE "it/s\]|clip/s\]|shard/s\]|s/it\]|clip-frame/s\]" > "$stage_log"
   rc=${PIPESTATUS[0]}
-  grep -E "ready in|^train: wave" "$stage_log" | tail -3
-  tail -8 "$stage_log"
+  tail -8 "$stage_log" > "$stage_log.tail"
+  grep -E "ready in|^train: wave" "$stage_log" | tail -3 | grep -vxF -f "$stage_log.tail"     # (not twice)
+  cat "$stage_log.tail"
   cp "$stage_log" "$OUT/" 2>/dev/null
   t1=$(date +%s.%N)
   kill $sampler $host_sampler 2>/dev/null; wait $sampler $host_sampler 2>/dev/null

@@ -33,6 +33,25 @@ log=$out/queue.log
 # not cost the results beside it. Written to a temporary name and moved, so a call cut off while packing still
 # brings back the previous tarball.
 limit=${QUEUE_TGZ_BYTES:-15728640}
+# What queue.tgz cannot hold goes into queue-2.tgz, as much as fits (largest first), unless QUEUE_OVERFLOW=0
+# (scripts/gpu/lanes.sh turns it off for three lanes or more: the device brings back eight files a call). A
+# study's eval brings its report and its per-clip predictions, ~10 MB each, beside its tables.
+overflow=${QUEUE_OVERFLOW:-1}
+# pack_overflow LEFT: the files of LEFT (queue.tgz's left-out list) that queue-2.tgz holds, in $state/second.txt
+pack_overflow() {
+  local tmp="$out/queue-2.tgz.tmp" chosen="$state/second.txt"
+  rm -f "$out/queue-2.tgz" "$chosen"; : > "$chosen"
+  { [ "$overflow" = 1 ] && [ -s "$1" ]; } || return 0
+  awk -v limit="$((limit - 65536))" -v skipfile="$1" 'BEGIN { while ((getline l < skipfile) > 0) left[l] = 1 }
+    { p = substr($0, index($0, " ") + 1) } (p in left) && total + $1 <= limit { print p; total += $1 }' \
+    "$state/gz_sizes.txt" > "$chosen"
+  while [ -s "$chosen" ]; do
+    tar czf "$tmp" -C "$state/out" --no-wildcards -T "$chosen" 2>/dev/null
+    [ "$(stat -c %s "$tmp")" -le "$limit" ] && { mv -f "$tmp" "$out/queue-2.tgz"; return 0; }
+    sed -i 1d "$chosen"        # tar's overhead: the largest left out as well
+  done
+  rm -f "$tmp"
+}
 pack() {
   local left="$state/left_out.txt" tmp="$out/queue.tgz.tmp" sizes="$state/gz_sizes.txt" f
   rm -f "$state/out/LEFT_OUT.txt"
@@ -54,6 +73,15 @@ pack() {
     [ -n "$f" ] || { echo "queue: queue.tgz is over $limit bytes with every file left out" | tee -a "$log"; break; }
     echo "$f" >> "$left.new"
   done
+  pack_overflow "$left.new"
+  if [ -s "$state/second.txt" ]; then       # LEFT_OUT.txt says which went into queue-2.tgz; queue.tgz packed again
+    awk -v secondfile="$state/second.txt" -v limit="$limit" 'BEGIN { while ((getline l < secondfile) > 0) two[l] = 1 }
+      { print $0 ((($0) in two) ? ": in queue-2.tgz (queue.tgz was full)" : \
+        ": left out of queue.tgz and queue-2.tgz (the device brings back files of at most 16 MiB; limit " limit " bytes)") }' \
+      "$left.new" > "$state/out/LEFT_OUT.txt"
+    tar czf "$tmp.2" -C "$state/out" --no-wildcards -X "$left.new" . 2>/dev/null
+    if [ "$(stat -c %s "$tmp.2")" -le "$limit" ]; then mv -f "$tmp.2" "$tmp"; else rm -f "$tmp.2"; fi
+  fi
   mv -f "$tmp" "$out/queue.tgz"
   [ -s "$left.new" ] && ! cmp -s "$left.new" "$left" && tee -a "$log" < "$state/out/LEFT_OUT.txt"
   mv -f "$left.new" "$left"
