@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.mesh import ClothMesh, hinges_of, mesh_rest
+from sim.mesh import ClothMesh, hinges_of, mesh_rest, sorted_pairs
 
 
 @dataclass
@@ -171,9 +171,10 @@ def edge_curvature(mesh: QuadMesh, positions: np.ndarray) -> np.ndarray:
     a, b = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
     area = 0.5 * np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])
     e = np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1).reshape(-1, 2)
-    key = np.sort(e, axis=1)
+    key = sorted_pairs(e)
     face_of = np.repeat(np.arange(len(f)), 3)
-    order = np.lexsort((key[:, 1], key[:, 0]))
+    # (lexsort's order by first, then second vertex, as one stable argsort of an integer key: twice as fast)
+    order = np.argsort(key[:, 0].astype(np.int64) * (int(key.max(initial=0)) + 1) + key[:, 1], kind="stable")
     key, face_of = key[order], face_of[order]
     same = np.all(key[1:] == key[:-1], axis=1)
     f0, f1, k = face_of[:-1][same], face_of[1:][same], key[:-1][same]
@@ -186,6 +187,17 @@ def edge_curvature(mesh: QuadMesh, positions: np.ndarray) -> np.ndarray:
     return out
 
 
+def leaf_cells(leaves: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(leaf, row, column) of every fine cell each leaf covers, leaf by leaf: where a per-leaf value is painted
+    onto the (N, N) grid in one assignment (a Python loop over a cloth's leaves was ~1.5 ms of its remeshing)."""
+    side = leaves[:, 2]
+    count = side * side
+    leaf = np.repeat(np.arange(len(leaves)), count)
+    k = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
+    s = side[leaf]
+    return leaf, leaves[leaf, 0] + k // s, leaves[leaf, 1] + k % s
+
+
 def target_levels(mesh: QuadMesh, positions: np.ndarray, refine_angle: float = 0.3) -> np.ndarray:
     """Per-fine-cell target level: fine enough that an edge turns by at most
     ``refine_angle`` radians at the local curvature (ArcSim's curvature sizing)."""
@@ -196,8 +208,8 @@ def target_levels(mesh: QuadMesh, positions: np.ndarray, refine_angle: float = 0
     need = np.log2(np.maximum(h1 * leaf_curv / refine_angle, 1.0))
     leaf_target = np.clip(1 + np.ceil(need).astype(np.int64), 1, mesh.max_level)
     target = np.ones_like(mesh.level)
-    for (i, j, s), t in zip(mesh.leaves, leaf_target):
-        target[i:i + s, j:j + s] = t
+    leaf, row, col = leaf_cells(mesh.leaves)
+    target[row, col] = leaf_target[leaf]
     return target
 
 
@@ -219,8 +231,8 @@ def transfer(old: QuadMesh, new: QuadMesh, fields: list[np.ndarray]) -> list[np.
         return out
     # the old leaf under each added vertex, and that leaf's (at most 8) faces
     cell_leaf = np.empty((n, n), np.int64)
-    for li, (i, j, s) in enumerate(old.leaves):
-        cell_leaf[i:i + s, j:j + s] = li
+    leaf, row, col = leaf_cells(old.leaves)
+    cell_leaf[row, col] = leaf
     counts = np.bincount(old.face_leaf, minlength=len(old.leaves))
     first = np.concatenate([[0], np.cumsum(counts)[:-1]])
     by_leaf = np.argsort(old.face_leaf, kind="stable")

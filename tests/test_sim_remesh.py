@@ -170,3 +170,26 @@ def test_pinned_lattice_points_are_found_on_every_later_mesh():
         moved |= len(pinned) < len(top) and want != sorted(pinned)
     assert moved, "the remesher renumbered pinned points"
     assert len(want) > len(top), "the remesher refined the top edge"
+
+
+def test_leaf_cells_cover_every_fine_cell_once_with_its_leaf():
+    """The vectorised painting of per-leaf values onto the fine grid (target levels, the transfer's cell -> leaf
+    map) gives each cell the leaf whose square holds it."""
+    rng = np.random.default_rng(3)
+    target = rng.integers(1, 4, size=(60, 60))
+    mesh = R.triangulate(R.build_levels(target, 3), 3, 0.5)
+    leaf, row, col = R.leaf_cells(mesh.leaves)
+    assert len(leaf) == 60 * 60 and len(set(zip(row.tolist(), col.tolist()))) == 60 * 60
+    painted = np.full((60, 60), -1)
+    for li, (i, j, s) in enumerate(mesh.leaves):
+        painted[i:i + s, j:j + s] = li
+    assert np.array_equal(painted[row, col], leaf)
+
+
+def test_sorted_pairs_is_a_row_sort():
+    from sim.mesh import sorted_pairs
+
+    pairs = np.random.default_rng(0).integers(0, 50, size=(200, 2)).astype(np.int32)
+    out = sorted_pairs(pairs)
+    assert out.dtype == pairs.dtype and np.array_equal(out, np.sort(pairs, axis=1))
+    assert sorted_pairs(np.zeros((0, 2), np.int64)).shape == (0, 2)
