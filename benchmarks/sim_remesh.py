@@ -99,15 +99,19 @@ def time_tree(sim_root: Path, inputs: Path) -> tuple[float, str]:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--baseline", default="HEAD", help="git revision whose sim/ is the baseline (default HEAD)")
+    ap.add_argument("--baseline", default="HEAD", help="git revision whose sim/ is the baseline (default HEAD: "
+                    "this tree's uncommitted sim/ against its last commit)")
     ap.add_argument("--clips", type=int, default=4)
     ap.add_argument("--frames", type=int, default=8)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", type=Path, default=RESULTS / "sim_remesh-cpu.json")
     args = ap.parse_args(argv)
 
-    baseline_rev = subprocess.run(["git", "rev-parse", "--short", args.baseline], cwd=ROOT, capture_output=True,
-                                  text=True, check=True).stdout.strip()
+    def git(*words: str) -> str:
+        return subprocess.run(["git", *words], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
+
+    baseline_rev = git("rev-parse", "--short", args.baseline)
+    tree = git("rev-parse", "--short", "HEAD") + (" with changes to sim/" if git("status", "--porcelain", "sim") else "")
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         inputs = capture(args.clips, args.frames, tmp)
@@ -117,8 +121,9 @@ def main(argv: list[str] | None = None) -> None:
         subprocess.run(["tar", "-x", "-C", str(base)], input=archive.stdout, check=True)
         ms: dict[str, list[float]] = {"baseline": [], "this_tree": []}
         digests: dict[str, set[str]] = {"baseline": set(), "this_tree": set()}
-        for _ in range(args.repeats):
-            for name, root in (("baseline", base), ("this_tree", ROOT)):
+        for repeat in range(args.repeats):
+            order = (("baseline", base), ("this_tree", ROOT))
+            for name, root in (order if repeat % 2 == 0 else order[::-1]):     # either may go first
                 t, digest = time_tree(root, inputs)
                 ms[name].append(round(t, 3))
                 digests[name].add(digest)
@@ -126,7 +131,7 @@ def main(argv: list[str] | None = None) -> None:
         count = len(pickle.loads(inputs.read_bytes()))
     median = {k: statistics.median(v) for k, v in ms.items()}
     result = {
-        "host": platform.node(), "cpus": os.cpu_count(), "baseline": baseline_rev,
+        "host": platform.node(), "cpus": os.cpu_count(), "baseline": baseline_rev, "this_tree": tree,
         "cloth_frames": count, "clips": args.clips, "frames": args.frames,
         "ms_per_cloth_frame": ms, "median_ms": median,
         "speedup": round(median["baseline"] / median["this_tree"], 2),

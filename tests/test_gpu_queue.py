@@ -75,9 +75,10 @@ def test_files_too_large_to_bring_back_are_left_out_of_the_tarball_by_name_and_t
 
 def test_what_queue_tgz_cannot_hold_comes_back_in_a_second_tarball(tmp_path):
     # two 60 kB random files do not fit one 150 kB tarball (less its 64 kB margin) together: the second takes one;
-    # a 200 kB file fits neither and is named as left out of both
+    # a 200 kB file fits neither and is named as left out of both (names with a space and a backslash, which
+    # tar's file list must take as they are)
     plan = tmp_path / "big.plan"
-    plan.write_text("eval: head -c 60000 /dev/urandom > $OUT/predictions.tgz; head -c 60000 /dev/urandom > "
+    plan.write_text("eval: head -c 60000 /dev/urandom > \"$OUT/predictions\\\\n.tgz\"; head -c 60000 /dev/urandom > "
                     "\"$OUT/report 1.tgz\"; head -c 200000 /dev/urandom > $OUT/huge.bin; echo 0.767 > $OUT/results.csv\n")
     for overflow in ("1", "0"):
         state, out = tmp_path / f"state{overflow}", tmp_path / f"out{overflow}"
@@ -94,7 +95,8 @@ def test_what_queue_tgz_cannot_hold_comes_back_in_a_second_tarball(tmp_path):
         with tarfile.open(out / "queue-2.tgz") as t:
             second = {Path(n).as_posix().lstrip("./") for n in t.getnames()}
         assert (out / "queue-2.tgz").stat().st_size <= 150000
-        big = {"eval/predictions.tgz", "eval/report 1.tgz"}
+        big = {"eval/predictions\\n.tgz", "eval/report 1.tgz"}
+        assert (state / "out" / "eval" / "predictions\\n.tgz").is_file()        # a backslash in its name
         assert len(second) == 1 and second < big and big - second <= first       # each big file in one tarball
         assert f"{next(iter(second))}: in queue-2.tgz" in left_out
         assert "eval/huge.bin: left out of queue.tgz and queue-2.tgz" in left_out

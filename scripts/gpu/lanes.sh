@@ -44,7 +44,7 @@ for i in $(seq 1 "$nlanes"); do
   echo "lanes: $name on GPUs ${mine:-(none)}: ${!i}"
   rm -f "$state/$name.rc"
   lane=${!i}
-  ( CUDA_VISIBLE_DEVICES=$mine QUEUE_STATE="$state/$name" OUT="$out/$name" QUEUE_OVERFLOW=$((nlanes <= 2)) \
+  ( CUDA_VISIBLE_DEVICES=$mine QUEUE_STATE="$state/$name" OUT="$out/$name" QUEUE_OVERFLOW=${QUEUE_OVERFLOW:-$((nlanes <= 2))} \
       bash "$here/queue.sh" ${lane//+/ } > /dev/null 2>&1; echo $? > "$state/$name.rc" ) &
   pids+=($!)
 done

@@ -15,8 +15,8 @@
 # BUDGET seconds for the whole call (default 560, the device's 600 less the start and the transfers).
 # $OUT gets queue.log (every step's output, written as it runs, so a call killed anyway still brings it back)
 # and queue.tgz (every step's OUT folder, accumulated over the calls and packed after each step: the last
-# call's tarball holds all),
-# two files of the device's eight.
+# call's tarball holds all), with queue-2.tgz for what queue.tgz cannot hold: at most three files of the
+# device's eight.
 set -uo pipefail
 check=; [ "${1:-}" = --check ] && { check=1; shift; }
 [ $# -ge 1 ] || { echo "usage: bash scripts/gpu/queue.sh [--check] PLAN [PLAN...]" >&2; exit 2; }
@@ -37,17 +37,21 @@ limit=${QUEUE_TGZ_BYTES:-15728640}
 # (scripts/gpu/lanes.sh turns it off for three lanes or more: the device brings back eight files a call). A
 # study's eval brings its report and its per-clip predictions, ~10 MB each, beside its tables.
 overflow=${QUEUE_OVERFLOW:-1}
-# pack_overflow LEFT: the files of LEFT (queue.tgz's left-out list) that queue-2.tgz holds, in $state/second.txt
+# pack_overflow LEFT: of the files of LEFT (queue.tgz's left-out list), those that $out/queue-2.tgz.tmp holds, in
+# $state/second.txt (empty, and no tarball, when none; pack moves the tarball into place after queue.tgz)
 pack_overflow() {
   local tmp="$out/queue-2.tgz.tmp" chosen="$state/second.txt"
-  rm -f "$out/queue-2.tgz" "$chosen"; : > "$chosen"
-  { [ "$overflow" = 1 ] && [ -s "$1" ]; } || return 0
+  rm -f "$tmp"; : > "$chosen"
+  { [ "$overflow" != 0 ] && [ -s "$1" ]; } || return 0
   awk -v limit="$((limit - 65536))" -v skipfile="$1" 'BEGIN { while ((getline l < skipfile) > 0) left[l] = 1 }
     { p = substr($0, index($0, " ") + 1) } (p in left) && total + $1 <= limit { print p; total += $1 }' \
     "$state/gz_sizes.txt" > "$chosen"
   while [ -s "$chosen" ]; do
-    tar czf "$tmp" -C "$state/out" --no-wildcards -T "$chosen" 2>/dev/null
-    [ "$(stat -c %s "$tmp")" -le "$limit" ] && { mv -f "$tmp" "$out/queue-2.tgz"; return 0; }
+    # (names as they are: -T would otherwise read backslashes in them as escapes)
+    if ! tar czf "$tmp" -C "$state/out" --no-wildcards --verbatim-files-from -T "$chosen" 2>/dev/null; then
+      rm -f "$tmp"; : > "$chosen"; return 0        # a file gone or unreadable: nothing said to be in queue-2.tgz
+    fi
+    [ "$(stat -c %s "$tmp")" -le "$limit" ] && return 0
     sed -i 1d "$chosen"        # tar's overhead: the largest left out as well
   done
   rm -f "$tmp"
@@ -83,6 +87,8 @@ pack() {
     if [ "$(stat -c %s "$tmp.2")" -le "$limit" ]; then mv -f "$tmp.2" "$tmp"; else rm -f "$tmp.2"; fi
   fi
   mv -f "$tmp" "$out/queue.tgz"
+  # the previous queue-2.tgz stays until this one replaces it (a call cut off while packing brings it back)
+  if [ -s "$state/second.txt" ]; then mv -f "$out/queue-2.tgz.tmp" "$out/queue-2.tgz"; else rm -f "$out/queue-2.tgz"; fi
   [ -s "$left.new" ] && ! cmp -s "$left.new" "$left" && tee -a "$log" < "$state/out/LEFT_OUT.txt"
   mv -f "$left.new" "$left"
 }
