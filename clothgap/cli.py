@@ -119,7 +119,7 @@ def measured_clips_beforehand(run: Run, options) -> dict | None:
     """The measured-fabric clips that eval scores (when the run's config asks for them and a model is trained),
     made through ``options``' executor when it is not this process; ``run_eval`` then finds them made (its
     measured.json's generation counts them as skipped). Returns the executor's summary, or None."""
-    if run.config.eval.measured_sequences <= 0 or (options.executor == "local" and options.shard_size is None):
+    if run.config.eval.measured_sequences <= 0 or options.whole_here:
         return None
     from eval.trained import finished_models
 

@@ -82,6 +82,11 @@ class ExecutorOptions:
     # and training, and an error without MPS
     cuda_mps: str = "auto"
 
+    @property
+    def whole_here(self) -> bool:
+        """Whether a shardable stage runs whole in this process (no executor to spread it)."""
+        return self.executor == "local" and self.shard_size is None
+
     def validate(self) -> "ExecutorOptions":
         if self.executor not in EXECUTORS:
             raise ConfigError(f"unknown executor {self.executor!r}; known: {', '.join(EXECUTORS)}")
@@ -181,7 +186,7 @@ def run_stage(run: Run, stage: str, options: ExecutorOptions = ExecutorOptions()
     if options.cuda_mps == "on" and not options.gpus_per_worker:
         raise ConfigError(f"--cuda-mps on: give the {stage} workers their share of a GPU with --gpus-per-worker "
                           "(0.25 = four workers a GPU)")
-    if options.executor == "local" and options.shard_size is None:
+    if options.whole_here:
         return run_whole(run, progress=options.progress)
     # The workers open the run unchecked (Run.open(check=False)): a bad setting (e.g. an unknown render variant)
     # is a config error here, not a failed shard later.

@@ -140,15 +140,22 @@ def model_from_dir(run: Run, train_dir: Path) -> TrainedModel:
     return TrainedModel(*parts[:3], int(parts[3][1:]), root.joinpath(*parts), recipe)
 
 
-def make_clips(run: Run, sequences: int, fabrics: Sequence[str], variant: str, progress: bool = True) -> dict:
-    """Simulate and render the measured clips that are not finished yet; returns both summaries."""
+def make_clips(run: Run, sequences: int, fabrics: Sequence[str], variant: str, progress: bool = True,
+               units: Sequence[tuple[str, str, int]] | None = None) -> dict:
+    """Simulate and render the measured clips that are not finished yet, or only ``units`` ((setting, fabric,
+    sequence), a shard of ``generation_units``); returns both summaries."""
     from render.stage import render_measured
-    from sim.measured import clip_name, wanted_clips
+    from sim.measured import clip_name
     from sim.stage import simulate_measured
 
-    sim_summary = simulate_measured(run, fabrics, sequences, progress)
-    names = [clip_name(f, n) for f, n in wanted_clips(fabrics, sequences)]
-    render_summary = render_measured(run, variant, names, progress)
+    if units is None:
+        units = _units(run, sequences, fabrics)
+    by_setting: dict[str, list[tuple[str, int]]] = {}
+    for setting, fabric, n in units:
+        by_setting.setdefault(setting, []).append((fabric, n))
+    sim_summary = simulate_measured(run, fabrics, sequences, progress, clips=by_setting)
+    render_summary = render_measured(run, variant, {s: [clip_name(f, n) for f, n in c] for s, c in by_setting.items()},
+                                     progress)
     return {"sim": sim_summary, "render": render_summary}
 
 
@@ -156,32 +163,22 @@ def generation_units(run: Run) -> list[tuple[str, str, int]]:
     """(setting, fabric, sequence) of every measured clip the run's config asks for, setting by setting: what a
     sharded generation (``clothgap eval --executor``) splits, so that a shard holds few settings and a GPU batch
     of each."""
+    sequences, fabrics, _ = resolve(run)
+    return _units(run, sequences, fabrics)
+
+
+def _units(run: Run, sequences: int, fabrics: Sequence[str]) -> list[tuple[str, str, int]]:
     from sim.measured import wanted_clips
 
-    sequences, fabrics, _ = resolve(run)
     return [(s, f, n) for s in run.config.sim.settings() for f, n in wanted_clips(fabrics, sequences)]
 
 
 def make_measured_clips(run: Run, progress: bool = True, indices: Sequence[int] | None = None) -> dict:
-    """The measured clips of the run's config (``eval.measured_*``), or those of ``indices`` into
-    ``generation_units``, simulated then rendered where not finished; returns both summaries (a shard's, for
-    ``merge_shard_summaries``)."""
-    from render.stage import merge_shard_summaries as merge_render
-    from render.stage import render_measured
-    from sim.measured import clip_name
-    from sim.stage import merge_shard_summaries as merge_sim
-    from sim.stage import simulate_measured
-
+    """``make_clips`` of the run's config (``eval.measured_*``), or of ``indices`` into ``generation_units`` (a
+    shard's, for ``merge_shard_summaries``)."""
     sequences, fabrics, variant = resolve(run)
     units = generation_units(run)
-    by_setting: dict[str, list[tuple[str, int]]] = {}
-    for i in select_clips(len(units), indices):
-        setting, fabric, n = units[i]
-        by_setting.setdefault(setting, []).append((fabric, n))
-    sims = [simulate_measured(run, fabrics, sequences, progress, settings=[s], clips=c) for s, c in by_setting.items()]
-    renders = [render_measured(run, variant, [clip_name(f, n) for f, n in c], progress, settings=[s])
-               for s, c in by_setting.items()]
-    return {"sim": merge_sim(sims), "render": merge_render(renders)}
+    return make_clips(run, sequences, fabrics, variant, progress, [units[i] for i in select_clips(len(units), indices)])
 
 
 def merge_shard_summaries(parts: list[dict]) -> dict:
@@ -410,9 +407,7 @@ def run_measured(run: Run, *, models: list | None = None, sequences: int | None 
         generation = make_clips(run, sequences, fabrics, variant, progress)
     names = [clip_name(f, n) for f, n in wanted_clips(fabrics, sequences)]
     tables, corrs, matches, entries = [], [], [], []
-    if predictor is not None:
-        processes = 0           # a test's stub predictor stays in this process
-    elif processes is None:
+    if processes is None:
         processes = scorer_processes(len(models))
     with timed(seconds, "predict_and_score"):
         for entry, scored in score_models(run, models, variant, names, predictor=predictor,

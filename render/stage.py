@@ -34,7 +34,7 @@ import time
 import traceback
 import warnings
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from concurrent.futures import Executor, ThreadPoolExecutor
 from pathlib import Path
@@ -276,17 +276,19 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
     return summary
 
 
-def render_measured(run: Run, variant: str, names: Sequence[str] | None = None, progress: bool = True,
-                    settings: Sequence[str] | None = None) -> dict:
+def render_measured(run: Run, variant: str, clips: Mapping[str, Sequence[str]] | None = None,
+                    progress: bool = True) -> dict:
     """Render the run's finished measured-fabric sim clips (``sim.measured``) under ``variant``.
 
     ``RUN/measured/sim/<setting>/<fabric>-<n>/`` -> ``RUN/measured/render/<variant>/<setting>/<fabric>-<n>/``,
-    the render clip contract (the meta keeps the sim meta's ``fabric``); ``names``
-    limits it to those clip folders, ``settings`` to those settings. Resolution, spp and backend are the run's.
+    the render clip contract (the meta keeps the sim meta's ``fabric``); ``clips`` (setting -> clip folder
+    names) limits it to those settings and clips. Resolution, spp and backend are the run's.
     """
     chosen = get_variant(variant)
+    if clips is None:
+        clips = {s: None for s in run.config.sim.settings()}
     jobs = [(chosen, setting, run.measured_sim_dir(setting) / name, run.measured_render_dir(variant, setting) / name)
-            for setting in (run.config.sim.settings() if settings is None else settings)
+            for setting, names in clips.items()
             for name in run.done_clips(run.measured_sim_dir(setting)) if names is None or name in names]
     # The measured set is read as image folders through the real-video path (eval.measured): it keeps PNGs.
     return render_jobs(run, jobs, progress, label="render measured", variants=[chosen],

@@ -25,7 +25,7 @@ import contextlib
 import functools
 import shutil
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -480,11 +480,11 @@ def _write_clip(folder: Path, meta: dict, result: ClipResult, mesh: ClothMesh) -
 def simulate_measured(run: Run, fabrics: Sequence[str], sequences: int, progress: bool = True,
                       settings: Sequence[str] | None = None, density: float | None = None,
                       folder_of: Callable[[str], Path] | None = None,
-                      clips: Sequence[tuple[str, int]] | None = None) -> dict:
+                      clips: Mapping[str, Sequence[tuple[str, int]]] | None = None) -> dict:
     """Simulate ``sequences`` clips of each fabric under every setting of the run, or those of ``settings``
     (finished ones skipped), into ``run.measured_sim_dir`` or ``folder_of(setting)``; ``density`` replaces each
-    fabric's own (``build_scene``: then give a folder of their own). ``clips`` ((fabric, sequence) pairs among
-    those) limits it to those clips (a shard)."""
+    fabric's own (``build_scene``: then give a folder of their own). ``clips`` (setting -> (fabric, sequence)
+    pairs among those) limits it to those settings and clips (a shard)."""
     from sim.measured import MAX_SEQUENCES, check_fabrics, clip_name, measured_index, wanted_clips
 
     check_fabrics(fabrics)
@@ -493,12 +493,13 @@ def simulate_measured(run: Run, fabrics: Sequence[str], sequences: int, progress
     if density is not None and folder_of is None:
         raise ConfigError("measured clips at another density than their own need a folder of their own (folder_of)")
     wanted = wanted_clips(fabrics, sequences)
-    if clips is not None:
-        outside = sorted(set(map(tuple, clips)) - set(wanted))
-        if outside:
-            raise ConfigError(f"measured clips {outside[:3]} are not among {len(fabrics)} fabric(s) x {sequences}")
-        wanted = [c for c in wanted if c in set(map(tuple, clips))]
     jobs = [ClipJob(measured_index(f, n), clip_name(f, n), n, fabric=f, density=density) for f, n in wanted]
     settings = run.config.sim.settings() if settings is None else settings
-    return simulate_jobs(run, {s: jobs for s in settings}, folder_of or run.measured_sim_dir, progress,
-                         label="sim measured")
+    by_setting = {s: jobs for s in settings}
+    if clips is not None:
+        outside = sorted({tuple(c) for chosen in clips.values() for c in chosen} - set(wanted))
+        if outside:
+            raise ConfigError(f"measured clips {outside[:3]} are not among {len(fabrics)} fabric(s) x {sequences}")
+        by_setting = {s: [j for j, c in zip(jobs, wanted) if c in chosen]
+                      for s, chosen in ((s, set(map(tuple, c))) for s, c in clips.items())}
+    return simulate_jobs(run, by_setting, folder_of or run.measured_sim_dir, progress, label="sim measured")

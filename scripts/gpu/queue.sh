@@ -65,8 +65,13 @@ pack() {
   awk -v limit="$((limit - 65536))" '{ n++; size[n] = $1; path[n] = substr($0, index($0, " ") + 1); total += $1 }
     END { for (i = 1; i <= n && total > limit; i++) { print path[i]; total -= size[i] } }' "$sizes" > "$left.new"
   while :; do
-    if [ -s "$left.new" ]; then
-      sed "s/\$/: left out of queue.tgz (the device brings back files of at most 16 MiB; limit $limit bytes)/" \
+    pack_overflow "$left.new"
+    if [ -s "$left.new" ]; then       # each file left out, and whether queue-2.tgz holds it
+      awk -v secondfile="$state/second.txt" -v limit="$limit" -v overflow="$overflow" '
+        BEGIN { while ((getline l < secondfile) > 0) two[l] = 1
+                where = overflow != 0 ? "queue.tgz and queue-2.tgz" : "queue.tgz" }
+        { print $0 (($0 in two) ? ": in queue-2.tgz (queue.tgz was full)" : ": left out of " where \
+          " (the device brings back files of at most 16 MiB; limit " limit " bytes)") }' \
         "$left.new" > "$state/out/LEFT_OUT.txt"
     fi
     tar czf "$tmp" -C "$state/out" --no-wildcards -X "$left.new" . 2>/dev/null
@@ -77,15 +82,6 @@ pack() {
     [ -n "$f" ] || { echo "queue: queue.tgz is over $limit bytes with every file left out" | tee -a "$log"; break; }
     echo "$f" >> "$left.new"
   done
-  pack_overflow "$left.new"
-  if [ -s "$state/second.txt" ]; then       # LEFT_OUT.txt says which went into queue-2.tgz; queue.tgz packed again
-    awk -v secondfile="$state/second.txt" -v limit="$limit" 'BEGIN { while ((getline l < secondfile) > 0) two[l] = 1 }
-      { print $0 ((($0) in two) ? ": in queue-2.tgz (queue.tgz was full)" : \
-        ": left out of queue.tgz and queue-2.tgz (the device brings back files of at most 16 MiB; limit " limit " bytes)") }' \
-      "$left.new" > "$state/out/LEFT_OUT.txt"
-    tar czf "$tmp.2" -C "$state/out" --no-wildcards -X "$left.new" . 2>/dev/null
-    if [ "$(stat -c %s "$tmp.2")" -le "$limit" ]; then mv -f "$tmp.2" "$tmp"; else rm -f "$tmp.2"; fi
-  fi
   mv -f "$tmp" "$out/queue.tgz"
   # the previous queue-2.tgz stays until this one replaces it (a call cut off while packing brings it back)
   if [ -s "$state/second.txt" ]; then mv -f "$out/queue-2.tgz.tmp" "$out/queue-2.tgz"; else rm -f "$out/queue-2.tgz"; fi
