@@ -469,8 +469,9 @@ def eval_learnability(run_dir: Path, settings: tuple[str, ...], clip_len: int, s
 @click.argument("run_dir", type=click.Path(path_type=Path))
 @click.option("--recipe", "recipes", multiple=True, required=True, metavar="LEVER[+LEVER...]",
               help="A training recipe: levers joined by '+', each a named lever (baseline, augment, camera, best, "
-                   "motion, geometry, bottleneck, factored, smooth, last, narrow, decay, graphs) or a train setting "
-                   "key=value, e.g. augment+geometry+aux_geometry=0.3 (repeatable; the first is the reference).")
+                   "motion, geometry, bottleneck, factored, smooth, last, narrow, decay, graphs, eager) or a train "
+                   "setting key=value, e.g. augment+geometry+aux_geometry=0.3 (repeatable; the first is the "
+                   "reference).")
 @click.option("--setting", help="The simulated setting (default: the run's first).")
 @click.option("--variant", help="The render variant trained and tested on (default: the run's first).")
 @click.option("--model", "models", multiple=True, metavar="NAME", help="Models to train (default: train.models).")

@@ -577,7 +577,7 @@ def test_an_unfinished_folder_written_before_a_setting_existed_resumes(tmp_path,
 def test_compile_readers_off_compiles_the_cnn_trainings_and_leaves_the_readers_eager(monkeypatch):
     from dataclasses import replace
 
-    from clothgap.config import StudyConfig
+    from clothgap.config import StudyConfig, preset
     from eval.ablation import recipe_config
     from learn.config import TrainConfig
 
@@ -593,3 +593,8 @@ def test_compile_readers_off_compiles_the_cnn_trainings_and_leaves_the_readers_e
     assert len(compiled) == 2
     graphs = recipe_config(StudyConfig(), "graphs")
     assert (graphs.compile, graphs.compile_mode, graphs.compile_readers) == (True, "reduce-overhead", True)
+    # The paper preset replays graphs in its CNN trainings and leaves its readers eager; `eager` turns both off.
+    paper = preset("paper")
+    assert learn.train.compiles(paper.train, cuda, reads_shapes=False)
+    assert not learn.train.compiles(paper.train, cuda, reads_shapes=True)
+    assert not learn.train.compiles(recipe_config(paper, "eager"), cuda, reads_shapes=False)
