@@ -1,6 +1,7 @@
 """Scoring a run's models on the measured fabrics, in one process against a spawned pool (``eval.measured``).
 
     python benchmarks/measured_scoring.py RUN [--processes N] [--repeats 2] [--out FILE]
+    python benchmarks/measured_scoring.py RUN --baseline REV [--repeats 3] [--out FILE]
 
 RUN is a run folder with finished models whose measured clips are already simulated and rendered (``clothgap eval
 measured RUN`` made them once). Every model's measured folder is removed before each scoring, so each model is
@@ -9,16 +10,24 @@ the part of ``clothgap eval`` that grows with the number of models (48 in the `s
 pool of ``--processes`` (default ``eval.measured.scorer_processes`` of this host, at least 2) alternate,
 ``--repeats`` times each; the tables of both are compared byte for byte.
 
-Writes benchmarks/results/measured_scoring-<host>-m<models>.json with the command.
+With ``--baseline REV`` it times one process's scoring with this tree's ``eval`` package against REV's
+(``git archive``), each in a fresh process, either first in turn, and compares their tables and every model's
+per-clip predictions byte for byte.
+
+Writes benchmarks/results/measured_scoring-<host>-m<models>.json (``--baseline``: measured_scoring_baseline-...)
+with the command.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import shutil
 import statistics
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -38,6 +47,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--processes", type=int, default=None, help="pool size (default: this host's scorer_processes)")
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--baseline", default=None, metavar="REV",
+                    help="time one process with this tree's eval/ against REV's instead of one process against a pool")
     args = ap.parse_args(argv)
 
     run = Run.open(args.run)
@@ -45,6 +56,8 @@ def main(argv: list[str] | None = None) -> None:
     if len(models) < 2:
         raise SystemExit(f"{args.run} has {len(models)} finished model(s); the comparison needs two or more")
     sequences, fabrics, variant = resolve(run)
+    if args.baseline:
+        return against_baseline(args, argv, run, len(models), sequences, fabrics, variant)
     processes = args.processes or max(2, scorer_processes(len(models)))
     run_measured(run, models=models, progress=False, processes=0)     # the clips made (or found) before timing
 
@@ -73,6 +86,68 @@ def main(argv: list[str] | None = None) -> None:
     write_result("measured_scoring.py", argv, result, out)
     if not result["same_tables"]:
         raise SystemExit("the pool's tables differ from one process's")
+
+
+ROOT = Path(__file__).resolve().parents[1]
+# One process's scoring of every finished model, timed in the process; prints the seconds and a digest of the tables
+# and every model's per-clip predictions.
+TIMER = """
+import hashlib, sys, time
+from pathlib import Path
+import clothgap.config
+from clothgap.runs import Run
+from eval.measured import resolve, run_measured
+from eval.trained import finished_models
+run = Run.open(sys.argv[1])
+models = finished_models(run)
+t0 = time.perf_counter()
+out = run_measured(run, models=models, progress=False, processes=0)
+seconds = time.perf_counter() - t0
+assert out["predicted"] == len(models), out
+digest = hashlib.sha256()
+for path in [run.eval_dir / "measured.csv", run.eval_dir / "measured_correlations.csv",
+             *sorted((run.eval_dir / "measured").rglob("videos.csv"))]:
+    digest.update(path.read_bytes())
+print(seconds, digest.hexdigest())
+"""
+
+
+def against_baseline(args, argv, run, models: int, sequences: int, fabrics, variant: str) -> None:
+    def git(*words: str) -> str:
+        return subprocess.run(["git", *words], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
+
+    baseline_rev = git("rev-parse", "--short", args.baseline)
+    tree = git("rev-parse", "--short", "HEAD") + (" with changes to eval/" if git("status", "--porcelain", "eval") else "")
+    run_measured(run, progress=False, processes=0)      # the clips made (or found) before timing
+    seconds: dict[str, list[float]] = {"baseline": [], "this_tree": []}
+    digests: dict[str, set[str]] = {"baseline": set(), "this_tree": set()}
+    with tempfile.TemporaryDirectory() as tmp:
+        base = Path(tmp)
+        archive = subprocess.run(["git", "archive", args.baseline, "eval"], cwd=ROOT, capture_output=True, check=True)
+        subprocess.run(["tar", "-x", "-C", str(base)], input=archive.stdout, check=True)
+        order = (("baseline", base), ("this_tree", ROOT))
+        for repeat in range(args.repeats):
+            for name, root in (order if repeat % 2 == 0 else order[::-1]):     # either may go first
+                shutil.rmtree(run.eval_dir / "measured" / variant, ignore_errors=True)
+                env = {**os.environ, "PYTHONPATH": os.pathsep.join(dict.fromkeys([str(root), str(ROOT)]))}
+                out = subprocess.run([sys.executable, "-c", TIMER, str(run.root)], capture_output=True, text=True,
+                                     env=env, cwd=root, check=True).stdout.split()
+                seconds[name].append(round(float(out[-2]), 2))
+                digests[name].add(out[-1])
+                print(f"{name}: {seconds[name][-1]} s", flush=True)
+    median = {name: statistics.median(s) for name, s in seconds.items()}
+    result = {
+        "host": platform.node(), "cpus": host_processes(), "run": str(args.run), "models": models,
+        "fabrics": len(fabrics), "sequences": sequences, "variant": variant, "processes": 0,
+        "baseline": baseline_rev, "this_tree": tree, "seconds": seconds, "median_s": median,
+        "speedup": round(median["baseline"] / median["this_tree"], 2),
+        "same_tables": digests["baseline"] == digests["this_tree"] and len(digests["baseline"]) == 1,
+    }
+    out = args.out or RESULTS / (f"measured_scoring_baseline-{'cpu' if not _cuda() else 'cuda'}{host_processes()}"
+                                 f"-m{models}.json")
+    write_result("measured_scoring.py", argv, result, out)
+    if not result["same_tables"]:
+        raise SystemExit("this tree's tables or predictions differ from the baseline's")
 
 
 def _cuda() -> bool:

@@ -12,8 +12,8 @@
    ``RUN/measured/render/<variant>/<setting>/<fabric>-<n>/``; the meta names the
    ``fabric``;
 3. **predict** them through the real-video path: every finished model of the run
-   gets ``eval.real.evaluate_real`` on the clips' ``ldr/`` frame folders (frames
-   -> ``train.clip_len``-frame sub-sequences -> mean probabilities per clip; Table 4 against the
+   gets ``eval.real.evaluate_real`` on the clips' ``ldr/`` frame folders, read where
+   they lie (frames -> ``train.clip_len``-frame sub-sequences -> mean probabilities per clip; Table 4 against the
    measured bending stiffness and density), in
    ``eval/measured/<variant>/<setting>/<train_variant>/<model>/s<seed>/``
    (``videos.csv``, ``table4.csv/.md``, ``truth.csv``, ``scatter.png``,
@@ -58,8 +58,8 @@ from eval.trained import TrainedModel, checkpoint_sha256, finished_models
 from sim.phases import timed
 
 DEFAULT_SEQUENCES = 2       # `clothgap eval measured` when the run's eval.measured_sequences is 0
-# Scoring a model is mostly host work: its copy of the clips at its image size, its figures and bootstraps
-# (~3 s of a 2-core CPU's time a model for 40 clips besides the network's). A study scores dozens of models
+# Scoring a model is mostly host work: reading the clips at its image size, its figures and bootstraps (about a
+# second of a 2-core CPU's time a model for 40 clips besides the network's). A study scores dozens of models
 # (48 in the `study` preset), so on a host of POOL_MIN_CPUS or more they are scored in a spawned pool, a process
 # for every CPUS_PER_SCORER CPUs, when there are POOL_MIN_MODELS or more.
 POOL_MIN_MODELS = 4

@@ -46,7 +46,9 @@ Pearson's and Spearman's r come with percentile bootstrap intervals over videos
 Outputs in OUT: ``videos.csv`` (per video: frames, sub-sequences, class, p, k,
 scores, mean probabilities), ``table4.csv`` / ``table4.md``, ``skipped.csv``,
 ``scatter.png``, ``activations.png`` (conv5 overlays on the first videos, as the paper's
-Fig. 6) and ``clips/<video>/`` (the frames the network saw).
+Fig. 6) and ``clips/<video>/`` (the frames the network saw). An input that is a finished
+rendered clip's ``ldr/`` folder with square frames (the measured fabrics') is read where it
+lies instead: the network reads it through the same resize, so the predictions are the same.
 """
 
 from __future__ import annotations
@@ -66,6 +68,7 @@ from clothgap.runs import atomic_write_text, mark_done
 from clothgap.seeding import stream_id
 from eval import classes, figures, metrics
 from eval import predictions as preds
+from render.frames import LDR_DIR, frame_count
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
 NOT_VIDEO_SUFFIXES = {".csv", ".json", ".txt", ".md", ".toml"}
@@ -387,6 +390,11 @@ def _write_clips(listed: dict[str, Path], out_dir: Path, geometry: dict, fps: fl
     skipped, clip_dirs, names = [], [], {}
     for name, path in listed.items():
         path = Path(path)
+        rendered = _rendered_clip(name, path, geometry["clip_len"], fps, max_frames, frames_fps)
+        if rendered is not None:
+            clip_dirs.append(rendered)
+            names[name] = path
+            continue
         try:
             frames = read_video(path, geometry["image_size"], fps, max_frames, frames_fps)
             if len(frames) < geometry["clip_len"]:
@@ -405,6 +413,29 @@ def _write_clips(listed: dict[str, Path], out_dir: Path, geometry: dict, fps: fl
         if progress:
             print(f"[eval real] {name}: {len(frames)} frames", flush=True)
     return clip_dirs, names, skipped
+
+
+def _rendered_clip(name: str, path: Path, clip_len: int, fps: float, max_frames: int,
+                   frames_fps: float | None) -> Path | None:
+    """The clip folder when ``path`` is a finished rendered clip's ``ldr/`` that the network reads as it lies: its
+    meta names it ``name`` and has a class, its frames are square (``learn.predict`` resizes them with the same
+    bilinear filter as ``_square``), all of them at the model's rate, at least one sub-sequence. Else None: the
+    input is read and copied like any frame folder."""
+    clip = path.parent
+    if path.name != LDR_DIR or frames_fps not in (None, fps) or not (clip / "DONE").is_file():
+        return None
+    try:
+        meta = json.loads((clip / "meta.json").read_text())
+        first = min(path.glob("*.png"), default=None)
+        if not isinstance(meta, dict) or meta.get("clip_id", clip.name) != name or "class_index" not in meta \
+                or first is None:
+            return None
+        with Image.open(first) as img:
+            square = img.size[0] == img.size[1]
+        count = frame_count(clip, meta)
+    except (OSError, ValueError):
+        return None
+    return clip if square and clip_len <= count <= max_frames else None
 
 
 def _activation_figure(train_dir: Path, clip_dirs: list[Path], path: Path) -> None:

@@ -79,6 +79,38 @@ def test_real_videos_end_to_end_with_a_corrupt_file(tmp_path):
     assert (out / "activations.png").stat().st_size > 1000              # conv5 overlays (Fig. 6)
 
 
+def test_rendered_clips_are_read_where_they_lie_with_the_predictions_of_a_copy(tmp_path):
+    """The measured fabrics' clips are rendered clips: the network reads them in place instead of a copy per
+    model, through the same resize, so each video's prediction is the copy's to the byte."""
+    from clothgap.runs import mark_done
+
+    rng = np.random.default_rng(0)
+    rendered, plain = tmp_path / "render", tmp_path / "plain"
+    for i, name in enumerate(("fabric0-0", "fabric1-0", "oblong-0")):
+        clip = rendered / name
+        (clip / "ldr").mkdir(parents=True)
+        (plain / name).mkdir(parents=True)
+        shape = (12, 20, 3) if name == "oblong-0" else (12, 12, 3)        # not square: read and copied
+        for t in range(12):
+            frame = Image.fromarray(rng.integers(0, 256, shape, dtype=np.uint8))
+            frame.save(clip / "ldr" / f"{t:04d}.png")
+            frame.save(plain / name / f"{t:04d}.png")
+        (clip / "meta.json").write_text(json.dumps({"clip_id": name, "class_index": i, "num_frames": 12}))
+        mark_done(clip)
+    truth = tmp_path / "truth.csv"
+    pd.DataFrame({"video": ["fabric0-0", "fabric1-0", "oblong-0"], "bending_N_m2": [1e-5, 3e-5, 9e-5],
+                  "area_weight_kg_m2": [0.1, 0.2, 0.3]}).to_csv(truth, index=False)
+    model = fresh_model(tmp_path / "run")
+    outs = {}
+    for how, inputs in (("in place", {n: rendered / n / "ldr" for n in ("fabric0-0", "fabric1-0", "oblong-0")}),
+                        ("copied", {n: plain / n for n in ("fabric0-0", "fabric1-0", "oblong-0")})):
+        outs[how] = tmp_path / how
+        evaluate_real(tmp_path, truth, model, outs[how], resamples=20, activations=1, progress=False, inputs=inputs)
+    assert (outs["in place"] / "videos.csv").read_text() == (outs["copied"] / "videos.csv").read_text()
+    assert sorted(p.name for p in (outs["in place"] / "clips").iterdir()) == ["oblong-0"]
+    assert len(list((outs["copied"] / "clips").iterdir())) == 3
+
+
 def test_correlations_match_scipy_and_group_by_wind(tmp_path):
     videos = tmp_path / "videos"
     rng = np.random.default_rng(0)
