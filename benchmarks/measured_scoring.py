@@ -130,8 +130,11 @@ def against_baseline(args, argv, run, models: int, sequences: int, fabrics, vari
             for name, root in (order if repeat % 2 == 0 else order[::-1]):     # either may go first
                 shutil.rmtree(run.eval_dir / "measured" / variant, ignore_errors=True)
                 env = {**os.environ, "PYTHONPATH": os.pathsep.join(dict.fromkeys([str(root), str(ROOT)]))}
-                out = subprocess.run([sys.executable, "-c", TIMER, str(run.root)], capture_output=True, text=True,
-                                     env=env, cwd=root, check=True).stdout.split()
+                done = subprocess.run([sys.executable, "-c", TIMER, str(run.root)], capture_output=True, text=True,
+                                      env=env, cwd=root)
+                if done.returncode:
+                    raise SystemExit(f"{name}'s scoring failed:\n{done.stderr[-4000:]}")
+                out = done.stdout.split()
                 seconds[name].append(round(float(out[-2]), 2))
                 digests[name].add(out[-1])
                 print(f"{name}: {seconds[name][-1]} s", flush=True)

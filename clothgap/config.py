@@ -166,9 +166,9 @@ def _paper() -> StudyConfig:
     # the rarest poses. Wind's framing was not compared. 120 epochs over 80 were not chosen (arm's validation
     # windows -1.0 points [-3.0, +1.0]; benchmarks/results/learn_epochs120-arm-uniform1-h100x2.json). The CNN
     # trainings replay CUDA graphs (train.compile, mode reduce-overhead): at this size, two lrcn a GPU, an epoch
-    # took 6.1 s against 8.0 eager (1.32x; about 21 s more in the first epoch to compile), the same file; the
-    # readers on the shared regressor stay eager (train.compile_readers=false), where graphs ran base2 and base3
-    # 1.1-1.6x slower (docs/learning.md). Compiling changes rounding, not the computation.
+    # took 6.10 s against 8.05 eager (1.32x; about 21 s more in the first epoch to compile), the same file; the
+    # readers on the shared regressor stay eager (train.compile_readers=false): graphs ran base2's and base3's
+    # 1.1-1.6x slower and base1's 1.26x faster (docs/learning.md). Compiling changes rounding, not the computation.
     return StudyConfig(
         name="paper",
         sim=SimConfig(motions=("wind", "arm"), remeshing=("uniform1", "uniform2", "uniform3", "adaptive"),

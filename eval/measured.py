@@ -58,8 +58,8 @@ from eval.trained import TrainedModel, checkpoint_sha256, finished_models
 from sim.phases import timed
 
 DEFAULT_SEQUENCES = 2       # `clothgap eval measured` when the run's eval.measured_sequences is 0
-# Scoring a model is mostly host work: reading the clips at its image size, its figures and bootstraps (about a
-# second of a 2-core CPU's time a model for 40 clips besides the network's). A study scores dozens of models
+# Scoring a model is mostly host work besides the network: reading the clips at its image size, its figures and
+# bootstraps. A study scores dozens of models
 # (48 in the `study` preset), so on a host of POOL_MIN_CPUS or more they are scored in a spawned pool, a process
 # for every CPUS_PER_SCORER CPUs, when there are POOL_MIN_MODELS or more.
 POOL_MIN_MODELS = 4

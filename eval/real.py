@@ -68,7 +68,7 @@ from clothgap.runs import atomic_write_text, mark_done
 from clothgap.seeding import stream_id
 from eval import classes, figures, metrics
 from eval import predictions as preds
-from render.frames import LDR_DIR, frame_count
+from render.frames import FRAMES_FILE, LDR_DIR, frame_count
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
 NOT_VIDEO_SUFFIXES = {".csv", ".json", ".txt", ".md", ".toml"}
@@ -433,7 +433,11 @@ def _rendered_clip(name: str, path: Path, clip_len: int, fps: float, max_frames:
         with Image.open(first) as img:
             square = img.size[0] == img.size[1]
         count = frame_count(clip, meta)
-    except (OSError, ValueError):
+        array = clip / FRAMES_FILE          # the predictor reads it before the PNGs: it must hold the same frames
+        if array.is_file():
+            shape = np.load(array, mmap_mode="r").shape
+            square = square and shape[:1] == (count,) and shape[1] == shape[2] == img.size[0]
+    except (OSError, ValueError, TypeError, EOFError):
         return None
     return clip if square and clip_len <= count <= max_frames else None
 

@@ -34,6 +34,7 @@ each epoch.
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import json
 import math
 import os
@@ -598,9 +599,11 @@ def _resume(t: Training, state: dict) -> None:
 
 
 def compiles(cfg: TrainConfig, device: torch.device, reads_shapes: bool) -> bool:
-    """Whether a training's forward pass is compiled: asked for, on CUDA, and not a reader on a shared regressor's
-    shapes that ``train.compile_readers`` leaves eager."""
-    return cfg.compile and device.type == "cuda" and (cfg.compile_readers or not reads_shapes)
+    """Whether a training's forward pass is compiled: asked for, on CUDA, in one process (graphs under torchrun's DDP
+    are not measured, so it trains eager), and not a reader on a shared regressor's shapes that
+    ``train.compile_readers`` leaves eager."""
+    return (cfg.compile and device.type == "cuda" and _world_size() == 1
+            and (cfg.compile_readers or not reads_shapes))
 
 
 def forward_net(model: ClipClassifier, cfg: TrainConfig, device: torch.device,
@@ -611,6 +614,9 @@ def forward_net(model: ClipClassifier, cfg: TrainConfig, device: torch.device,
     if _world_size() > 1:
         net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if on_cuda else None)
     if compiles(cfg, device, reads_shapes):
+        if importlib.util.find_spec("triton") is None:      # torch.compile's CUDA code generator
+            raise ConfigError("train.compile=true needs Triton on a CUDA device, and this Python has none (the paper "
+                              "and study presets compile): install it, or set train.compile=false to train eager")
         net = torch.compile(net, mode=None if cfg.compile_mode == "default" else cfg.compile_mode)
     return net
 

@@ -86,29 +86,34 @@ def test_rendered_clips_are_read_where_they_lie_with_the_predictions_of_a_copy(t
 
     rng = np.random.default_rng(0)
     rendered, plain = tmp_path / "render", tmp_path / "plain"
-    for i, name in enumerate(("fabric0-0", "fabric1-0", "oblong-0")):
+    # Read in place: PNGs only, and PNGs beside frames.npy (the render stage writes both from one array).
+    # Copied: frames not square, a meta naming another clip, a clip not finished, frames.npy of other frames.
+    names = ("pngs-0", "npy-0", "oblong-0", "renamed-0", "unfinished-0", "npy-short-0")
+    for i, name in enumerate(names):
         clip = rendered / name
         (clip / "ldr").mkdir(parents=True)
         (plain / name).mkdir(parents=True)
-        shape = (12, 20, 3) if name == "oblong-0" else (12, 12, 3)        # not square: read and copied
-        for t in range(12):
-            frame = Image.fromarray(rng.integers(0, 256, shape, dtype=np.uint8))
-            frame.save(clip / "ldr" / f"{t:04d}.png")
-            frame.save(plain / name / f"{t:04d}.png")
-        (clip / "meta.json").write_text(json.dumps({"clip_id": name, "class_index": i, "num_frames": 12}))
-        mark_done(clip)
+        frames = rng.integers(0, 256, (12, 12, 20 if name == "oblong-0" else 12, 3), dtype=np.uint8)
+        for t, frame in enumerate(frames):
+            Image.fromarray(frame).save(clip / "ldr" / f"{t:04d}.png")
+            Image.fromarray(frame).save(plain / name / f"{t:04d}.png")
+        if name.startswith("npy"):
+            np.save(clip / "frames.npy", frames if name == "npy-0" else frames[:10])
+        meta = {"clip_id": "other" if name == "renamed-0" else name, "class_index": i, "num_frames": 12}
+        (clip / "meta.json").write_text(json.dumps(meta))
+        if name != "unfinished-0":
+            mark_done(clip)
     truth = tmp_path / "truth.csv"
-    pd.DataFrame({"video": ["fabric0-0", "fabric1-0", "oblong-0"], "bending_N_m2": [1e-5, 3e-5, 9e-5],
-                  "area_weight_kg_m2": [0.1, 0.2, 0.3]}).to_csv(truth, index=False)
+    pd.DataFrame({"video": list(names), "bending_N_m2": np.linspace(1e-5, 9e-5, len(names)),
+                  "area_weight_kg_m2": np.linspace(0.1, 0.6, len(names))}).to_csv(truth, index=False)
     model = fresh_model(tmp_path / "run")
     outs = {}
-    for how, inputs in (("in place", {n: rendered / n / "ldr" for n in ("fabric0-0", "fabric1-0", "oblong-0")}),
-                        ("copied", {n: plain / n for n in ("fabric0-0", "fabric1-0", "oblong-0")})):
+    for how, inputs in (("in place", {n: rendered / n / "ldr" for n in names}), ("copied", {n: plain / n for n in names})):
         outs[how] = tmp_path / how
         evaluate_real(tmp_path, truth, model, outs[how], resamples=20, activations=1, progress=False, inputs=inputs)
     assert (outs["in place"] / "videos.csv").read_text() == (outs["copied"] / "videos.csv").read_text()
-    assert sorted(p.name for p in (outs["in place"] / "clips").iterdir()) == ["oblong-0"]
-    assert len(list((outs["copied"] / "clips").iterdir())) == 3
+    assert sorted(p.name for p in (outs["in place"] / "clips").iterdir()) == sorted(set(names) - {"pngs-0", "npy-0"})
+    assert len(list((outs["copied"] / "clips").iterdir())) == len(names)
 
 
 def test_correlations_match_scipy_and_group_by_wind(tmp_path):

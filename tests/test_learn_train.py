@@ -583,6 +583,10 @@ def test_compile_readers_off_compiles_the_cnn_trainings_and_leaves_the_readers_e
 
     compiled = []
     monkeypatch.setattr(torch, "compile", lambda net, mode=None: compiled.append((net, mode)) or net)
+    triton = ["installed"]                           # the CPU-only torch of CI has no Triton: pretend, then not
+    real_find_spec = learn.train.importlib.util.find_spec
+    monkeypatch.setattr(learn.train.importlib.util, "find_spec",
+                        lambda name, *a: (triton[0] or None) if name == "triton" else real_find_spec(name, *a))
     cuda, model = torch.device("cuda", 0), torch.nn.Linear(2, 2)     # a device object: no GPU is touched
     cfg = replace(TrainConfig(), compile=True, compile_mode="reduce-overhead", compile_readers=False)
     assert learn.train.forward_net(model, cfg, cuda, reads_shapes=True) is model and compiled == []
@@ -598,3 +602,10 @@ def test_compile_readers_off_compiles_the_cnn_trainings_and_leaves_the_readers_e
     assert learn.train.compiles(paper.train, cuda, reads_shapes=False)
     assert not learn.train.compiles(paper.train, cuda, reads_shapes=True)
     assert not learn.train.compiles(recipe_config(paper, "eager"), cuda, reads_shapes=False)
+    assert learn.train.compiles(preset("study").train, cuda, reads_shapes=False)
+    monkeypatch.setattr(learn.train, "_world_size", lambda: 2)     # torchrun's DDP trains eager
+    assert not learn.train.compiles(paper.train, cuda, reads_shapes=False)
+    monkeypatch.setattr(learn.train, "_world_size", lambda: 1)
+    triton[0] = ""                                   # without Triton, compiling is refused by name
+    with pytest.raises(ConfigError, match="train.compile=false"):
+        learn.train.forward_net(model, paper.train, cuda)
