@@ -106,14 +106,14 @@ def test_pooled_scenes_render_exactly_what_a_scene_per_clip_renders(backend):
     assert pool.builds < pool.retargets + pool.builds
 
 
-@pytest.mark.xfail(strict=False, reason="known: with random lighting (environment map + area lights), some scene "
-                   "builds render differently from others with identical parameters, a scene per clip included "
-                   "(about 1 build in 20 on scalar_rgb and llvm_ad_rgb); not caused by pooling")
 def test_random_lighting_builds_render_alike():
-    clip = waving_sheet(frames=1, n=8, index=2)
-    kw = dict(resolution=16, spp=2, run_seed=3, clip_index=2, backend=BACKEND, reuse_scenes=False)
-    frames = [ClipRenderer(clip, get_variant("lighting-random"), **kw).render_hdr(0) for _ in range(8)]
-    assert all(np.array_equal(f, frames[0]) for f in frames)
+    # Built by load_dict alone, the emitters' order followed its parallel build: these clips rendered other noise
+    # in about one build in seven (render.scene.load_in_order).
+    for index in (2, 3, 5, 6):
+        clip = waving_sheet(frames=1, n=8, index=index)
+        kw = dict(resolution=16, spp=2, run_seed=3, clip_index=index, backend=BACKEND, reuse_scenes=False)
+        frames = [ClipRenderer(clip, get_variant("lighting-random"), **kw).render_hdr(0) for _ in range(12)]
+        assert all(np.array_equal(f, frames[0]) for f in frames), index
 
 
 def test_a_second_clip_of_the_same_structure_retargets_the_first_ones_scene():
