@@ -208,9 +208,9 @@ class BatchRenderer:
         scene = self._scene_dict(ambient)
         self._cloth_keys = []
         for i, pose in enumerate(self.poses):
-            # Objects are instantiated here, one by one, rather than by load_dict: it builds a scene's children
-            # in parallel, and the order they finish in decides the emitters' order and so which light a
-            # random number picks; instantiated in order, the same seed gives the same image.
+            # Objects are instantiated here, one by one, rather than by load_dict: it merges a scene's shape
+            # dicts through a map keyed by pointers, so their order, the area lights' and so which light a random
+            # number picks would follow memory addresses (render.scene.load_scene); built objects keep theirs.
             self._add_slot_view(scene, i, pose, target, rotation, rectangles)
             if ambient.any():
                 scene[f"shell_{i:03d}"] = self._shell(i, pose, shell, ambient, black)
