@@ -375,8 +375,10 @@ def test_measured_clips_made_in_shards_are_those_of_one_process(tmp_path):
         fresh build's in the last float bits (5e-7 at most seen), and Mitsuba's parallel BVH builds may break
         ties between coincident triangle edges differently, which moves one sample of a pixel (as in
         test_render_output's pooled-scene test)."""
+        if a.shape != b.shape:
+            return False
         off = np.abs(a - b).reshape(a.shape[0], a.shape[1], -1).max(axis=-1) > 1e-5
-        return a.shape == b.shape and off.mean() <= 0.01
+        return off.mean() <= 0.01
 
     made_once, made_in_shards = files(one), files(pooled)
     assert made_in_shards.keys() == made_once.keys()
