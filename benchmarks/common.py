@@ -1,13 +1,17 @@
-"""What the sim benchmarks share: the paper preset's sim settings on the CPU, and writing a result with its command."""
+"""What the benchmarks share: the paper preset's sim settings on the CPU, writing a result with its command, and
+timing this tree against a baseline revision's code."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import subprocess
 import sys
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
 
 import clothgap.config as study_config  # noqa: E402
 from clothgap.settings import apply_overrides  # noqa: E402
@@ -26,6 +30,33 @@ def write_result(script: str, argv: list[str] | None, result: dict, out: Path) -
     command = f"python benchmarks/{script} " + " ".join(argv if argv is not None else sys.argv[1:])
     out.write_text(json.dumps({"command": command.strip(), **result}, indent=2) + "\n")
     print(f"wrote {out}")
+
+
+def git(*words: str) -> str:
+    """A git command's output in this checkout."""
+    return subprocess.run(["git", *words], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
+
+
+def extract_revision(rev: str, dest: Path, *paths: str) -> Path:
+    """``paths`` (default: every tracked file) as they are at revision ``rev``, extracted into ``dest`` (git
+    archive); returns ``dest``, a tree to put first on a fresh process's PYTHONPATH."""
+    dest.mkdir(parents=True, exist_ok=True)
+    archive = subprocess.run(["git", "archive", rev, *paths], cwd=ROOT, capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
+    return dest
+
+
+def tree_label(*paths: str) -> str:
+    """This checkout's commit, and whether ``paths`` have changes not committed."""
+    changed = git("status", "--porcelain", *paths)
+    return git("rev-parse", "--short", "HEAD") + (f" with changes to {', '.join(paths)}" if changed else "")
+
+
+def either_first(pair: Sequence, repeats: int) -> Iterator:
+    """The two items of ``pair``, ``repeats`` times, the first first in even repeats and second in odd ones (so
+    neither side always runs on a warmer machine)."""
+    for repeat in range(repeats):
+        yield from (pair if repeat % 2 == 0 else pair[::-1])
 
 
 def torch_device(device) -> dict:

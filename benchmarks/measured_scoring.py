@@ -33,7 +33,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common import RESULTS, write_result  # noqa: E402  (benchmarks/common.py)
+from common import RESULTS, ROOT, either_first, extract_revision, git, tree_label, write_result  # noqa: E402
 import clothgap.config  # noqa: E402,F401  (registers the study config a run folder is read with)
 from clothgap.parallel import host_processes  # noqa: E402
 from clothgap.runs import Run  # noqa: E402
@@ -82,21 +82,18 @@ def main(argv: list[str] | None = None) -> None:
         "speedup": round(median["one_process"] / median["pool"], 2),
         "same_tables": tables["one_process"] == tables["pool"],
     }
-    out = args.out or RESULTS / f"measured_scoring-{'cpu' if not _cuda() else 'cuda'}{host_processes()}-m{len(models)}.json"
-    write_result("measured_scoring.py", argv, result, out)
+    write_result("measured_scoring.py", argv, result, args.out or _result_path("measured_scoring", len(models)))
     if not result["same_tables"]:
         raise SystemExit("the pool's tables differ from one process's")
 
 
-ROOT = Path(__file__).resolve().parents[1]
 # One process's scoring of every finished model, timed in the process; prints the seconds and a digest of the tables
 # and every model's per-clip predictions.
 TIMER = """
 import hashlib, sys, time
-from pathlib import Path
 import clothgap.config
 from clothgap.runs import Run
-from eval.measured import resolve, run_measured
+from eval.measured import run_measured
 from eval.trained import finished_models
 run = Run.open(sys.argv[1])
 models = finished_models(run)
@@ -113,31 +110,24 @@ print(seconds, digest.hexdigest())
 
 
 def against_baseline(args, argv, run, models: int, sequences: int, fabrics, variant: str) -> None:
-    def git(*words: str) -> str:
-        return subprocess.run(["git", *words], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
-
     baseline_rev = git("rev-parse", "--short", args.baseline)
-    tree = git("rev-parse", "--short", "HEAD") + (" with changes to eval/" if git("status", "--porcelain", "eval") else "")
+    tree = tree_label("eval")
     run_measured(run, progress=False, processes=0)      # the clips made (or found) before timing
     seconds: dict[str, list[float]] = {"baseline": [], "this_tree": []}
     digests: dict[str, set[str]] = {"baseline": set(), "this_tree": set()}
     with tempfile.TemporaryDirectory() as tmp:
-        base = Path(tmp)
-        archive = subprocess.run(["git", "archive", args.baseline, "eval"], cwd=ROOT, capture_output=True, check=True)
-        subprocess.run(["tar", "-x", "-C", str(base)], input=archive.stdout, check=True)
-        order = (("baseline", base), ("this_tree", ROOT))
-        for repeat in range(args.repeats):
-            for name, root in (order if repeat % 2 == 0 else order[::-1]):     # either may go first
-                shutil.rmtree(run.eval_dir / "measured" / variant, ignore_errors=True)
-                env = {**os.environ, "PYTHONPATH": os.pathsep.join(dict.fromkeys([str(root), str(ROOT)]))}
-                done = subprocess.run([sys.executable, "-c", TIMER, str(run.root)], capture_output=True, text=True,
-                                      env=env, cwd=root)
-                if done.returncode:
-                    raise SystemExit(f"{name}'s scoring failed:\n{done.stderr[-4000:]}")
-                out = done.stdout.split()
-                seconds[name].append(round(float(out[-2]), 2))
-                digests[name].add(out[-1])
-                print(f"{name}: {seconds[name][-1]} s", flush=True)
+        base = extract_revision(args.baseline, Path(tmp), "eval")
+        for name, root in either_first((("baseline", base), ("this_tree", ROOT)), args.repeats):
+            shutil.rmtree(run.eval_dir / "measured" / variant, ignore_errors=True)
+            env = {**os.environ, "PYTHONPATH": os.pathsep.join(dict.fromkeys([str(root), str(ROOT)]))}
+            done = subprocess.run([sys.executable, "-c", TIMER, str(run.root)], capture_output=True, text=True,
+                                  env=env, cwd=root)
+            if done.returncode:
+                raise SystemExit(f"{name}'s scoring failed:\n{done.stderr[-4000:]}")
+            out = done.stdout.split()
+            seconds[name].append(round(float(out[-2]), 2))
+            digests[name].add(out[-1])
+            print(f"{name}: {seconds[name][-1]} s", flush=True)
     median = {name: statistics.median(s) for name, s in seconds.items()}
     result = {
         "host": platform.node(), "cpus": host_processes(), "run": str(args.run), "models": models,
@@ -146,17 +136,16 @@ def against_baseline(args, argv, run, models: int, sequences: int, fabrics, vari
         "speedup": round(median["baseline"] / median["this_tree"], 2),
         "same_tables": digests["baseline"] == digests["this_tree"] and len(digests["baseline"]) == 1,
     }
-    out = args.out or RESULTS / (f"measured_scoring_baseline-{'cpu' if not _cuda() else 'cuda'}{host_processes()}"
-                                 f"-m{models}.json")
-    write_result("measured_scoring.py", argv, result, out)
+    write_result("measured_scoring.py", argv, result, args.out or _result_path("measured_scoring_baseline", models))
     if not result["same_tables"]:
         raise SystemExit("this tree's tables or predictions differ from the baseline's")
 
 
-def _cuda() -> bool:
+def _result_path(name: str, models: int) -> Path:
+    """benchmarks/results/NAME-<cpu|cuda><CPUs>-m<models>.json"""
     import torch
 
-    return torch.cuda.is_available()
+    return RESULTS / f"{name}-{'cuda' if torch.cuda.is_available() else 'cpu'}{host_processes()}-m{models}.json"
 
 
 if __name__ == "__main__":

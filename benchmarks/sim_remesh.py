@@ -22,10 +22,9 @@ import sys
 import tempfile
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common import RESULTS, write_result  # noqa: E402  (benchmarks/common.py)
+from common import RESULTS, ROOT, either_first, extract_revision, git, tree_label, write_result  # noqa: E402
 
 # Run in a fresh process whose ``sim`` package is either tree's: times remesh_cloth over the inputs, hashes results.
 TIMER = r"""
@@ -107,27 +106,19 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--out", type=Path, default=RESULTS / "sim_remesh-cpu.json")
     args = ap.parse_args(argv)
 
-    def git(*words: str) -> str:
-        return subprocess.run(["git", *words], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
-
     baseline_rev = git("rev-parse", "--short", args.baseline)
-    tree = git("rev-parse", "--short", "HEAD") + (" with changes to sim/" if git("status", "--porcelain", "sim") else "")
+    tree = tree_label("sim")
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         inputs = capture(args.clips, args.frames, tmp)
-        base = tmp / "baseline"
-        base.mkdir()
-        archive = subprocess.run(["git", "archive", args.baseline, "sim"], cwd=ROOT, capture_output=True, check=True)
-        subprocess.run(["tar", "-x", "-C", str(base)], input=archive.stdout, check=True)
+        base = extract_revision(args.baseline, tmp / "baseline", "sim")
         ms: dict[str, list[float]] = {"baseline": [], "this_tree": []}
         digests: dict[str, set[str]] = {"baseline": set(), "this_tree": set()}
-        for repeat in range(args.repeats):
-            order = (("baseline", base), ("this_tree", ROOT))
-            for name, root in (order if repeat % 2 == 0 else order[::-1]):     # either may go first
-                t, digest = time_tree(root, inputs)
-                ms[name].append(round(t, 3))
-                digests[name].add(digest)
-                print(f"{name}: {t:.3f} ms a cloth-frame", flush=True)
+        for name, root in either_first((("baseline", base), ("this_tree", ROOT)), args.repeats):
+            t, digest = time_tree(root, inputs)
+            ms[name].append(round(t, 3))
+            digests[name].add(digest)
+            print(f"{name}: {t:.3f} ms a cloth-frame", flush=True)
         count = len(pickle.loads(inputs.read_bytes()))
     median = {k: statistics.median(v) for k, v in ms.items()}
     result = {

@@ -39,6 +39,7 @@ Pearson is taken on the raw values, as in Table 4 (``eval.real``); Spearman on r
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 from collections import Counter
@@ -177,7 +178,7 @@ def make_measured_clips(run: Run, progress: bool = True, indices: Sequence[int] 
     """``make_clips`` of the run's config (``eval.measured_*``), or of ``indices`` into ``generation_units`` (a
     shard's, for ``merge_shard_summaries``)."""
     sequences, fabrics, variant = resolve(run)
-    units = generation_units(run)
+    units = _units(run, sequences, fabrics)
     return make_clips(run, sequences, fabrics, variant, progress, [units[i] for i in select_clips(len(units), indices)])
 
 
@@ -511,10 +512,9 @@ def score_models(run: Run, models: list, variant: str, names: list[str], *, pred
             yield score_model(run, m, variant, names, predictor=predictor, activations=activations,
                               progress=progress)
         return
-    threads = max(1, host_processes() // processes)
-    n = len(models)
-    results = pool_map(_score_in_worker, [run] * n, models, [variant] * n, [names] * n,
-                       [activations] * n, [threads] * n, range(n), processes=processes, chunksize=1)
+    score = functools.partial(_score_in_worker, run, variant=variant, names=names, activations=activations,
+                              threads=max(1, host_processes() // processes))
+    results = pool_map(score, models, range(len(models)), processes=processes, chunksize=1)
     for m, (entry, scored, spent) in zip(models, results):
         if progress and entry["status"] == "predicted":
             print(f"[eval measured] {m.setting}/{m.variant}/{m.model}/s{m.seed} on {variant}: "
@@ -522,8 +522,8 @@ def score_models(run: Run, models: list, variant: str, names: list[str], *, pred
         yield entry, scored
 
 
-def _score_in_worker(run: Run, m, variant: str, names: list[str], activations: int, threads: int,
-                     task: int) -> tuple[dict, tuple | None, float]:
+def _score_in_worker(run: Run, m, task: int, *, variant: str, names: list[str], activations: int,
+                     threads: int) -> tuple[dict, tuple | None, float]:
     """``score_model`` in a pool's process (its torch limited to ``threads``, task ``task``'s network on visible
     GPU ``task`` mod their count); also its seconds. The run comes pickled with its config, whose class brings
     its own module."""

@@ -64,7 +64,7 @@ import pandas as pd
 from PIL import Image
 
 from clothgap.errors import InputError, MissingInputError, UserError
-from clothgap.runs import atomic_write_text, mark_done
+from clothgap.runs import atomic_write_text, is_done, mark_done
 from clothgap.seeding import stream_id
 from eval import classes, figures, metrics
 from eval import predictions as preds
@@ -422,7 +422,7 @@ def _rendered_clip(name: str, path: Path, clip_len: int, fps: float, max_frames:
     bilinear filter as ``_square``), all of them at the model's rate, at least one sub-sequence. Else None: the
     input is read and copied like any frame folder."""
     clip = path.parent
-    if path.name != LDR_DIR or frames_fps not in (None, fps) or not (clip / "DONE").is_file():
+    if path.name != LDR_DIR or frames_fps not in (None, fps) or not is_done(clip):
         return None
     try:
         meta = json.loads((clip / "meta.json").read_text())

@@ -497,9 +497,9 @@ def simulate_measured(run: Run, fabrics: Sequence[str], sequences: int, progress
     settings = run.config.sim.settings() if settings is None else settings
     by_setting = {s: jobs for s in settings}
     if clips is not None:
-        outside = sorted({tuple(c) for chosen in clips.values() for c in chosen} - set(wanted))
+        chosen = {s: set(map(tuple, c)) for s, c in clips.items()}
+        outside = sorted(set().union(*chosen.values()) - set(wanted))
         if outside:
             raise ConfigError(f"measured clips {outside[:3]} are not among {len(fabrics)} fabric(s) x {sequences}")
-        by_setting = {s: [j for j, c in zip(jobs, wanted) if c in chosen]
-                      for s, chosen in ((s, set(map(tuple, c))) for s, c in clips.items())}
+        by_setting = {s: [j for j, c in zip(jobs, wanted) if c in keep] for s, keep in chosen.items()}
     return simulate_jobs(run, by_setting, folder_of or run.measured_sim_dir, progress, label="sim measured")
