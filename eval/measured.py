@@ -23,7 +23,11 @@
    p and k match, grid steps), and **correlate** (``eval.metrics``, Pearson and
    Spearman with percentile bootstrap intervals) the predictions with the
    fabric's measured stiffness and density (definitions in ``sim.measured``):
-   per clip, resampling whole fabrics, and per fabric.
+   per clip, resampling whole fabrics, and per fabric;
+5. **ensemble** the models that differ only in their seed (same setting,
+   training variant, network and recipe): per clip the mean of their
+   probabilities, scored like one more model (seed ``0+1`` in the tables,
+   ``ensemble-s0+1/videos.csv`` beside its members' folders).
 
 Every step skips finished work (DONE markers on clips and on each model's
 folder); the tables are rebuilt from those folders each time. Outputs:
@@ -243,12 +247,17 @@ def predict_model(run: Run, m, variant: str, names: Sequence[str], *, predictor:
         if progress:
             print(f"[eval measured] {m.setting}/{m.variant}/{m.model}/s{m.seed} on {variant}: {len(clips)} clips, "
                   f"{time.perf_counter() - t0:.1f} s", flush=True)
-    videos = pd.read_csv(folder / "videos.csv", dtype={"video": str})
-    videos["fabric"] = videos["video"].map(clips)
-    for key, value in (("stretching_N_m", "stretching_N_m"), ("bending_N_m", "bending_N_m"),
-                       ("density_kg_m2", "density_kg_m2")):
-        videos[key] = videos["fabric"].map(lambda f, v=value: measured_values(f)[v])
-    return videos, status
+    return with_fabrics(pd.read_csv(folder / "videos.csv", dtype={"video": str}), clips), status
+
+
+def with_fabrics(videos: pd.DataFrame, clips: dict[str, str]) -> pd.DataFrame:
+    """Per-clip predictions with each clip's fabric (``clips``: clip name -> fabric) and its measured values."""
+    from sim.measured import measured_values
+
+    videos = videos.assign(fabric=videos["video"].map(clips))
+    for key in ("stretching_N_m", "bending_N_m", "density_kg_m2"):
+        videos[key] = videos["fabric"].map(lambda f, k=key: measured_values(f)[k])
+    return videos
 
 
 # ------------------------------------------------------------------ tables
@@ -335,12 +344,13 @@ def markdown(run: Run, variant: str, heldout: bool, table: pd.DataFrame, corr: p
              "Each fabric simulated with its own Wang et al. 2011 tables, predicted through the real-video path "
              "(mean sub-sequence probabilities per clip, then per fabric), beside the class of the paper's Table 2.",
              ""]
-    for key, g in table.groupby(MODEL_KEYS, sort=True):
+    for key, g in table.groupby(MODEL_KEYS, sort=False):       # the models' order, their ensembles last
         setting, train_v, model, seed, test_v = key
+        who = f"seeds {seed}, their ensemble" if "+" in str(seed) else f"seed {seed}"
         kmask = np.logical_and.reduce([corr[c] == v for c, v in zip(MODEL_KEYS, key)])
         mmask = np.logical_and.reduce([match[c] == v for c, v in zip(MODEL_KEYS, key)])
-        lines += [f"## {model} trained on {train_v} ({setting}, seed {seed})", "",
-                  f"Checkpoint: `{g['checkpoint'].iloc[0]}`", "",
+        lines += [f"## {model} trained on {train_v} ({setting}, {who})", "",
+                  f"Checkpoint: `{'`, `'.join(str(g['checkpoint'].iloc[0]).split())}`", "",
                   "| Fabric | Clips | Predicted (p, k) | Table 2 (p, k) | Exact | p | k | Within one bin | "
                   "Grid steps | Bending measured / predicted (N*m) | Stretching measured / predicted (N/m) | Density |",
                   "|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -418,6 +428,13 @@ def run_measured(run: Run, *, models: list | None = None, sequences: int | None 
                 tables.append(scored[0])
                 corrs.append(scored[1])
                 matches.append(scored[2])
+        for members in ensemble_groups([m for m, e in zip(models, entries) if "match" in e]):
+            ensemble = score_ensemble(run, members, variant, names)
+            if ensemble is not None:
+                entries.append(ensemble[0])
+                tables.append(ensemble[1][0])
+                corrs.append(ensemble[1][1])
+                matches.append(ensemble[1][2])
     if not tables:
         raise ConfigError(f"no measured clip was rendered for any model's setting under "
                           f"{run.measured_root / 'render' / variant}: see the render summary "
@@ -472,25 +489,87 @@ def score_model(run: Run, m, variant: str, names: list[str], *, predictor: Predi
              "checkpoint": _rel(run, m.checkpoint), "status": status}
     if videos is None:
         return entry, None
-    cfg = run.config.eval
     folder = model_folder(run, m, variant)
     key = {"setting": m.setting, "train_variant": m.variant, "model": m.model, "seed": m.seed,
            "test_variant": variant}
+    entry.update({"folder": _rel(run, folder), "clips": len(videos), "skipped": _count_rows(folder / "skipped.csv")})
+    return _scored(run, entry, key, videos, checkpoint=_rel(run, m.checkpoint), folder=_rel(run, folder))
+
+
+def _scored(run: Run, entry: dict, key: dict, videos: pd.DataFrame, *, checkpoint: str, folder: str
+            ) -> tuple[dict, tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]]:
+    """A model's (or an ensemble's) per-clip predictions scored: its summary ``entry`` with the match rates and
+    correlations added, and its (fabric, correlation, match) tables with its ``key`` columns."""
+    cfg = run.config.eval
 
     def rng_for(*parts: str) -> np.random.Generator:
-        return seeding.rng(run.config.seed, 0, seeding.EVAL, "bootstrap", "measured", m.setting, m.variant,
-                           m.model, str(m.seed), *parts)
+        return seeding.rng(run.config.seed, 0, seeding.EVAL, "bootstrap", "measured", key["setting"],
+                           key["train_variant"], key["model"], str(key["seed"]), *parts)
 
     opts = {"resamples": cfg.bootstrap, "confidence": cfg.confidence, "rng_for": rng_for}
     table = fabric_table(videos)
     corr = correlation_table(videos, table, **opts)
     match = match_table(table, **opts)
-    entry.update({"folder": _rel(run, folder), "clips": len(videos),
-                  "skipped": _count_rows(folder / "skipped.csv"),
-                  "match": json.loads(match.to_json(orient="records")),
+    entry.update({"match": json.loads(match.to_json(orient="records")),
                   "correlations": json.loads(corr.to_json(orient="records"))})
-    return entry, (table.assign(**key, checkpoint=_rel(run, m.checkpoint), folder=_rel(run, folder)),
-                   corr.assign(**key), match.assign(**key))
+    return entry, (table.assign(**key, checkpoint=checkpoint, folder=folder), corr.assign(**key), match.assign(**key))
+
+
+# ------------------------------------------------------------------ seeds' ensembles
+
+def recipe_without_seeds(recipe: str) -> str:
+    """A recipe's levers without its ``seeds=`` part: ``camera+seeds=1`` trains the recipe ``camera`` with seed 1."""
+    return "+".join(p for p in recipe.split("+") if p and not p.startswith("seeds="))
+
+
+def ensemble_groups(models: Sequence[TrainedModel]) -> list[list[TrainedModel]]:
+    """The models that differ only in their seed (same setting, training variant, network, and recipe but for its
+    ``seeds=`` part), two or more to a group, each ordered by seed."""
+    groups: dict[tuple, list[TrainedModel]] = {}
+    for m in models:
+        groups.setdefault((m.setting, m.variant, m.model, recipe_without_seeds(m.recipe)), []).append(m)
+    return [sorted(g, key=lambda m: m.seed) for g in groups.values() if len(g) >= 2]
+
+
+def ensemble_label(members: Sequence[TrainedModel]) -> str:
+    """An ensemble's ``seed`` in the tables: its members' seeds joined by + (``0+1``)."""
+    return "+".join(str(m.seed) for m in members)
+
+
+def score_ensemble(run: Run, members: Sequence[TrainedModel], variant: str, names: list[str]
+                   ) -> tuple[dict, tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]] | None:
+    """The members' seeds' ensemble on the measured clips: per clip the mean of the members' probabilities (each
+    already the mean over the clip's sub-sequences), its class their argmax, scored like one model. Its per-clip
+    predictions go to ``videos.csv`` in ``ensemble-s<seeds>`` beside the members' folders. None when a member
+    has no predictions (no clip of its setting rendered); only clips every member predicted count."""
+    first = members[0]
+    frames = []
+    for m in members:
+        path = model_folder(run, m, variant) / "videos.csv"
+        if not path.is_file():
+            return None
+        frames.append(pd.read_csv(path, dtype={"video": str}).set_index("video"))
+    common = sorted(set.intersection(*(set(f.index) for f in frames)))
+    if not common:
+        return None
+    probs = np.mean([f.loc[common, preds.PROB_COLUMNS].to_numpy(float) for f in frames], axis=0)
+    pred = probs.argmax(axis=1)
+    videos = pd.DataFrame({"video": common, "pred": pred, "p": classes.p_value(pred), "k": classes.k_value(pred)})
+    videos = pd.concat([videos, pd.DataFrame(probs, columns=preds.PROB_COLUMNS)], axis=1)
+    label = ensemble_label(members)
+    recipe = recipe_without_seeds(first.recipe)
+    root = run.eval_dir / "measured" / variant / (Path("ablation") / recipe if recipe else Path())
+    folder = root / first.setting / first.variant / first.model / f"ensemble-s{label}"
+    atomic_write_text(folder / "videos.csv", videos.to_csv(index=False, float_format="%.6g"))
+    clips = _clip_fabrics(run.measured_render_dir(variant, first.setting), names)
+    key = {"setting": first.setting, "train_variant": first.variant, "model": first.model, "seed": label,
+           "test_variant": variant}
+    entry = {"setting": first.setting, "train_variant": first.variant, "model": first.model, "seed": label,
+             **({"recipe": recipe} if recipe else {}), "status": "ensemble",
+             "ensemble_of": [m.seed for m in members], "members": [_rel(run, m.checkpoint) for m in members], "folder": _rel(run, folder),
+             "clips": len(common)}
+    return _scored(run, entry, key, with_fabrics(videos, clips), folder=_rel(run, folder),
+                   checkpoint=" ".join(_rel(run, m.checkpoint) for m in members))
 
 
 def scorer_processes(models: int) -> int:
@@ -538,8 +617,10 @@ def _score_in_worker(run: Run, m, task: int, *, variant: str, names: list[str], 
 
 
 def _ordered(frames: list[pd.DataFrame]) -> pd.DataFrame:
-    """The models' tables as one, the model keys first."""
+    """The models' tables as one, the model keys first; with an ensemble (seed ``0+1``) every seed as text."""
     frame = pd.concat(frames, ignore_index=True)
+    if frame["seed"].map(type).nunique() > 1:
+        frame["seed"] = frame["seed"].astype(str)
     return frame[MODEL_KEYS + [c for c in frame.columns if c not in MODEL_KEYS]]
 
 

@@ -327,7 +327,72 @@ def test_models_scored_in_a_pool_give_the_same_tables(tmp_path, capsys):
             assert (folder / "activations.png").is_file() and (folder / "DONE").is_file()
     assert outputs[2] == outputs[0]
     assert outputs[0][0] != outputs[0][1]             # the two models' predictions are their own
-    assert len(outputs[0]["measured.csv"].splitlines()) == 1 + 2 * len(FABRICS)      # a row per model and fabric
+    # a row per model and fabric, and per fabric for the two seeds' ensemble
+    assert len(outputs[0]["measured.csv"].splitlines()) == 1 + 3 * len(FABRICS)
+
+
+def test_seeds_are_also_scored_as_their_ensemble(tmp_path):
+    """Models that differ only in their seed are scored as their ensemble too: per clip the mean of their
+    probabilities. A fabric each seed reads wrong (each its own wrong class, the true class second for both) is
+    read right by the ensemble; a model of another recipe joins none; the report shows every model's tables."""
+    import shutil
+
+    from eval.measured import model_folder, run_measured
+    from eval.report import _section_measured
+    from eval.stage import TrainedModel
+    from sim.measured import table2_class, table2_fabrics
+    from tests.test_eval_real import fresh_model
+
+    train_dir = fresh_model(tmp_path / "run")
+    run = Run.open(tmp_path / "run")
+    for seed in (1, 2):
+        shutil.copytree(train_dir, train_dir.parent / f"s{seed}")
+    fabrics = table2_fabrics()
+    fake_measured_clips(run, fabrics, sequences=2)
+    hard = fabrics[0]
+    truth = table2_class(hard)
+    wrong = {"s0": (truth + 1) % 54, "s1": (truth + 2) % 54}
+
+    def stub(folder, clip_dirs):
+        rows = []
+        for d in clip_dirs:
+            name = json.loads((d / "meta.json").read_text())["clip_id"]
+            cls = table2_class(name.rsplit("-", 1)[0])
+            probs = np.full(54, 0.2 / 52)
+            probs[cls] = 0.8
+            if name.startswith(hard + "-") and folder.name in wrong:
+                probs = np.full(54, 0.15 / 52)
+                probs[cls], probs[wrong[folder.name]] = 0.40, 0.45
+            rows.append({"clip_id": name, "start": 0, "class_index": -1, "pred": int(probs.argmax()), "probs": probs})
+        return pd.DataFrame(rows)
+
+    models = [TrainedModel(SETTING, "paper", "lrcn", 0, train_dir),
+              TrainedModel(SETTING, "paper", "lrcn", 1, train_dir.parent / "s1", "seeds=1"),
+              TrainedModel(SETTING, "paper", "lrcn", 2, train_dir.parent / "s2", "camera")]
+    out = run_measured(run, models=models, sequences=2, fabrics=fabrics, predictor=stub, progress=False,
+                       activations=0)
+    exact = out["exact"]
+    assert exact[f"{SETTING}/paper/lrcn/s0"] == exact[f"{SETTING}/paper/lrcn/s1"] == 0.9
+    assert exact[f"{SETTING}/paper/lrcn/s0+1"] == 1.0 and exact[f"{SETTING}/paper/lrcn/s2"] == 1.0
+    assert len(exact) == 4                                       # the camera model joins no ensemble
+
+    members = [pd.read_csv(model_folder(run, m, "heldout") / "videos.csv").set_index("video") for m in models[:2]]
+    folder = run.eval_dir / "measured" / "heldout" / SETTING / "paper" / "lrcn" / "ensemble-s0+1"
+    ensemble = pd.read_csv(folder / "videos.csv").set_index("video")
+    clip = f"{hard}-0"
+    for c in (f"prob_{truth:02d}", f"prob_{wrong['s0']:02d}", f"prob_{wrong['s1']:02d}"):
+        assert ensemble.loc[clip, c] == pytest.approx((members[0].loc[clip, c] + members[1].loc[clip, c]) / 2,
+                                                      rel=1e-5)
+    assert ensemble.loc[clip, "pred"] == truth
+
+    summary = json.loads((run.eval_dir / "measured.json").read_text())
+    entry = next(e for e in summary["models"] if e.get("ensemble_of"))
+    assert entry["ensemble_of"] == [0, 1] and entry["seed"] == "0+1" and entry["clips"] == 2 * len(fabrics)
+    table = pd.read_csv(run.eval_dir / "measured.csv", dtype={"seed": str})
+    assert table.groupby("seed")["exact"].mean().to_dict() == {"0": 0.9, "0+1": 1.0, "1": 0.9, "2": 1.0}
+    assert "seeds 0+1, their ensemble" in (run.eval_dir / "measured.md").read_text()
+    html = _section_measured(run)
+    assert "seeds 0+1, their ensemble" in html and html.count("Match over fabrics") == 4
 
 
 @pytest.mark.slow
