@@ -490,7 +490,7 @@ class Study:
 
         Returns:
             ``eval/measured.csv``: one row per (model, fabric) with the predicted class beside the paper's
-            Table 2 class and the measured stiffness; a seeds' ensemble is one more model (seed ``0+1``).
+            Table 2 class and the measured stiffness (seeds' ensembles: ``eval/measured_ensembles.csv``).
         """
         return self._table("measured.csv")
 

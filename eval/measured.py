@@ -26,8 +26,8 @@
    per clip, resampling whole fabrics, and per fabric;
 5. **ensemble** the models that differ only in their seed (same setting,
    training variant, network and recipe): per clip the mean of their
-   probabilities, scored like one more model (seed ``0+1`` in the tables,
-   ``ensemble-s0+1/videos.csv`` beside its members' folders).
+   probabilities, scored like one more model, apart from the models' tables
+   (``ensemble-s0+1/`` beside its members' folders).
 
 Every step skips finished work (DONE markers on clips and on each model's
 folder); the tables are rebuilt from those folders each time. Outputs:
@@ -35,8 +35,10 @@ folder); the tables are rebuilt from those folders each time. Outputs:
 ``eval/measured.csv``               one row per (model, fabric): prediction, Table 2 class, matches,
                                     measured and predicted stiffness, checkpoint
 ``eval/measured_correlations.csv``  one row per (model, unit, score, target): Pearson / Spearman + intervals
+``eval/measured_ensembles.csv``     one row per (seeds' ensemble, fabric), as measured.csv, its ``seed`` the
+                                    members' seeds as text (``0+1``); only when two seeds of a model were scored
 ``eval/measured.md``, ``eval/measured.json``  the same for people and programs (match rates with intervals,
-                                    definitions, generation summaries, files)
+                                    definitions, generation summaries, files; the ensembles under "ensembles")
 
 Pearson is taken on the raw values, as in Table 4 (``eval.real``); Spearman on ranks.
 """
@@ -338,18 +340,27 @@ def _fmt(value, lo, hi, digits: int = 2) -> str:
 
 
 def markdown(run: Run, variant: str, heldout: bool, table: pd.DataFrame, corr: pd.DataFrame,
-             match: pd.DataFrame) -> str:
+             match: pd.DataFrame, ensembles: tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame] | None = None) -> str:
+    """``measured.md``: a section per model (fabrics, match rates, correlations), then one per seeds' ensemble."""
     lines = [f"# Measured fabrics (`{run.root}`, render variant `{variant}`"
              f"{'' if heldout else ', NOT held out: a model was trained on it'})", "",
              "Each fabric simulated with its own Wang et al. 2011 tables, predicted through the real-video path "
              "(mean sub-sequence probabilities per clip, then per fabric), beside the class of the paper's Table 2.",
              ""]
-    for key, g in table.groupby(MODEL_KEYS, sort=False):       # the models' order, their ensembles last
+    lines += _sections(table, corr, match, "seed {}")
+    if ensembles is not None:
+        lines += _sections(*ensembles, "seeds {}, their ensemble: mean probabilities per clip")
+    return "\n".join(lines)
+
+
+def _sections(table: pd.DataFrame, corr: pd.DataFrame, match: pd.DataFrame, who: str) -> list[str]:
+    """The markdown sections of the models (or ensembles) in ``table``, in its order."""
+    lines = []
+    for key, g in table.groupby(MODEL_KEYS, sort=True):
         setting, train_v, model, seed, test_v = key
-        who = f"seeds {seed}, their ensemble" if "+" in str(seed) else f"seed {seed}"
         kmask = np.logical_and.reduce([corr[c] == v for c, v in zip(MODEL_KEYS, key)])
         mmask = np.logical_and.reduce([match[c] == v for c, v in zip(MODEL_KEYS, key)])
-        lines += [f"## {model} trained on {train_v} ({setting}, {who})", "",
+        lines += [f"## {model} trained on {train_v} ({setting}, {who.format(seed)})", "",
                   f"Checkpoint: `{'`, `'.join(str(g['checkpoint'].iloc[0]).split())}`", "",
                   "| Fabric | Clips | Predicted (p, k) | Table 2 (p, k) | Exact | p | k | Within one bin | "
                   "Grid steps | Bending measured / predicted (N*m) | Stretching measured / predicted (N/m) | Density |",
@@ -367,7 +378,7 @@ def markdown(run: Run, variant: str, heldout: bool, table: pd.DataFrame, corr: p
         lines += [f"| {r.unit} | {r.description} | {r.n} | {_fmt(r.pearson, r.pearson_lo, r.pearson_hi)} "
                   f"| {_fmt(r.spearman, r.spearman_lo, r.spearman_hi)} |" for r in corr[kmask].itertuples()]
         lines.append("")
-    return "\n".join(lines)
+    return lines
 
 
 # ------------------------------------------------------------------ entry point
@@ -417,7 +428,7 @@ def run_measured(run: Run, *, models: list | None = None, sequences: int | None 
     with timed(seconds, "clips"):
         generation = make_clips(run, sequences, fabrics, variant, progress)
     names = [clip_name(f, n) for f, n in wanted_clips(fabrics, sequences)]
-    tables, corrs, matches, entries = [], [], [], []
+    tables, corrs, matches, entries, ensembles = [], [], [], [], []
     if processes is None:
         processes = scorer_processes(len(models))
     with timed(seconds, "predict_and_score"):
@@ -429,23 +440,27 @@ def run_measured(run: Run, *, models: list | None = None, sequences: int | None 
                 corrs.append(scored[1])
                 matches.append(scored[2])
         for members in ensemble_groups([m for m, e in zip(models, entries) if "match" in e]):
-            ensemble = score_ensemble(run, members, variant, names)
-            if ensemble is not None:
-                entries.append(ensemble[0])
-                tables.append(ensemble[1][0])
-                corrs.append(ensemble[1][1])
-                matches.append(ensemble[1][2])
+            scored_ensemble = score_ensemble(run, members, variant, names)
+            if scored_ensemble is not None:
+                ensembles.append(scored_ensemble)
     if not tables:
         raise ConfigError(f"no measured clip was rendered for any model's setting under "
                           f"{run.measured_root / 'render' / variant}: see the render summary "
                           f"{json.dumps(generation['render'].get('failed', []))[:500]}")
     table, corr, match = _ordered(tables), _ordered(corrs), _ordered(matches)
+    # The ensembles' tables apart: measured.csv keeps one row per model and fabric, its seeds numbers.
+    ensemble_tables = tuple(_ordered(list(t)) for t in zip(*(e[1] for e in ensembles))) if ensembles else None
     out = run.eval_dir
     atomic_write_text(out / "measured.csv", table.to_csv(index=False, float_format="%.6g"))
     atomic_write_text(out / "measured_correlations.csv", corr.to_csv(index=False, float_format="%.6g"))
-    atomic_write_text(out / "measured.md", markdown(run, variant, heldout, table, corr, match))
+    if ensemble_tables:
+        atomic_write_text(out / "measured_ensembles.csv", ensemble_tables[0].to_csv(index=False, float_format="%.6g"))
+    else:
+        (out / "measured_ensembles.csv").unlink(missing_ok=True)       # an earlier call's, for other models
+    atomic_write_text(out / "measured.md", markdown(run, variant, heldout, table, corr, match, ensemble_tables))
     atomic_write_json(out / "measured.json", _summary(run, models, variant, heldout, fabrics, sequences,
-                                                       generation, entries, time.perf_counter() - t0))
+                                                       generation, entries, [e[0] for e in ensembles],
+                                                       time.perf_counter() - t0))
     return {"variant": variant, "heldout": heldout, "fabrics": len(fabrics), "sequences": sequences,
             "simulated": generation["sim"]["simulated"], "rendered": generation["render"]["rendered"],
             "predicted": sum(e["status"] == "predicted" for e in entries),
@@ -453,7 +468,7 @@ def run_measured(run: Run, *, models: list | None = None, sequences: int | None 
             "seconds": {part: round(s, 1) for part, s in seconds.items()},
             "exact": {f"{e['setting']}/{e['train_variant']}/{e['model']}/s{e['seed']}":
                       next(r["value"] for r in e["match"] if r["score"] == "exact")
-                      for e in entries if "match" in e}}
+                      for e in entries + [e[0] for e in ensembles] if "match" in e}}
 
 
 def _models_and_heldout(run: Run, models: list | None, variant: str, progress: bool) -> tuple[list, bool]:
@@ -518,8 +533,9 @@ def _scored(run: Run, entry: dict, key: dict, videos: pd.DataFrame, *, checkpoin
 # ------------------------------------------------------------------ seeds' ensembles
 
 def recipe_without_seeds(recipe: str) -> str:
-    """A recipe's levers without its ``seeds=`` part: ``camera+seeds=1`` trains the recipe ``camera`` with seed 1."""
-    return "+".join(p for p in recipe.split("+") if p and not p.startswith("seeds="))
+    """A recipe's levers without its ``seeds=`` part (``camera+seeds=1`` trains the recipe ``camera`` with seed 1)
+    and without ``baseline``, which changes nothing: the run's own models and ``baseline+seeds=1`` share ``""``."""
+    return "+".join(p for p in recipe.split("+") if p and p != "baseline" and not p.startswith("seeds="))
 
 
 def ensemble_groups(models: Sequence[TrainedModel]) -> list[list[TrainedModel]]:
@@ -532,7 +548,7 @@ def ensemble_groups(models: Sequence[TrainedModel]) -> list[list[TrainedModel]]:
 
 
 def ensemble_label(members: Sequence[TrainedModel]) -> str:
-    """An ensemble's ``seed`` in the tables: its members' seeds joined by + (``0+1``)."""
+    """An ensemble's ``seed`` in its tables: its members' seeds joined by + (``0+1``)."""
     return "+".join(str(m.seed) for m in members)
 
 
@@ -540,8 +556,9 @@ def score_ensemble(run: Run, members: Sequence[TrainedModel], variant: str, name
                    ) -> tuple[dict, tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]] | None:
     """The members' seeds' ensemble on the measured clips: per clip the mean of the members' probabilities (each
     already the mean over the clip's sub-sequences), its class their argmax, scored like one model. Its per-clip
-    predictions go to ``videos.csv`` in ``ensemble-s<seeds>`` beside the members' folders. None when a member
-    has no predictions (no clip of its setting rendered); only clips every member predicted count."""
+    predictions go to ``videos.csv`` in ``ensemble-s<seeds>`` beside the members' folders, with ``ensemble.json``
+    (the members' checkpoints and their sha256). None when a member has no predictions (no clip of its setting
+    rendered); only clips every member predicted count."""
     first = members[0]
     frames = []
     for m in members:
@@ -561,12 +578,15 @@ def score_ensemble(run: Run, members: Sequence[TrainedModel], variant: str, name
     root = run.eval_dir / "measured" / variant / (Path("ablation") / recipe if recipe else Path())
     folder = root / first.setting / first.variant / first.model / f"ensemble-s{label}"
     atomic_write_text(folder / "videos.csv", videos.to_csv(index=False, float_format="%.6g"))
+    atomic_write_json(folder / "ensemble.json", {"members": [
+        {"seed": m.seed, "checkpoint": _rel(run, m.checkpoint), "checkpoint_sha256": checkpoint_sha256(m)}
+        for m in members], "clips": common})
     clips = _clip_fabrics(run.measured_render_dir(variant, first.setting), names)
     key = {"setting": first.setting, "train_variant": first.variant, "model": first.model, "seed": label,
            "test_variant": variant}
     entry = {"setting": first.setting, "train_variant": first.variant, "model": first.model, "seed": label,
-             **({"recipe": recipe} if recipe else {}), "status": "ensemble",
-             "ensemble_of": [m.seed for m in members], "members": [_rel(run, m.checkpoint) for m in members], "folder": _rel(run, folder),
+             **({"recipe": recipe} if recipe else {}), "ensemble_of": [m.seed for m in members],
+             "members": [_rel(run, m.checkpoint) for m in members], "folder": _rel(run, folder),
              "clips": len(common)}
     return _scored(run, entry, key, with_fabrics(videos, clips), folder=_rel(run, folder),
                    checkpoint=" ".join(_rel(run, m.checkpoint) for m in members))
@@ -617,16 +637,15 @@ def _score_in_worker(run: Run, m, task: int, *, variant: str, names: list[str], 
 
 
 def _ordered(frames: list[pd.DataFrame]) -> pd.DataFrame:
-    """The models' tables as one, the model keys first; with an ensemble (seed ``0+1``) every seed as text."""
+    """The models' tables as one, the model keys first."""
     frame = pd.concat(frames, ignore_index=True)
-    if frame["seed"].map(type).nunique() > 1:
-        frame["seed"] = frame["seed"].astype(str)
     return frame[MODEL_KEYS + [c for c in frame.columns if c not in MODEL_KEYS]]
 
 
 def _summary(run: Run, models: list, variant: str, heldout: bool, fabrics: list[str], sequences: int,
-             generation: dict, entries: list[dict], seconds: float) -> dict:
-    """``eval/measured.json``: the set, the definitions, the generation summaries, every model's entry."""
+             generation: dict, entries: list[dict], ensembles: list[dict], seconds: float) -> dict:
+    """``eval/measured.json``: the set, the definitions, the generation summaries, every model's and every seeds'
+    ensemble's entry."""
     from sim.measured import basis_values
 
     cfg = run.config.eval
@@ -636,8 +655,9 @@ def _summary(run: Run, models: list, variant: str, heldout: bool, fabrics: list[
         "definitions": DEFINITIONS,
         "basis": basis_values(),
         "bootstrap": {"resamples": cfg.bootstrap, "confidence": cfg.confidence},
-        "generation": generation, "models": entries,
+        "generation": generation, "models": entries, "ensembles": ensembles,
         "files": {"fabrics": "eval/measured.csv", "correlations": "eval/measured_correlations.csv",
+                  **({"ensembles": "eval/measured_ensembles.csv"} if ensembles else {}),
                   "markdown": "eval/measured.md", "sim": "measured/sim", "render": f"measured/render/{variant}",
                   "per_model": f"eval/measured/{variant}"},
         "seconds": round(seconds, 2),

@@ -536,14 +536,11 @@ def _measured_model(run: Run, key: tuple, g: pd.DataFrame, info: dict, corr: pd.
     """One model's part of the measured section: its fabrics against Table 2, match rates, correlations, figures."""
     keys = _MEASURED_KEYS
     setting, train_v, model, seed, _ = key
-    who = f"seeds {seed}, their ensemble" if "+" in str(seed) else f"seed {seed}"
     out = [f"<h3>{_esc(tables.model_title(model))} trained on {_esc(train_v)} "
-           f"({_esc(setting)}, {_esc(who)})</h3><p>Model: {_links(run, g['checkpoint'].iloc[0])}; "
+           f"({_esc(setting)}, seed {_esc(seed)})</h3><p>Model: {_links(run, g['checkpoint'].iloc[0])}; "
            f"per-clip predictions and Table 4: {_links(run, g['folder'].iloc[0])}</p>",
            _measured_fabrics_table(g)]
-    # (as text: with an ensemble in the table, measured.csv's seeds read back as text, the JSON's stay numbers)
-    entry = next((e for e in info.get("models", [])
-                  if [str(e.get(k)) for k in keys[:4]] == [str(v) for v in key[:4]]), {})
+    entry = next((e for e in info.get("models", []) if [e.get(k) for k in keys[:4]] == list(key[:4])), {})
     if entry.get("match"):
         match = pd.DataFrame(entry["match"])
         out.append("<p>Match over fabrics (95% interval resampling fabrics):</p>"

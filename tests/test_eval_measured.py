@@ -320,21 +320,21 @@ def test_models_scored_in_a_pool_give_the_same_tables(tmp_path, capsys):
         said = capsys.readouterr().out
         assert ("(one of 2 processes)" in said) == (processes == 2), said
         outputs[processes] = {name: (run.eval_dir / name).read_text()
-                              for name in ("measured.csv", "measured_correlations.csv")}
+                              for name in ("measured.csv", "measured_correlations.csv", "measured_ensembles.csv")}
         for seed in (0, 1):
             folder = run.eval_dir / "measured" / "heldout" / SETTING / "paper" / "lrcn" / f"s{seed}"
             outputs[processes][seed] = (folder / "videos.csv").read_text()
             assert (folder / "activations.png").is_file() and (folder / "DONE").is_file()
     assert outputs[2] == outputs[0]
     assert outputs[0][0] != outputs[0][1]             # the two models' predictions are their own
-    # a row per model and fabric, and per fabric for the two seeds' ensemble
-    assert len(outputs[0]["measured.csv"].splitlines()) == 1 + 3 * len(FABRICS)
+    assert len(outputs[0]["measured.csv"].splitlines()) == 1 + 2 * len(FABRICS)      # a row per model and fabric
 
 
 def test_seeds_are_also_scored_as_their_ensemble(tmp_path):
     """Models that differ only in their seed are scored as their ensemble too: per clip the mean of their
     probabilities. A fabric each seed reads wrong (each its own wrong class, the true class second for both) is
-    read right by the ensemble; a model of another recipe joins none; the report shows every model's tables."""
+    read right by the ensemble; a model of another recipe joins none; measured.csv keeps one row per model and
+    fabric (what the report and `clothgap combine` read), the ensembles go to their own table."""
     import shutil
 
     from eval.measured import model_folder, run_measured
@@ -367,7 +367,7 @@ def test_seeds_are_also_scored_as_their_ensemble(tmp_path):
         return pd.DataFrame(rows)
 
     models = [TrainedModel(SETTING, "paper", "lrcn", 0, train_dir),
-              TrainedModel(SETTING, "paper", "lrcn", 1, train_dir.parent / "s1", "seeds=1"),
+              TrainedModel(SETTING, "paper", "lrcn", 1, train_dir.parent / "s1", "baseline+seeds=1"),
               TrainedModel(SETTING, "paper", "lrcn", 2, train_dir.parent / "s2", "camera")]
     out = run_measured(run, models=models, sequences=2, fabrics=fabrics, predictor=stub, progress=False,
                        activations=0)
@@ -385,14 +385,26 @@ def test_seeds_are_also_scored_as_their_ensemble(tmp_path):
                                                       rel=1e-5)
     assert ensemble.loc[clip, "pred"] == truth
 
+    made = json.loads((folder / "ensemble.json").read_text())
+    assert [m["seed"] for m in made["members"]] == [0, 1] and all(len(m["checkpoint_sha256"]) == 64
+                                                                  for m in made["members"])
+
     summary = json.loads((run.eval_dir / "measured.json").read_text())
-    entry = next(e for e in summary["models"] if e.get("ensemble_of"))
+    assert [e["seed"] for e in summary["models"]] == [0, 1, 2]
+    (entry,) = summary["ensembles"]
     assert entry["ensemble_of"] == [0, 1] and entry["seed"] == "0+1" and entry["clips"] == 2 * len(fabrics)
-    table = pd.read_csv(run.eval_dir / "measured.csv", dtype={"seed": str})
-    assert table.groupby("seed")["exact"].mean().to_dict() == {"0": 0.9, "0+1": 1.0, "1": 0.9, "2": 1.0}
+    table = pd.read_csv(run.eval_dir / "measured.csv")
+    assert table["seed"].dtype.kind == "i" and table.groupby("seed")["exact"].mean().to_dict() == {0: 0.9, 1: 0.9,
+                                                                                                   2: 1.0}
+    ensembles = pd.read_csv(run.eval_dir / "measured_ensembles.csv")
+    assert set(ensembles["seed"]) == {"0+1"} and ensembles["exact"].mean() == 1.0
     assert "seeds 0+1, their ensemble" in (run.eval_dir / "measured.md").read_text()
-    html = _section_measured(run)
-    assert "seeds 0+1, their ensemble" in html and html.count("Match over fabrics") == 4
+    assert _section_measured(run).count("Match over fabrics") == 3      # the report's three models
+
+    # scored again without a second seed: no ensemble, and the earlier one's table is not left beside the new tables
+    run_measured(run, models=models[:1], sequences=2, fabrics=fabrics, predictor=stub, progress=False, activations=0)
+    assert not (run.eval_dir / "measured_ensembles.csv").exists()
+    assert json.loads((run.eval_dir / "measured.json").read_text())["ensembles"] == []
 
 
 @pytest.mark.slow
