@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from clothgap.config import (ConfigError, StudyConfig, apply_overrides, apply_settings, pairs, preset as preset_config,
-                             read_config_file, shown, validate, with_name)
+                             read_config_file, shown, with_name)
 from clothgap.errors import MissingInputError
 from clothgap.runs import Run, clip_index
 
@@ -185,25 +185,18 @@ def open(path: Path | str) -> "Study":  # noqa: A001 - api.open, as gzip.open
     return Study(Run.open(path).root)
 
 
-def run_for_test_variants(run: Run, variants: Iterable[str]) -> Run:
-    """The run seen with only ``variants`` as its render variants, for rendering looks no model trains on
-    (``clothgap eval`` tests every model on every rendered variant); an unknown name is refused here. Its
-    config is never saved: the run's own variants stay its training set."""
-    cfg = replace(run.config, render=replace(run.config.render, variants=tuple(dict.fromkeys(variants)),
-                                             variant_settings=()))
-    return Run(run.root, validate(cfg))
-
-
-def render_test_variants(test_run: Run, progress: bool = True) -> dict:
-    """Render ``run_for_test_variants``'s looks on the clips the split tests on (the split training makes, when
-    the run has none yet), in this process: an executor's workers reopen the run from its saved config.
-    Returns the render stage's summary."""
+def render_test_variants(run: Run, variants: Iterable[str], executor: Any = None) -> dict:
+    """Render ``variants`` (looks no model trains on: ``clothgap.executor.run_for_test_variants``) on the clips the
+    split tests on (the split training makes, when the run has none yet), through ``executor`` (a
+    ``clothgap.executor.ExecutorOptions``; None: this process). Returns the render stage's summary."""
+    from clothgap.executor import ExecutorOptions, run_for_test_variants, run_stage
     from learn.split import current_split, part_clips
-    from render.stage import run_render
 
+    test_run = run_for_test_variants(run, variants)
     tested = sorted({clip_index(c) for setting in test_run.config.sim.settings()
                      for c in part_clips(current_split(test_run, setting), "test")})
-    return run_render(test_run, progress=progress, indices=tested)
+    return run_stage(run, "render", executor or ExecutorOptions(), indices=tested,
+                     test_variants=test_run.config.render.variants)
 
 
 class Study:
@@ -309,7 +302,7 @@ class Study:
             executor: A ``clothgap.executor.ExecutorOptions``; None: this process.
             test_variants: Variants rendered for testing only (no model trains on them; ``evaluate`` tests every
                 model on them), e.g. ``["heldout"]``: the test clips of the run's split (the one training makes,
-                when there is none yet), in this process.
+                when there is none yet), through the same executor.
             progress: Show progress bars.
             allow_failures: Return even when clips failed.
 
@@ -320,16 +313,18 @@ class Study:
             ConfigError: the run has no simulated clips yet, or a variant is unknown.
             StageFailures: some clips failed (after all others were rendered), unless ``allow_failures``.
         """
-        from clothgap.executor import ExecutorOptions, run_stage
+        from clothgap.executor import ExecutorOptions, run_for_test_variants, run_stage
 
         run = self.run
         for setting in run.config.sim.settings():
             run.require(run.sim_dir(setting), "sim")
-        test_run = run_for_test_variants(run, test_variants) if test_variants else None
+        if test_variants:
+            run_for_test_variants(run, test_variants)          # an unknown look refused before any rendering
         opts = replace(executor or ExecutorOptions(), progress=progress)
         summary = self._check("render", run_stage(run, "render", opts), allow_failures)
-        if test_run is not None:
-            summary["test_variants"] = self._check("render", render_test_variants(test_run, progress), allow_failures)
+        if test_variants:
+            summary["test_variants"] = self._check("render", render_test_variants(run, test_variants, opts),
+                                                   allow_failures)
         return summary
 
     def train(self, *, settings: Iterable[str] | None = None, variants: Iterable[str] | None = None,

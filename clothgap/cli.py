@@ -285,8 +285,8 @@ def sim_export(run_dir: Path, clip: str, setting: str | None, frames: str | None
 @click.option("--list-variants", is_flag=True, help="List the named render variants and exit.")
 @click.option("--test-variant", "test_variants", multiple=True, metavar="NAME",
               help="Also render this variant for testing only (repeatable): no model trains on it, and "
-                   "`clothgap eval` tests every model on it, e.g. heldout. Only the split's test clips, in "
-                   "this process.")
+                   "`clothgap eval` tests every model on it, e.g. heldout. Only the split's test clips, through "
+                   "the same executor.")
 @_executor_options
 @_allow_failures_option
 def render(run_dir, preset_name, out, overrides, config_file, list_variants, test_variants, allow_failures,
@@ -301,17 +301,18 @@ def render(run_dir, preset_name, out, overrides, config_file, list_variants, tes
     run = resolve_run(run_dir, preset_name, out, overrides, config_file)
     for setting in run.config.sim.settings():
         run.require(run.sim_dir(setting), "sim")
-    from clothgap.api import render_test_variants, run_for_test_variants
-    from clothgap.executor import run_stage
+    from clothgap.api import render_test_variants
+    from clothgap.executor import run_for_test_variants, run_stage
 
-    test_run = run_for_test_variants(run, test_variants) if test_variants else None
+    if test_variants:
+        run_for_test_variants(run, test_variants)          # an unknown look refused before any rendering
     t0 = time.perf_counter()
     summary = run_stage(run, "render", opts)
     _echo_summary("render", summary, time.perf_counter() - t0)
     check_failures("render", summary, allow_failures)
-    if test_run is not None:
+    if test_variants:
         t0 = time.perf_counter()
-        summary = render_test_variants(test_run, progress=opts.progress)
+        summary = render_test_variants(run, test_variants, opts)
         _echo_summary("render (test only)", summary, time.perf_counter() - t0)
         check_failures("render", summary, allow_failures)
 

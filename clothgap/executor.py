@@ -38,13 +38,14 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import math
 import os
 import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -129,11 +130,22 @@ def sim_shard(run_root: str, indices: list[int]) -> dict:
     return run_sim(Run.open(run_root, check=False), progress=False, indices=indices)   # validated by the driver
 
 
-def render_shard(run_root: str, indices: list[int]) -> dict:
-    """Render the unfinished clips among ``indices`` under every variant and setting of the run."""
+def render_shard(run_root: str, indices: list[int], test_variants: tuple[str, ...] = ()) -> dict:
+    """Render the unfinished clips among ``indices`` under every variant and setting of the run, or under
+    ``test_variants`` alone (``run_for_test_variants``)."""
     from render.stage import run_render
 
-    return run_render(Run.open(run_root, check=False), progress=False, indices=indices)
+    run = Run.open(run_root, check=False)
+    return run_render(run_for_test_variants(run, test_variants) if test_variants else run, progress=False,
+                      indices=indices)
+
+
+def run_for_test_variants(run: Run, variants: Iterable[str]) -> Run:
+    """The run seen with only ``variants`` as its render variants, for rendering looks no model trains on
+    (``clothgap eval`` tests every model on every rendered variant); an unknown name is refused here. Its
+    config is never saved: the run's own variants stay its training set."""
+    render = dataclasses.replace(run.config.render, variants=tuple(dict.fromkeys(variants)), variant_settings=())
+    return Run(run.root, validate(dataclasses.replace(run.config, render=render)))
 
 
 def measured_shard(run_root: str, indices: list[int]) -> dict:
@@ -173,26 +185,35 @@ def stage_units(run: Run, stage: str) -> int:
     return run.config.sim.num_clips()
 
 
-def run_stage(run: Run, stage: str, options: ExecutorOptions = ExecutorOptions()) -> dict:
+def run_stage(run: Run, stage: str, options: ExecutorOptions = ExecutorOptions(), *,
+              indices: Sequence[int] | None = None, test_variants: Sequence[str] = ()) -> dict:
     """Run the sim or render stage of ``run``, or the generation of its measured-fabric set (``measured``), through
-    an executor; returns the merged summary.
+    an executor; returns the merged summary. ``indices``: only these units (clips; default all).
+    ``test_variants`` (render only): render these looks instead of the run's (``run_for_test_variants``), in
+    the workers too.
 
     With the default options this is the plain ``run_sim(run)`` / ``run_render(run)`` / ``make_measured_clips(run)``.
     """
     if stage not in STAGES:
         raise ConfigError(f"stage {stage!r} cannot be sharded; shardable: {', '.join(STAGES)}")
+    if test_variants and stage != "render":
+        raise ConfigError(f"test variants are rendered by the render stage, not {stage!r}")
     options = options.validate()
     run_whole, merge = _stage_functions(stage)
+    shard_fn = SHARD_FNS[stage]
+    if test_variants:
+        run = run_for_test_variants(run, test_variants)
+        shard_fn = functools.partial(render_shard, test_variants=run.config.render.variants)
     if options.cuda_mps == "on" and not options.gpus_per_worker:
         raise ConfigError(f"--cuda-mps on: give the {stage} workers their share of a GPU with --gpus-per-worker "
                           "(0.25 = four workers a GPU)")
     if options.whole_here:
-        return run_whole(run, progress=options.progress)
+        return run_whole(run, progress=options.progress, indices=indices)
     # The workers open the run unchecked (Run.open(check=False)): a bad setting (e.g. an unknown render variant)
     # is a config error here, not a failed shard later.
     validate(run.config)
     start = time.perf_counter()
-    indices = list(range(stage_units(run, stage)))
+    indices = list(range(stage_units(run, stage))) if indices is None else list(indices)
     mps_state = None
     with ray_session(options) as ray, contextlib.ExitStack() as stack:
         env = None
@@ -209,7 +230,7 @@ def run_stage(run: Run, stage: str, options: ExecutorOptions = ExecutorOptions()
             slots = None
             workers = options.workers or (os.cpu_count() or 1 if options.executor == "process" else 1)
         shards = shard(indices, options.shard_size or default_shard_size(len(indices), workers))
-        parts = run_shards(SHARD_FNS[stage], str(run.root.resolve()), shards, options=options, label=stage,
+        parts = run_shards(shard_fn, str(run.root.resolve()), shards, options=options, label=stage,
                            gpu_slots=slots, worker_env=env)
     summary = merge(parts)
     summary["seconds"] = round(time.perf_counter() - start, 3)
