@@ -164,6 +164,16 @@ def test_measured_tables_against_table2_and_scipy(tmp_path):
     assert list(table.index) == sorted(fabrics) and (table["clips"] == 2).all()
     assert (table["pred"] == table["table2_class"]).all()       # the mean probabilities outvote one wrong clip
     assert table.loc[off, "vote_share"] == 0.5
+    # the diagnostic class of the fabric's own tables: the basis fabric is (1, 1) there, (1, 0.5) in Table 2
+    basis = basis_values()
+    for fabric in fabrics:
+        v = measured_values(fabric)
+        assert table.loc[fabric, "tables_class"] == classes.nearest_class(
+            v["stretching_N_m"] / basis["stretching_N_m"], v["bending_N_m"] / basis["bending_N_m"])
+    assert tuple(table.loc["camel-ponte-roma", ["tables_p", "tables_k", "table2_p", "table2_k"]]) == (1, 1, 1, 0.5)
+    assert table.loc["camel-ponte-roma", "within1_tables"] == table.loc["camel-ponte-roma", "k_within1_tables"] == 1
+    k_steps = np.abs(classes.k_index(table["tables_class"].to_numpy()) - classes.k_index(table["pred"].to_numpy()))
+    assert (table["k_within1_tables"] == (k_steps <= 1)).all()
 
     # the per-clip correlations are scipy's on the clip values; intervals hold the point
     clip_pred = {f"{f}-{n}": table2_class(f) + (1 if (f == off and n == 0) else 0) for f in fabrics for n in (0, 1)}
