@@ -318,6 +318,7 @@ class Study:
         run = self.run
         for setting in run.config.sim.settings():
             run.require(run.sim_dir(setting), "sim")
+        test_variants = tuple(test_variants)
         if test_variants:
             run_for_test_variants(run, test_variants)          # an unknown look refused before any rendering
         opts = replace(executor or ExecutorOptions(), progress=progress)

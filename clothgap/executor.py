@@ -4,7 +4,8 @@ The sim and render stages are cut into shards of clip indices (``shard``), as is
 the generation of the measured-fabric set (``measured``: its (setting, fabric,
 sequence) units, ``eval.measured.generation_units``). A shard is handled by a
 plain, picklable function ``fn(run_root: str, indices: list[int]) -> dict``
-(``sim_shard``, ``render_shard``, ``measured_shard``) that calls the stage
+(``sim_shard``, ``render_shard``, ``measured_shard``, or a ``functools.partial``
+of one: the test-only looks' ``render_shard``) that calls the stage
 restricted to those indices; the stage skips finished clips and writes every
 clip folder with its ``DONE`` marker last. That makes every executor idempotent
 and resumable: a worker killed mid-shard loses only the clip it was writing, a
@@ -230,7 +231,8 @@ def run_stage(run: Run, stage: str, options: ExecutorOptions = ExecutorOptions()
             slots = None
             workers = options.workers or (os.cpu_count() or 1 if options.executor == "process" else 1)
         shards = shard(indices, options.shard_size or default_shard_size(len(indices), workers))
-        parts = run_shards(shard_fn, str(run.root.resolve()), shards, options=options, label=stage,
+        parts = run_shards(shard_fn, str(run.root.resolve()), shards, options=options,
+                           label=f"{stage} (test only)" if test_variants else stage,
                            gpu_slots=slots, worker_env=env)
     summary = merge(parts)
     summary["seconds"] = round(time.perf_counter() - start, 3)
@@ -620,7 +622,7 @@ def _run_ray(fn, run_root, shards, options, label, describe) -> list[dict]:
         # max_retries: a task whose worker or node dies runs again (its finished clips are skipped);
         # exceptions raised by the stage itself are not retried (they would fail the same way).
         task = ray.remote(num_gpus=options.gpus_per_worker, max_retries=options.retries,
-                          retry_exceptions=False)(fn)
+                          retry_exceptions=False)(_call_shard)
         in_flight = options.workers or len(shards)
         results: list[Any] = [None] * len(shards)
         queue = list(range(len(shards)))
@@ -629,7 +631,7 @@ def _run_ray(fn, run_root, shards, options, label, describe) -> list[dict]:
             while queue or running:
                 while queue and len(running) < in_flight:
                     i = queue.pop(0)
-                    running[task.remote(run_root, shards[i])] = i
+                    running[task.remote(fn, run_root, shards[i])] = i
                 done, _ = ray.wait(list(running), num_returns=1)
                 i = running.pop(done[0])
                 try:
@@ -644,6 +646,12 @@ def _run_ray(fn, run_root, shards, options, label, describe) -> list[dict]:
                                      "command to redo the rest") from e
                 bar.update()
         return results
+
+
+def _call_shard(fn: ShardFn, run_root: str, indices: list[int]) -> dict:
+    """``fn(run_root, indices)`` as a Ray task: Ray makes tasks of functions only, and a shard function may be a
+    ``functools.partial`` (it travels as the task's argument)."""
+    return fn(run_root, indices)
 
 
 def _project_path() -> str:

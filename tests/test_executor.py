@@ -277,6 +277,10 @@ def test_ray_on_a_local_instance_gives_the_plain_clips(tmp_path):
         assert s["simulated"] == 4 and s["executor"] == {"name": "ray", "workers": 2, "shards": 2}
         r = run_stage(run, "render", replace(opts, shard_size=3))
         assert r["rendered"] == 4 and r["failed"] == [] and r["executor"]["shards"] == 2
+        # a look for testing only, on some clips: the Ray tasks render it (a partial of render_shard)
+        t = run_stage(run, "render", opts, indices=[0, 1], test_variants=["heldout"])
+        done = sorted(p.parent.name for p in (run.root / "render" / "heldout").rglob("DONE"))
+        assert t["rendered"] == len(done) > 0 and t["failed"] == [] and t["executor"]["name"] == "ray"
         assert ray.is_initialized()
         # a Ray worker killed mid-shard: Ray runs the task again, the finished clip is kept
         killed_run = tiny_run(tmp_path / "killed")

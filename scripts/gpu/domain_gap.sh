@@ -60,8 +60,10 @@ fi
 [ -n "${COMBINED:-}" ] && VARIANTS="$VARIANTS,$COMBINED" && RUN_SETS="--set render.variants=$VARIANTS ${RUN_SETS:-}"
 nvariants=$(echo "$VARIANTS" | tr ',' '\n' | grep -c .)
 render_args=$gpu_render_args
+# (the eval stage takes the executor's arguments, not --test-variant: EVAL_ARGS below)
 for v in ${TEST_VARIANTS//,/ }; do render_args+=" --test-variant $v"; done
 RUN=$RUN EXTRA="--set sim.sequences_per_class=$N --set sim.batch_size=$((N * 54))
   --set render.variants=$VARIANTS --set train.models=lrcn --set eval.sim_analysis= ${EXTRA:-}" SPP=${SPP:-16} \
   TRAIN_ARGS=${TRAIN_ARGS:-"--parallel $nvariants"} RENDER_ARGS=${RENDER_ARGS:-$render_args} RUN_SETS=${RUN_SETS:-} \
+  EVAL_ARGS=${EVAL_ARGS-$gpu_render_args} \
   exec bash scripts/gpu/paper_study.sh
