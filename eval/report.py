@@ -526,7 +526,34 @@ def _section_measured(run: Run) -> str:
                    + _img(figures.png_bytes(figures.measured_scatter(table)), "measured fabrics, all models", 760))
     for key, g in table.groupby(_MEASURED_KEYS, sort=True):
         out += _measured_model(run, key, g, info, corr)
+    out.append(_measured_ensembles(run, info))
     return "".join(out) + geometry
+
+
+def _measured_ensembles(run: Run, info: dict) -> str:
+    """The seeds' ensembles (``eval.measured.score_ensemble``): one row each, its match rates and bending rank."""
+    rows = []
+    for e in info.get("ensembles", []):
+        match = {m["score"]: m for m in e.get("match", [])}
+        bend = next((c for c in e.get("correlations", []) if c.get("unit") == "fabric"
+                     and c.get("score") == "pred_bending_N_m" and c.get("target") == "bending_N_m"), {})
+        row = {"model": tables.model_title(e["model"]), "trained on": e["train_variant"], "setting": e["setting"],
+               "seeds": " + ".join(map(str, e.get("ensemble_of", [])))}
+        for score in ("within1", "exact", "k_within1_tables"):
+            if score in match:
+                row.update({score: match[score]["value"], f"{score}_lo": match[score]["value_lo"],
+                            f"{score}_hi": match[score]["value_hi"]})
+        if bend:
+            row.update({"bending rank": bend["spearman"], "bending rank_lo": bend["spearman_lo"],
+                        "bending rank_hi": bend["spearman_hi"]})
+        rows.append(row)
+    if not rows:
+        return ""
+    return ("<h3>Seeds' ensembles</h3><p>The models that differ only in their seed, read together (per clip the mean "
+            "of their probabilities), over fabrics with 95% intervals; <b>bending rank</b>: Spearman of the predicted "
+            "against the measured bending over fabrics. Per fabric: "
+            f"{_link(run, run.eval_dir / 'measured_ensembles.csv')}.</p>"
+            + _table(pd.DataFrame(rows), est=("within1", "exact", "k_within1_tables", "bending rank")))
 
 
 _MEASURED_KEYS = ["setting", "train_variant", "model", "seed", "test_variant"]   # one model on the measured set

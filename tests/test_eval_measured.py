@@ -409,7 +409,10 @@ def test_seeds_are_also_scored_as_their_ensemble(tmp_path):
     ensembles = pd.read_csv(run.eval_dir / "measured_ensembles.csv")
     assert set(ensembles["seed"]) == {"0+1"} and ensembles["exact"].mean() == 1.0
     assert "seeds 0+1, their ensemble" in (run.eval_dir / "measured.md").read_text()
-    assert _section_measured(run).count("Match over fabrics") == 3      # the report's three models
+    html = _section_measured(run)
+    assert html.count("Match over fabrics") == 3                       # the report's three models
+    ensembles = html.split("Seeds' ensembles")[1]                     # and a row for their ensemble
+    assert "0 + 1" in ensembles and '1.00 <span class="ci">[1.00, 1.00]</span>' in ensembles     # exact: 10 of 10
 
     # scored again without a second seed: no ensemble, and the earlier one's table is not left beside the new tables
     run_measured(run, models=models[:1], sequences=2, fabrics=fabrics, predictor=stub, progress=False, activations=0)
