@@ -33,6 +33,7 @@ each epoch.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import importlib.util
 import json
@@ -113,7 +114,7 @@ def run_epoch(net: torch.nn.Module, model: ClipClassifier, batches, device: torc
     training = optimizer is not None
     net.train(training)
     sums = torch.zeros(4, dtype=torch.float64, device=device)   # summed on the device: no sync per step
-    with torch.set_grad_enabled(training):
+    with torch.set_grad_enabled(training), _compile_failures_named():
         for x, y, target in tqdm(batches, desc=desc, disable=not progress, leave=False, total=total):
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
                 out = net(x, target) if training and truth_weight else net(x)
@@ -619,6 +620,21 @@ def forward_net(model: ClipClassifier, cfg: TrainConfig, device: torch.device,
                               "and study presets compile): install it, or set train.compile=false to train eager")
         net = torch.compile(net, mode=None if cfg.compile_mode == "default" else cfg.compile_mode)
     return net
+
+
+@contextlib.contextmanager
+def _compile_failures_named():
+    """torch.compile compiles at the first forward and backward pass: a backend that fails there (a missing C++
+    compiler, a Triton error) is a ConfigError that names its cause and the way around it."""
+    from torch._dynamo.exc import BackendCompilerFailed
+
+    try:
+        yield
+    except BackendCompilerFailed as e:
+        cause = getattr(e, "inner_exception", None) or e
+        raise ConfigError(f"torch.compile could not compile the network ({type(cause).__name__}: "
+                          f"{str(cause).strip().splitlines()[0] if str(cause).strip() else 'no message'}): set "
+                          "train.compile=false (or the recipe lever `eager`) to train without compiling") from e
 
 
 def train_epoch(t: Training, epoch: int, progress: bool = False) -> tuple[float, float, float]:

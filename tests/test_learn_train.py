@@ -609,3 +609,19 @@ def test_compile_readers_off_compiles_the_cnn_trainings_and_leaves_the_readers_e
     triton[0] = ""                                   # without Triton, compiling is refused by name
     with pytest.raises(ConfigError, match="train.compile=false"):
         learn.train.forward_net(model, paper.train, cuda)
+
+
+def test_a_compile_failure_is_named_with_the_way_around_it():
+    """torch.compile compiles at the first step; a backend that fails there (here a missing C++ compiler, as
+    Inductor reports it) stops training with its cause and the setting that trains without compiling."""
+    from torch._dynamo.exc import BackendCompilerFailed
+
+    from learn.train import run_epoch
+
+    class CompiledAndFailing(torch.nn.Module):
+        def forward(self, x):
+            raise BackendCompilerFailed(lambda *a: None, RuntimeError("No working C++ compiler found"), None)
+
+    batches = [(torch.zeros(2, 3), torch.zeros(2, dtype=torch.long), None)]
+    with pytest.raises(ConfigError, match=r"RuntimeError: No working C\+\+ compiler found.*train.compile=false"):
+        run_epoch(CompiledAndFailing(), None, batches, torch.device("cpu"))
