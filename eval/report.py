@@ -116,6 +116,7 @@ WHY_EMPTY = {
     "in_domain_gain": "not an in-domain row, or no in-domain row of the reference training variant",
     **{c: _CORRELATION_WHY for c in tables.CORRELATION_COLUMNS},
     "mean_share": "no gap to close: the in-domain model did no better",
+    "bending rank": _CORRELATION_WHY,
     "top-1 minus first (points)": "the reference recipe, or no test clip paired with it",
     "mean_gain": "no pair of training variants tells this axis apart",
     "pearson": "undefined: fewer than 3 points, or one side constant",
@@ -539,19 +540,22 @@ def _measured_ensembles(run: Run, info: dict) -> str:
                      and c.get("score") == "pred_bending_N_m" and c.get("target") == "bending_N_m"), {})
         row = {"model": tables.model_title(e["model"]), "trained on": e["train_variant"], "setting": e["setting"],
                "seeds": " + ".join(map(str, e.get("ensemble_of", [])))}
+        nan = lambda v: np.nan if v is None else v   # noqa: E731  (JSON null: an undefined interval)
         for score in ("within1", "exact", "k_within1_tables"):
             if score in match:
-                row.update({score: match[score]["value"], f"{score}_lo": match[score]["value_lo"],
-                            f"{score}_hi": match[score]["value_hi"]})
+                row.update({score: nan(match[score]["value"]), f"{score}_lo": nan(match[score]["value_lo"]),
+                            f"{score}_hi": nan(match[score]["value_hi"])})
         if bend:
-            row.update({"bending rank": bend["spearman"], "bending rank_lo": bend["spearman_lo"],
-                        "bending rank_hi": bend["spearman_hi"]})
+            row.update({"bending rank": nan(bend["spearman"]), "bending rank_lo": nan(bend["spearman_lo"]),
+                        "bending rank_hi": nan(bend["spearman_hi"])})
         rows.append(row)
     if not rows:
         return ""
     return ("<h3>Seeds' ensembles</h3><p>The models that differ only in their seed, read together (per clip the mean "
-            "of their probabilities), over fabrics with 95% intervals; <b>bending rank</b>: Spearman of the predicted "
-            "against the measured bending over fabrics. Per fabric: "
+            "of their probabilities), over fabrics with 95% intervals. <b>within1</b>, <b>exact</b>: against Table "
+            "2's class; <b>k_within1_tables</b>: the bending factor within one step of the class the fabric's own "
+            "tables give (a diagnostic: nearest to its measured stretching and bending over the basis's); "
+            "<b>bending rank</b>: Spearman of the predicted against the measured bending over fabrics. Per fabric: "
             f"{_link(run, run.eval_dir / 'measured_ensembles.csv')}.</p>"
             + _table(pd.DataFrame(rows), est=("within1", "exact", "k_within1_tables", "bending rank")))
 

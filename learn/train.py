@@ -40,6 +40,7 @@ import json
 import math
 import os
 import random
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -625,15 +626,17 @@ def forward_net(model: ClipClassifier, cfg: TrainConfig, device: torch.device,
 @contextlib.contextmanager
 def _compile_failures_named():
     """torch.compile compiles at the first forward and backward pass: a backend that fails there (a missing C++
-    compiler, a Triton error) is a ConfigError that names its cause and the way around it."""
-    from torch._dynamo.exc import BackendCompilerFailed
-
+    compiler, a Triton error) is a ConfigError that gives its cause and the way around it."""
     try:
         yield
-    except BackendCompilerFailed as e:
+    except Exception as e:
+        dynamo = sys.modules.get("torch._dynamo.exc")       # imported only once something was compiled
+        if dynamo is None or not isinstance(e, dynamo.BackendCompilerFailed):
+            raise
         cause = getattr(e, "inner_exception", None) or e
-        raise ConfigError(f"torch.compile could not compile the network ({type(cause).__name__}: "
-                          f"{str(cause).strip().splitlines()[0] if str(cause).strip() else 'no message'}): set "
+        lines = [line.strip() for line in str(cause).splitlines() if line.strip()][:6]
+        detail = "\n  ".join(lines)[:1500] or "no message"
+        raise ConfigError(f"torch.compile could not compile the network: {type(cause).__name__}: {detail}\nSet "
                           "train.compile=false (or the recipe lever `eager`) to train without compiling") from e
 
 

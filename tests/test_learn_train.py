@@ -618,10 +618,24 @@ def test_a_compile_failure_is_named_with_the_way_around_it():
 
     from learn.train import run_epoch
 
+    cause = RuntimeError("No working C++ compiler found\n  in /usr/bin/c++: not found")
+    try:
+        failure = BackendCompilerFailed(lambda *a: None, cause, None)
+    except TypeError:                                   # (backend, cause) before torch 2.6
+        failure = BackendCompilerFailed(lambda *a: None, cause)
+
     class CompiledAndFailing(torch.nn.Module):
         def forward(self, x):
-            raise BackendCompilerFailed(lambda *a: None, RuntimeError("No working C++ compiler found"), None)
+            raise failure
 
     batches = [(torch.zeros(2, 3), torch.zeros(2, dtype=torch.long), None)]
-    with pytest.raises(ConfigError, match=r"RuntimeError: No working C\+\+ compiler found.*train.compile=false"):
+    with pytest.raises(ConfigError, match=r"(?s)RuntimeError: No working C\+\+ compiler found\n  in /usr/bin/c\+\+: "
+                                          r"not found.*train.compile=false"):
         run_epoch(CompiledAndFailing(), None, batches, torch.device("cpu"))
+
+    class Failing(torch.nn.Module):                     # any other error stays itself
+        def forward(self, x):
+            raise ValueError("a model bug")
+
+    with pytest.raises(ValueError, match="a model bug"):
+        run_epoch(Failing(), None, batches, torch.device("cpu"))
