@@ -45,6 +45,7 @@ Pearson is taken on the raw values, as in Table 4 (``eval.real``); Spearman on r
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import time
@@ -402,9 +403,8 @@ DEFINITIONS = {
     "tables_class": "a diagnostic beside Table 2's class: the class nearest (in log space) to the fabric's "
                     "measured stretching and bending over the basis fabric's; within1_tables and "
                     "k_within1_tables score a prediction against it (both factors, and bending alone). It ignores "
-                    "density: the fabric is simulated at its own (0.40-1.14x the basis's), the classes at the "
-                    "basis's. On ten fabrics, always answering (1, 1) scores 8 of 10 on k_within1_tables, 6 on "
-                    "within1_tables and 5 on within1 (Table 2)",
+                    "density: the fabric is simulated at its own, the classes at the basis's. On few fabrics a "
+                    "constant answer scores these counts well too (docs/learning.md): read them beside the ranks",
     "correlations": "Pearson on raw values, Spearman on ranks; unit 'clip' resamples whole fabrics, "
                     "unit 'fabric' resamples fabrics",
 }
@@ -513,16 +513,24 @@ def score_model(run: Run, m, variant: str, names: list[str], *, predictor: Predi
     for the tables when no clip of its setting was rendered."""
     videos, status = predict_model(run, m, variant, names, predictor=predictor, activations=activations,
                                    progress=progress)
-    entry = {"setting": m.setting, "train_variant": m.variant, "model": m.model, "seed": m.seed,
-             **({"recipe": m.recipe} if m.recipe else {}),
+    key = _key(m.setting, m.variant, m.model, m.seed, variant)
+    entry = {**_named(key), **({"recipe": m.recipe} if m.recipe else {}),
              "checkpoint": _rel(run, m.checkpoint), "status": status}
     if videos is None:
         return entry, None
     folder = model_folder(run, m, variant)
-    key = {"setting": m.setting, "train_variant": m.variant, "model": m.model, "seed": m.seed,
-           "test_variant": variant}
     entry.update({"folder": _rel(run, folder), "clips": len(videos), "skipped": _count_rows(folder / "skipped.csv")})
     return _scored(run, entry, key, videos, checkpoint=_rel(run, m.checkpoint), folder=_rel(run, folder))
+
+
+def _key(setting: str, train_variant: str, model: str, seed, test_variant: str) -> dict:
+    """A model's (or an ensemble's) ``MODEL_KEYS`` columns in its tables."""
+    return dict(zip(MODEL_KEYS, (setting, train_variant, model, seed, test_variant)))
+
+
+def _named(key: dict) -> dict:
+    """The keys a summary entry names its model by (the tables' without the test variant)."""
+    return {k: v for k, v in key.items() if k != "test_variant"}
 
 
 def _scored(run: Run, entry: dict, key: dict, videos: pd.DataFrame, *, checkpoint: str, folder: str
@@ -589,17 +597,14 @@ def score_ensemble(run: Run, members: Sequence[TrainedModel], variant: str, name
     videos = pd.concat([videos, pd.DataFrame(probs, columns=preds.PROB_COLUMNS)], axis=1)
     label = ensemble_label(members)
     recipe = recipe_without_seeds(first.recipe)
-    root = run.eval_dir / "measured" / variant / (Path("ablation") / recipe if recipe else Path())
-    folder = root / first.setting / first.variant / first.model / f"ensemble-s{label}"
+    folder = model_folder(run, dataclasses.replace(first, recipe=recipe), variant).with_name(f"ensemble-s{label}")
     atomic_write_text(folder / "videos.csv", videos.to_csv(index=False, float_format="%.6g"))
     atomic_write_json(folder / "ensemble.json", {"members": [
         {"seed": m.seed, "checkpoint": _rel(run, m.checkpoint), "checkpoint_sha256": checkpoint_sha256(m)}
         for m in members], "clips": common})
     clips = _clip_fabrics(run.measured_render_dir(variant, first.setting), names)
-    key = {"setting": first.setting, "train_variant": first.variant, "model": first.model, "seed": label,
-           "test_variant": variant}
-    entry = {"setting": first.setting, "train_variant": first.variant, "model": first.model, "seed": label,
-             **({"recipe": recipe} if recipe else {}), "ensemble_of": [m.seed for m in members],
+    key = _key(first.setting, first.variant, first.model, label, variant)
+    entry = {**_named(key), **({"recipe": recipe} if recipe else {}), "ensemble_of": [m.seed for m in members],
              "members": [_rel(run, m.checkpoint) for m in members], "folder": _rel(run, folder),
              "clips": len(common)}
     return _scored(run, entry, key, with_fabrics(videos, clips), folder=_rel(run, folder),

@@ -540,14 +540,11 @@ def _measured_ensembles(run: Run, info: dict) -> str:
                      and c.get("score") == "pred_bending_N_m" and c.get("target") == "bending_N_m"), {})
         row = {"model": tables.model_title(e["model"]), "trained on": e["train_variant"], "setting": e["setting"],
                "seeds": " + ".join(map(str, e.get("ensemble_of", [])))}
-        nan = lambda v: np.nan if v is None else v   # noqa: E731  (JSON null: an undefined interval)
-        for score in ("within1", "exact", "k_within1_tables"):
-            if score in match:
-                row.update({score: nan(match[score]["value"]), f"{score}_lo": nan(match[score]["value_lo"]),
-                            f"{score}_hi": nan(match[score]["value_hi"])})
-        if bend:
-            row.update({"bending rank": nan(bend["spearman"]), "bending rank_lo": nan(bend["spearman_lo"]),
-                        "bending rank_hi": nan(bend["spearman_hi"])})
+        cells = [(score, match[score], "value") for score in ("within1", "exact", "k_within1_tables") if score in match]
+        cells += [("bending rank", bend, "spearman")] if bend else []
+        for column, found, field in cells:       # value, lo, hi; a JSON null (an undefined interval) as NaN
+            row.update({f"{column}{end}": np.nan if found[f"{field}{end}"] is None else found[f"{field}{end}"]
+                        for end in ("", "_lo", "_hi")})
         rows.append(row)
     if not rows:
         return ""
