@@ -164,7 +164,7 @@ class CachedPredictor:
     every model predicting on it in a row (eval: a setting's models on one test variant).
 
     It keeps the frames of the last (clip list, image size) only, so memory stays flat across clip lists
-    (a setting's test clips at 112 px are ~2.6 GB at the `paper` preset's 192 sequences a class). A reused
+    (a setting's test clips at 112 px are ~5.2 GB at the `paper` preset's 384 sequences a class). A reused
     list's left-out clips are warned of again.
     """
 

@@ -10,3 +10,7 @@ ngpu=$(echo "$gpus" | tr ',' '\n' | grep -c . || true); [ "${ngpu:-0}" -ge 1 ] |
 # daemon (--cuda-mps auto): 2.2x one worker a GPU on four H100s (benchmarks/results/render_stage-mps-h100x4-n2592.json),
 # where four a GPU without MPS gained nothing; empty without GPUs (a CPU dry run renders in one process).
 gpu_render_args=; [ -n "$gpus" ] && gpu_render_args="--executor process --gpus-per-worker 0.25"
+# gpu_sim_args: with several GPUs, one simulation worker a GPU (the study's sim ran so on four H100s,
+# study-h100x4.json); one GPU or none: one process (a setting's 20,736 uniform clips took 81.8 s on one of four
+# H100s while three idled, learn_data384-arm-uniform1-h100x4.json).
+gpu_sim_args=; [ -n "$gpus" ] && [ "$ngpu" -gt 1 ] && gpu_sim_args="--executor process --workers $ngpu --gpus-per-worker 1"

@@ -1,13 +1,14 @@
 #!/usr/bin/env bash
 # GPU: one setting of the paper's study at full size through the real CLI, stage by stage.
 #   STAGES="sim render" bash scripts/gpu/paper_study.sh     (then "train", then "eval report")
-#   SEQ=48 simulates the paper's 48 sequences per class instead of the preset's 192 (a quarter of the render time).
+#   SEQ=48 simulates the paper's 48 sequences per class instead of the preset's 384 (an eighth of the render time).
 #   RENDER_ARGS: the default is gpus.sh's gpu_render_args (four workers a GPU under clothgap's MPS daemon).
 #   TRAIN_ARGS (default "--parallel <4 x GPUs>") trains that many models at once over the machine's GPUs.
 #   EVAL_ARGS (default RENDER_ARGS) spreads the simulation and rendering of the measured-fabric set over the same
 #   workers (without MPS unless it adds --cuda-mps on: --cuda-mps auto serves the render stage only).
-#   SIM_ARGS="--executor process --workers 2 --gpus-per-worker 0.5" simulates two shards on one GPU, so one's
-#   host work (an adaptive setting's health, remesh and rebuild: a third of its stage) overlaps the other's steps.
+#   SIM_ARGS (default gpus.sh's gpu_sim_args: one worker a GPU where there are several, else one process);
+#   "--executor process --workers 2 --gpus-per-worker 0.5" simulates two shards on one GPU, so one's host work
+#   (an adaptive setting's health, remesh and rebuild: a third of its stage) overlaps the other's steps.
 #   The paper preset writes each clip's frames.npy alone; EXTRA='--set render.write_png=true' adds the PNGs
 #   (the cost every clip paid before). The render line's summary has frames and seconds: frames/s over the
 #   ceiling of scripts/gpu/render_bench.sh (RESOLUTIONS=112) on the same machine is the render's ratio.
@@ -22,7 +23,7 @@ source scripts/gpu/env.sh
 RUN=${RUN:-/tmp/paper_study}
 STAGES=${STAGES:-"sim render train eval report"}
 # Batches of 2,592 cloths, adaptive ones too: 3.7 GB of GPU memory per 432 adaptive cloths since the leak fix
-# (docs/simulation.md), ~19 GB for 2,592 (the preset's 192 sequences a class are four batches a setting).
+# (docs/simulation.md), ~19 GB for 2,592 (the preset's 384 sequences a class are eight batches a setting).
 # BATCH=N cuts a setting into batches of N cloths.
 # PRESET=study runs that preset as it is (its twelve datasets; SEQ and EXTRA still apply).
 PRESET=${PRESET:-paper}
@@ -36,6 +37,7 @@ fi
 # Every GPU of the machine: render shards four workers a GPU under MPS,
 # training runs four models at a time per GPU (a model leaves most of an H100 idle). Set to override.
 source "$(dirname "$0")/gpus.sh"
+SIM_ARGS=${SIM_ARGS-$gpu_sim_args}
 RENDER_ARGS=${RENDER_ARGS-$gpu_render_args}
 TRAIN_ARGS=${TRAIN_ARGS-"--parallel $((4 * ngpu))"}
 EVAL_ARGS=${EVAL_ARGS-$RENDER_ARGS}

@@ -3,7 +3,7 @@
 # also scored as its two seeds' ensemble) with the models' lattice regressor shared: lrcn trains its CNN, and
 # base1, base2 and base3 train their readers alone on lrcn's frozen CNN (train.shared_regressor=lrcn). In the
 # bottleneck recipe the class loss never reaches the CNN, so the four models train the same pixels -> lattice
-# regressor: a row costs two CNN trainings instead of about seven (at the preset's 192 sequences a class a row
+# regressor: a row costs two CNN trainings instead of about seven (at 192 sequences a class a row
 # wants two GPUs for one session: docs/learning.md, sixteenth and seventeenth sessions).
 #   bash scripts/gpu/table3_shared.sh data RUN     simulate and render (the run is made on first use)
 #   bash scripts/gpu/table3_shared.sh train RUN    lrcn seeds 0 and 1, then the readers; with OWN=1 also base1
