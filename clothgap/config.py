@@ -128,7 +128,7 @@ def _small() -> StudyConfig:
 
 
 def _paper() -> StudyConfig:
-    # The paper's setting (Section 7.1) for one GPU, with four times its 2,592 sequences a setting. Wind clips vary
+    # The paper's setting (Section 7.1) for one GPU, with eight times its 2,592 sequences a setting. Wind clips vary
     # only the wind speed, as the paper varies "the external force magnitude" (docs/learnability.md:
     # with pose, gathering and direction drawn too, the geometry of new simulations tells a plain MLP
     # 27 % of the classes; with speed alone, 84 %); arm clips likewise draw only the forearm's speed
@@ -161,16 +161,17 @@ def _paper() -> StudyConfig:
     # 192 over 96 +8.5 points [+5.8, +11.0] (on test clips 44.0 against 35.0 %;
     # benchmarks/results/learn_data192-arm-uniform1-h100x2.json), 384 over 192 +10.3 [+8.5, +11.9] (on test clips
     # 68.1 against 57.3 %, 90.6 % within one bin; benchmarks/results/learn_data384-arm-uniform1-h100x4.json), each
-    # for twice a setting's sim, render and epoch time; on wind, which reads 89 % at 192, neither was measured.
-    # Arm's cloth framed 1.3x closer than its camera box (sim.arm_view_zoom), chosen on arm's validation windows at 192 a class (+10.0 points [+7.6, +12.5]; on test
-    # clips 57.9 against 49.2 %, seeds 0 and 1 pooled, the same simulations rendered both ways;
-    # benchmarks/results/table3-close192-arm-h100x2.json): its cloth is wide and low in the box, which holds
-    # the rarest poses. Wind's framing was not compared. 120 epochs over 80 were not chosen (arm's validation
-    # windows -1.0 points [-3.0, +1.0]; benchmarks/results/learn_epochs120-arm-uniform1-h100x2.json). The CNN
-    # trainings replay CUDA graphs (train.compile, mode reduce-overhead): at 192 a class, two lrcn a GPU, an epoch
-    # took 6.10 s against 8.05 eager (1.32x; about 21 s more in the first epoch to compile), the same file; the
-    # readers on the shared regressor stay eager (train.compile_readers=false): graphs ran base2's and base3's
-    # 1.1-1.6x slower and base1's 1.26x faster (docs/learning.md). Compiling changes rounding, not the computation.
+    # for twice a setting's sim, render and epoch time. Wind, measured after the choices: 192 over 96 +8.9 points
+    # on test clips (89.2 against 80.3 %, benchmarks/results/table3-192-wind-h100x2.json); 384 not measured.
+    # Arm's cloth framed 1.3x closer than its camera box (sim.arm_view_zoom), chosen on arm's validation windows at 192
+    # a class (+10.0 points [+7.6, +12.5]; on test clips 57.9 against 49.2 %, seeds 0 and 1 pooled, the same simulations
+    # rendered both ways; benchmarks/results/table3-close192-arm-h100x2.json): its cloth is wide and low in the box,
+    # which holds the rarest poses. Wind's framing was not compared. 120 epochs over 80 were not chosen (arm's
+    # validation windows -1.0 points [-3.0, +1.0]; benchmarks/results/learn_epochs120-arm-uniform1-h100x2.json). The CNN
+    # trainings replay CUDA graphs (train.compile, mode reduce-overhead): at 192 a class, two lrcn a GPU, an epoch took
+    # 6.10 s against 8.05 eager (1.32x; about 21 s more in the first epoch to compile), the same file; the readers on
+    # the shared regressor stay eager (train.compile_readers=false): graphs ran base2's and base3's 1.1-1.6x slower and
+    # base1's 1.26x faster (docs/learning.md). Compiling changes rounding, not the computation.
     return StudyConfig(
         name="paper",
         sim=SimConfig(motions=("wind", "arm"), remeshing=("uniform1", "uniform2", "uniform3", "adaptive"),

@@ -2,7 +2,7 @@
 # GPU: one setting at full size, data to Table 3 row, one command per call until it is done.
 #   RUN=/tmp/wind bash scripts/gpu/more_data.sh                 (call it again after a cut-off: it goes on)
 #   MOTIONS=arm RUN=/tmp/arm bash scripts/gpu/more_data.sh      arm-uniform1
-#   SEQ=144 ... sequences per class (default: the preset's, 192); LEVERS="..." the lrcn recipes beside the row's
+#   SEQ=144 ... sequences per class (default: the preset's, 384); LEVERS="..." the lrcn recipes beside the row's
 #   ROW=best+clip_len=40 ... the recipe of the Table 3 row (default `best`, the preset's recipe), the levers' reference
 # 1. the setting at the paper preset (sim + render, scripts/gpu/paper_study.sh);
 # 2. one training pool over the machine's GPUs (scripts/gpu/learn_grid.py): the Table 3 row (lrcn, base1,
