@@ -161,7 +161,8 @@ def _paper() -> StudyConfig:
     # 192 over 96 +8.5 points [+5.8, +11.0] (on test clips 44.0 against 35.0 %;
     # benchmarks/results/learn_data192-arm-uniform1-h100x2.json), 384 over 192 +10.3 [+8.5, +11.9] (on test clips
     # 68.1 against 57.3 %, 90.6 % within one bin; benchmarks/results/learn_data384-arm-uniform1-h100x4.json), each
-    # for twice a setting's sim, render and epoch time. Wind, measured after the choices: 192 over 96 +8.9 points
+    # for twice a setting's sim, render, epoch time and disk (at 384: ~31 GB of frames.npy at 112 px and as much
+    # for the frame cache, a setting). Wind, measured after the choices: 192 over 96 +8.9 points
     # on test clips (89.2 against 80.3 %, benchmarks/results/table3-192-wind-h100x2.json); 384 not measured.
     # Arm's cloth framed 1.3x closer than its camera box (sim.arm_view_zoom), chosen on arm's validation windows at 192
     # a class (+10.0 points [+7.6, +12.5]; on test clips 57.9 against 49.2 %, seeds 0 and 1 pooled, the same simulations
