@@ -155,15 +155,14 @@ def _paper() -> StudyConfig:
     # (train.shared_regressor), a Table 3 row in two CNN trainings instead of about seven; on wind's
     # validation windows base1 and base2 lost nothing that way against their own CNN (+5.9 [+1.9, +9.6] and
     # +4.6 [+0.6, +8.5] points, one seed: one draw of the regressors' spread;
-    # benchmarks/results/table3-shared-wind-arm-h100x2-n5184.json). 384 sequences a class (20,736 clips a
-    # setting), chosen on arm's validation windows each time the data doubled, seeds 0 and 1 pooled, the same
-    # validation and test clips, the smaller set being half of the training sequences (train.train_fraction=0.5):
-    # 192 over 96 +8.5 points [+5.8, +11.0] (on test clips 44.0 against 35.0 %;
-    # benchmarks/results/learn_data192-arm-uniform1-h100x2.json), 384 over 192 +10.3 [+8.5, +11.9] (on test clips
-    # 68.1 against 57.3 %, 90.6 % within one bin; benchmarks/results/learn_data384-arm-uniform1-h100x4.json), each
-    # for twice a setting's sim, render, epoch time and disk (at 384: ~31 GB of frames.npy at 112 px and as much
-    # for the frame cache, a setting). Wind, measured after the choices: 192 over 96 +8.9 points
-    # on test clips (89.2 against 80.3 %, benchmarks/results/table3-192-wind-h100x2.json); 384 not measured.
+    # benchmarks/results/table3-shared-wind-arm-h100x2-n5184.json). 384 sequences a class (20,736 clips a setting),
+    # chosen on arm's validation windows each time the data doubled, seeds 0 and 1 pooled, the same validation and test
+    # clips, the smaller set being half of the training sequences (train.train_fraction=0.5): 192 over 96 +8.5 points
+    # [+5.8, +11.0] (on test clips 44.0 against 35.0 %; benchmarks/results/learn_data192-arm-uniform1-h100x2.json), 384
+    # over 192 +10.3 [+8.5, +11.9] (on test clips 68.1 against 57.3 %, 90.6 % within one bin;
+    # benchmarks/results/learn_data384-arm-uniform1-h100x4.json), each for twice a setting's sim, render, epoch time and
+    # disk (at 384: ~31 GB of packed frames at 112 px a setting). Wind, measured after the choices: 192 over 96 +8.9
+    # points on test clips (89.2 against 80.3 %, benchmarks/results/table3-192-wind-h100x2.json); 384 not measured.
     # Arm's cloth framed 1.3x closer than its camera box (sim.arm_view_zoom), chosen on arm's validation windows at 192
     # a class (+10.0 points [+7.6, +12.5]; on test clips 57.9 against 49.2 %, seeds 0 and 1 pooled, the same simulations
     # rendered both ways; benchmarks/results/table3-close192-arm-h100x2.json): its cloth is wide and low in the box,
@@ -178,9 +177,10 @@ def _paper() -> StudyConfig:
         sim=SimConfig(motions=("wind", "arm"), remeshing=("uniform1", "uniform2", "uniform3", "adaptive"),
                       sequences_per_class=384, frames=40, device="cuda", wind_nuisance="speed",
                       arm_nuisance="speed", arm_view_zoom=1.3, self_collision=True),
-        # frames.npy only: PNG and EXR cost more host time than the path tracer at 112 px (render.frames)
+        # The network's frames only, packed: PNG and EXR cost more host time than the path tracer at 112 px
+        # (render.frames), and packed frames are on disk once (a setting at 384 a class: ~31 GB, not twice that)
         render=RenderConfig(variants=("paper",), resolution=112, spp=16, backend="cuda_ad_rgb",
-                            write_png=False, write_hdr=False),
+                            write_png=False, write_hdr=False, pack_frames=True),
         train=TrainConfig(models=("lrcn", "base1", "base2", "base3"), image_size=112, epochs=80,
                           batch_size=16, clip_len=40, weight_decay=0.05, width=64, fc6=512, hidden=256, device="cuda",
                           motion=True, keep="best", bottleneck=True, dropout=0.0, reader_truth=1.0,

@@ -5,6 +5,7 @@ Layout of a run (``runs/<name>`` unless the user names another folder)::
     config.json                                  resolved study config
     sim/<setting>/<clip_id>/                     clip.npz, meta.json, DONE
     render/<variant>/<setting>/<clip_id>/        frames.npy, [ldr/*.png, hdr/*.exr,] meta.json, DONE
+    render/<variant>/<setting>/frames-<H>px.npy  with render.pack_frames: the clips' frames, none a clip
     splits/<setting>.json                        train/val/test clip ids (by sequence)
     train/<setting>/<variant>/<model>/s<seed>/   checkpoint.pt, metrics.csv, tb/, DONE
     eval/                                        predictions, tables (CSV, JSON)

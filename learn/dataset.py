@@ -7,7 +7,10 @@ beside it saying where each clip's frames start. Each clip's frames come from
 its ``frames.npy`` (copied as they are, or resized when ``size`` is not the
 render resolution), or, in clip folders without one, from its PNGs
 (``render.frames.read_clip_frames``). The index is written last, so a cache
-without one is unfinished and is rebuilt.
+without one is unfinished and is rebuilt. When every clip's frames went into
+its setting's packed array at render time (``render.pack_frames``) and ``size``
+is the render resolution, nothing is copied: the index points into that array
+(its ``array``, relative to the run).
 
 A sequence of T frames yields sub-sequences starting every ``clip_stride``
 frames (``clip_len`` frames each); ``learn.windows`` cuts them into batches. A
@@ -32,7 +35,7 @@ from clothgap.errors import MissingInputError, StorageError
 from clothgap.files import atomic_path
 from clothgap.parallel import chunk_size, pool_map, pool_size
 from clothgap.runs import Run, atomic_write_json, read_meta
-from render.frames import copy_frames_into, frame_count, read_clip_frames
+from render.frames import STORE_KEY, copy_frames_into, frame_count, read_clip_frames
 
 CACHE_VERSION = 1
 # A pool builds a cache of at least this many clips on a host of at least this many CPUs: copying is bound by
@@ -112,10 +115,24 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
         if index.get("version") == CACHE_VERSION and index.get("signature") == signature:
             for cid, reason in index["skipped"].items():
                 warnings.warn(f"{reason}; clip left out of {variant}/{setting} (cached)", stacklevel=2)
-            return FrameCache(array_path, [CachedClip(**c) for c in index["clips"]])
+            array = run.root / index["array"] if "array" in index else array_path
+            return FrameCache(array, [CachedClip(**c) for c in index["clips"]])
         index_path.unlink(missing_ok=True)   # stale: rebuilt below
 
     metas = {cid: read_meta(render_dir / cid, "render") for cid in clip_ids}
+    store = _packed_store(render_dir, metas, size)
+    if store is not None:
+        # Every clip is in its setting's packed array at this size: index it in place, on disk first (as a
+        # copied cache is before it is renamed into place).
+        with open(store, "rb+") as f:
+            os.fsync(f.fileno())
+        clips = [CachedClip(cid, int(metas[cid]["class_index"]), int(metas[cid][STORE_KEY]["row"]),
+                            int(metas[cid][STORE_KEY]["frames"])) for cid in clip_ids]
+        array_path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_json(index_path, {"version": CACHE_VERSION, "size": size, "signature": signature,
+                                       "array": str(store.relative_to(run.root)),
+                                       "clips": [c.__dict__ for c in clips], "skipped": {}})
+        return FrameCache(store, clips)
     counts = [frame_count(render_dir / cid, metas[cid]) for cid in clip_ids]
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(int).tolist()
     total = offsets[-1]
@@ -151,6 +168,26 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
     atomic_write_json(index_path, {"version": CACHE_VERSION, "size": size, "signature": signature,
                                    "clips": [c.__dict__ for c in clips], "skipped": skipped})
     return FrameCache(array_path, clips)
+
+
+def _packed_store(render_dir: Path, metas: dict[str, dict], size: int) -> Path | None:
+    """The one packed array (``render.pack_frames``) that holds every clip's frames at ``size``, or None: some clip
+    has a frames.npy or PNGs instead, the clips name different arrays, or the array is of another size."""
+    pointers = [m.get(STORE_KEY) for m in metas.values()]
+    if not pointers or any(not isinstance(p, dict) for p in pointers) or len({p.get("file") for p in pointers}) != 1:
+        return None
+    path = render_dir / str(pointers[0]["file"])
+    try:
+        store = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError, EOFError):
+        return None             # the copying path names each clip it cannot read
+    try:
+        rows = [(int(p["row"]), int(p["frames"])) for p in pointers]
+    except (KeyError, TypeError, ValueError):
+        return None
+    fits = store.dtype == np.uint8 and store.ndim == 4 and store.shape[1:] == (size, size, 3) and all(
+        0 <= row and row + count <= store.shape[0] for row, count in rows)
+    return path if fits else None
 
 
 # ---------------------------------------------------------------- samples

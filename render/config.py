@@ -27,6 +27,9 @@ class RenderConfig:
     write_hdr: bool = True                  # also write linear OpenEXR frames (hdr/); tone mapping needs none
     write_png: bool = True                  # also write the tone-mapped frames as PNGs (ldr/) to look at; the
                                             # network reads frames.npy, written always (render.frames)
+    pack_frames: bool = False               # the network's frames straight into one array a (variant, setting),
+                                            # frames-<H>px.npy, instead of a frames.npy a clip: the frame cache at
+                                            # the render resolution is that array, so the frames are on disk once
     frames_per_launch: int = 0              # frames of a clip per Mitsuba launch (render.batch); 1 = one scene,
                                             # one frame per render call; 0 = auto (AUTO_FRAMES_PER_LAUNCH)
     writer_threads: int = 4                 # threads that tone-map (and write EXR/PNG) while the next frames render

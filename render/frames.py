@@ -7,8 +7,13 @@ In a clip folder (``render/<variant>/<setting>/<clip_id>/``)::
     ldr/0000.png   the same frames as 8-bit PNGs, when ``render.write_png`` is on; the only frames of
                    clips rendered before frames.npy existed, and of real-video and synthetic clips
 
-``read_clip_frames`` reads either (the array when the folder has one), so every
-reader of rendered frames takes old and new folders alike. A clip whose frames
+With ``render.pack_frames`` the frames go straight into one array a (variant, setting) instead,
+``render/<variant>/<setting>/frames-<H>px.npy`` (``FrameStore``: clip index i at rows i*T..(i+1)*T),
+and the clip's ``meta.json`` names its rows (``frames_store``); the frame cache at the render
+resolution is that array itself (``learn.dataset``), so a setting's frames are on disk once.
+
+``read_clip_frames`` reads any of the three (the clip's array, else its rows of the store, else
+its PNGs), so every reader of rendered frames takes old and new folders alike. A clip whose frames
 are missing, truncated or of the wrong shape raises ``FrameError`` naming the
 file; callers leave the clip out with a warning.
 
@@ -20,15 +25,20 @@ To look at a clip frame by frame when only the array was written::
 from __future__ import annotations
 
 import argparse
+import fcntl
+import json
+import shutil
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
+from clothgap.errors import StorageError
 from clothgap.files import atomic_path
 
 FRAMES_FILE = "frames.npy"
 LDR_DIR = "ldr"
+STORE_KEY = "frames_store"          # a packed clip's meta: {"file": store name, "row": first row, "frames": T}
 
 
 class FrameError(RuntimeError):
@@ -44,6 +54,62 @@ def write_frames(clip_dir: Path, frames: np.ndarray) -> Path:
     with atomic_path(path, keep_suffix=True) as tmp, open(tmp, "wb") as f:
         np.save(f, np.ascontiguousarray(frames))
     return path
+
+
+def store_path(setting_dir: Path, resolution: int) -> Path:
+    """Where a (variant, setting)'s packed frames live: ``<setting_dir>/frames-<resolution>px.npy``."""
+    return Path(setting_dir) / f"frames-{resolution}px.npy"
+
+
+class FrameStore:
+    """The packed frames of one (variant, setting): a (clips x T, H, W, 3) uint8 ``.npy``, clip index i at rows
+    i*T..(i+1)*T, so that render workers write disjoint rows of one file without coordinating.
+
+    The file is made once, at its full size (sparse where the file system allows), under a lock beside it, by
+    whichever process needs it first; others open it. A clip's rows are only trusted once its folder is ``DONE``:
+    a killed render leaves rows that the next render writes again.
+    """
+
+    def __init__(self, path: Path, clips: int, frames: int, resolution: int):
+        self.path, self.clips, self.frames, self.resolution = Path(path), clips, frames, resolution
+        self.shape = (clips * frames, resolution, resolution, 3)
+        with open(self.path.with_name(self.path.name + ".lock"), "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if not self.path.is_file():
+                self._create()
+        try:
+            mapped = np.load(self.path, mmap_mode="r", allow_pickle=False)
+        except (OSError, ValueError, EOFError) as err:
+            raise FrameError(f"{self.path} is unreadable ({err}): remove it and its clips' DONE markers to render "
+                             f"them again") from err
+        shape, dtype, self._header = mapped.shape, mapped.dtype, mapped.offset
+        del mapped
+        if tuple(shape) != self.shape or dtype != np.uint8:
+            raise FrameError(f"{self.path} holds a {dtype} array of shape {tuple(shape)}, not {self.shape}: it was "
+                             f"made for other settings; remove it and its clips' DONE markers to render them again")
+
+    def _create(self) -> None:
+        need = int(np.prod(self.shape))
+        free = shutil.disk_usage(self.path.parent).free
+        if need > free:
+            raise StorageError(f"the packed frames {self.path} need {need / 2**30:.2f} GiB but {self.path.parent} "
+                               f"has {free / 2**30:.2f} GiB free: free some space and run the same command again")
+        with atomic_path(self.path, keep_suffix=True) as tmp:
+            np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=self.shape)
+
+    def write(self, index: int, frames: np.ndarray) -> dict:
+        """Write clip ``index``'s (T, H, W, 3) uint8 frames into its rows; returns the pointer its meta keeps."""
+        if frames.shape != (self.frames, self.resolution, self.resolution, 3) or frames.dtype != np.uint8:
+            raise ValueError(f"{self.path}: clip {index}'s frames are {frames.shape} {frames.dtype}, its rows "
+                             f"take ({self.frames}, {self.resolution}, {self.resolution}, 3) uint8")
+        if not 0 <= index < self.clips:
+            raise ValueError(f"{self.path}: clip index {index} is outside its {self.clips} clips")
+        row = index * self.frames
+        rows = np.memmap(self.path, dtype=np.uint8, mode="r+", shape=frames.shape,
+                         offset=self._header + row * self.resolution * self.resolution * 3)
+        rows[:] = frames
+        del rows        # in the page cache, which every process shares; the frame cache syncs the file before use
+        return {"file": self.path.name, "row": row, "frames": self.frames}
 
 
 def png_path(clip_dir: Path, t: int) -> Path:
@@ -76,7 +142,8 @@ def open_clip_frames(clip_dir: Path, num_frames: int | None = None) -> np.ndarra
     clip_dir = Path(clip_dir)
     array = clip_dir / FRAMES_FILE
     if not array.is_file():
-        return _read_pngs(clip_dir, num_frames)
+        pointer = stored_rows(clip_dir)
+        return _read_store(clip_dir, pointer, num_frames) if pointer else _read_pngs(clip_dir, num_frames)
     try:
         frames = np.load(array, mmap_mode="r", allow_pickle=False)
     except (OSError, ValueError, EOFError) as err:     # truncated, not an .npy, or a header that lies
@@ -87,6 +154,30 @@ def open_clip_frames(clip_dir: Path, num_frames: int | None = None) -> np.ndarra
         raise FrameError(f"clip {clip_dir.name}: frames {array} hold a {frames.dtype} array of shape "
                          f"{frames.shape}, not {count} frames of (H, W, 3) uint8")
     return frames
+
+
+def stored_rows(clip_dir: Path) -> dict | None:
+    """A packed clip's pointer into its setting's store (its meta's ``frames_store``), or None."""
+    try:
+        return json.loads((Path(clip_dir) / "meta.json").read_text()).get(STORE_KEY)
+    except (OSError, ValueError):
+        return None
+
+
+def _read_store(clip_dir: Path, pointer: dict, num_frames: int | None) -> np.ndarray:
+    path = Path(clip_dir).parent / str(pointer.get("file"))
+    try:
+        store = np.load(path, mmap_mode="r", allow_pickle=False)
+        row, count = int(pointer["row"]), int(pointer["frames"])
+    except (OSError, ValueError, EOFError, KeyError, TypeError) as err:
+        raise FrameError(f"clip {Path(clip_dir).name}: its packed frames {path} are unreadable ({err})") from err
+    if num_frames is not None and int(num_frames) != count:
+        raise FrameError(f"clip {Path(clip_dir).name}: its meta says {num_frames} frames, its rows of {path} {count}")
+    if store.dtype != np.uint8 or store.ndim != 4 or store.shape[-1] != 3 or count == 0 or row < 0 \
+            or row + count > store.shape[0]:
+        raise FrameError(f"clip {Path(clip_dir).name}: rows {row}..{row + count} of {path} (a {store.dtype} array "
+                         f"of shape {store.shape}) are not {count} frames of (H, W, 3) uint8")
+    return store[row:row + count]
 
 
 def copy_frames_into(array_path: str, tasks: list[tuple[str, int, int]], size: int) -> dict:

@@ -49,7 +49,7 @@ from render.backgrounds import Backgrounds
 from render.batch import BatchRenderer, batchable
 from render.config import RenderConfig, frames_per_launch
 from render.exr import write_exr
-from render.frames import LDR_DIR, write_frames, write_png
+from render.frames import LDR_DIR, STORE_KEY, FrameStore, store_path, write_frames, write_png
 from render.scene import ClipRenderer
 from render.variants import RenderVariant, get_variant
 from render.video import compress_frames
@@ -70,8 +70,11 @@ def clip_index_of(clip: SimClip, clip_dir: Path) -> int:
 
 def render_clip(clip: SimClip, variant: RenderVariant, out_dir: Path, *, config: RenderConfig, run_seed: int,
                 clip_index: int, backgrounds: Backgrounds | None = None, writer: Executor | None = None,
-                device_finish: bool = True) -> dict:
+                device_finish: bool = True, store: FrameStore | None = None) -> dict:
     """Render all frames of ``clip`` into ``out_dir`` (frames.npy, ldr/, hdr/, meta.json); returns the meta written.
+
+    With a ``store`` (``render.pack_frames``) the frames go into the clip's rows of it instead of frames.npy,
+    and the meta names those rows (``frames_store``).
 
     ``writer`` runs the per-frame host work (composite and tone map on the host
     path, EXR and PNG writes) beside the renderer; without one, a pool of
@@ -95,7 +98,10 @@ def render_clip(clip: SimClip, variant: RenderVariant, out_dir: Path, *, config:
         if png:
             for t, frame in enumerate(ldr):
                 write_png(out_dir, t, frame)
-    write_frames(out_dir, ldr)
+    # (a clip of another length than its store's slots keeps a frames.npy)
+    pointer = store.write(clip_index, ldr) if store is not None and len(ldr) == store.frames else None
+    if pointer is None:
+        write_frames(out_dir, ldr)
     meta = dict(clip.meta)
     meta.update({
         "variant": variant.name,
@@ -107,6 +113,7 @@ def render_clip(clip: SimClip, variant: RenderVariant, out_dir: Path, *, config:
                    **({"unbatched_because": unbatched} if unbatched else {}),
                    "seconds": round(time.perf_counter() - start, 3)},
         "num_frames": clip.num_frames,
+        **({STORE_KEY: pointer} if pointer else {}),
     })
     atomic_write_json(out_dir / "meta.json", meta)
     return meta
@@ -231,6 +238,18 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
     if variants is None:
         variants = list({v.name: v for v, *_ in jobs}.values())
     backgrounds = {v.name: Backgrounds(v, config.resolution) for v in variants}
+    stores: dict[Path, FrameStore] = {}
+
+    def store_of(out_dir: Path) -> FrameStore | None:
+        # One store a (variant, setting) folder, a slot a clip index; made or opened before its first clip
+        # renders, so a full disk or a store of other settings stops the stage instead of failing each clip.
+        if not config.pack_frames:
+            return None
+        path = store_path(out_dir.parent, config.resolution)
+        if path not in stores:
+            stores[path] = FrameStore(path, run.config.sim.num_clips(), run.config.sim.frames, config.resolution)
+        return stores[path]
+
     summary: dict = {"backend": mi.variant(), "rendered": 0, "skipped": 0, "failed": [], "frames": 0}
     start = time.perf_counter()
     render_seconds = 0.0
@@ -242,10 +261,15 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
         fresh_dir(out_dir)
         clip_start = time.perf_counter()
         try:
+            store = store_of(out_dir)
+        except BaseException:
+            writer.shutdown(wait=True)
+            raise
+        try:
             clip = SimClip.load(clip_dir)
             meta = render_clip(clip, variant, out_dir, config=config, run_seed=run.config.seed,
                                clip_index=clip_index_of(clip, clip_dir), backgrounds=backgrounds[variant.name],
-                               writer=writer)
+                               writer=writer, store=store)
         except Exception as e:  # one bad clip must not stop the run; it is recorded and reported
             storage = storage_error(e, out_dir) if isinstance(e, OSError) else None
             if storage is not None:
@@ -292,4 +316,4 @@ def render_measured(run: Run, variant: str, clips: Mapping[str, Sequence[str]] |
             for name in run.done_clips(run.measured_sim_dir(setting)) if names is None or name in names]
     # The measured set is read as image folders through the real-video path (eval.measured): it keeps PNGs.
     return render_jobs(run, jobs, progress, label="render measured", variants=[chosen],
-                       config=replace(run.config.render, write_png=True))
+                       config=replace(run.config.render, write_png=True, pack_frames=False))

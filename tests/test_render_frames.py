@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 from dataclasses import replace
 
@@ -124,3 +125,76 @@ def test_srgb_to_linear_is_colour_sciences_curve():
         values[:4] = [0.0, 1.0, 0.04045, float(colour.models.eotf_inverse_sRGB(0.0031308))]
         expected = np.asarray(colour.models.eotf_sRGB(np.clip(values, 0.0, 1.0)), np.float32)
         assert np.array_equal(srgb_to_linear(values), expected), dtype
+
+
+def test_packed_frames_go_into_one_array_that_the_cache_indexes_in_place(tmp_path):
+    """render.pack_frames: the frames of a (variant, setting) go into one array at render time, each clip at its
+    index's rows; they read back as the per-clip array's bytes, the frame cache at the render resolution is that
+    array (nothing copied), a resized cache is the same bytes either way, and a clip rendered again after a kill
+    rewrites its rows."""
+    from clothgap.executor import ExecutorOptions, run_stage
+    from render.frames import STORE_KEY, store_path
+    from render.stage import run_render
+    from tests.conftest import synthetic_sim_run
+
+    plain = synthetic_sim_run(tmp_path / "plain", clips=3, frames=3)
+    packed = synthetic_sim_run(tmp_path / "packed", clips=3, frames=3, pack_frames=True)
+    assert run_render(plain, progress=False)["rendered"] == 3
+    assert run_stage(packed, "render", ExecutorOptions("process", workers=2, shard_size=2, progress=False)) \
+        ["rendered"] == 3                                     # two processes write one array
+    folder = packed.render_dir(VARIANT, SETTING)
+    store = store_path(folder, 16)
+    assert np.load(store, mmap_mode="r").shape == (packed.config.sim.num_clips() * 3, 16, 16, 3)
+    for cid in packed.done_clips(folder):
+        assert not (folder / cid / FRAMES_FILE).exists()
+        pointer = json.loads((folder / cid / "meta.json").read_text())[STORE_KEY]
+        assert pointer == {"file": store.name, "row": 3 * int(cid.lstrip("c")), "frames": 3}
+        expected = np.load(plain.render_dir(VARIANT, SETTING) / cid / FRAMES_FILE)
+        np.testing.assert_array_equal(read_clip_frames(folder / cid), expected)
+
+    cache = build_cache(packed, VARIANT, SETTING, 16, progress=False)
+    assert cache.array_path == store and not packed.frame_cache_path(VARIANT, SETTING, 16).exists()
+    reference = build_cache(plain, VARIANT, SETTING, 16, progress=False)
+    for size in (16, 12):
+        ours, theirs = build_cache(packed, VARIANT, SETTING, size, progress=False), \
+            build_cache(plain, VARIANT, SETTING, size, progress=False)
+        for cid, clip in theirs.clips.items():
+            mine = ours.clips[cid]
+            np.testing.assert_array_equal(ours.frames[mine.offset:mine.offset + mine.num_frames],
+                                          theirs.frames[clip.offset:clip.offset + clip.num_frames])
+    assert build_cache(packed, VARIANT, SETTING, 16, progress=False).array_path == store    # the index reused
+
+    # A clip killed after its rows were half written has no DONE: the next render writes its rows again.
+    rows = np.load(store, mmap_mode="r+")
+    rows[3:6] = 0
+    del rows
+    (folder / "c00001" / DONE).unlink()
+    again = run_render(packed, progress=False)
+    assert again["rendered"] == 1 and again["skipped"] == 2
+    clip = reference.clips["c00001"]
+    np.testing.assert_array_equal(read_clip_frames(folder / "c00001"),
+                                  reference.frames[clip.offset:clip.offset + clip.num_frames])
+    assert len(export_png(folder / "c00001", tmp_path / "look")) == 3     # still inspected frame by frame
+
+
+def test_a_packed_array_of_other_settings_or_too_little_disk_stops_the_render_by_name(tmp_path, monkeypatch):
+    import shutil as shutil_module
+
+    from clothgap.errors import StorageError
+    from render.frames import store_path
+    from render.stage import run_render
+    from tests.conftest import synthetic_sim_run
+
+    run = synthetic_sim_run(tmp_path / "run", clips=2, frames=3, pack_frames=True)
+    store = store_path(run.render_dir(VARIANT, SETTING), 16)
+    real = shutil_module.disk_usage
+    monkeypatch.setattr(shutil_module, "disk_usage", lambda p: real(p)._replace(free=1000))
+    with pytest.raises(StorageError, match="free some space"):
+        run_render(run, progress=False)
+    assert not store.exists() and not run.done_clips(run.render_dir(VARIANT, SETTING))
+    monkeypatch.setattr(shutil_module, "disk_usage", real)
+    store.parent.mkdir(parents=True, exist_ok=True)
+    np.save(store, np.zeros((5, 16, 16, 3), np.uint8))          # made for another number of clips
+    with pytest.raises(FrameError, match="made for other settings"):
+        run_render(run, progress=False)
+    assert not run.done_clips(run.render_dir(VARIANT, SETTING))
