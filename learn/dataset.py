@@ -37,7 +37,7 @@ from clothgap.parallel import chunk_size, pool_map, pool_size
 from clothgap.runs import Run, atomic_write_json, read_meta
 from render.frames import STORE_KEY, copy_frames_into, frame_count, read_clip_frames
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2                  # 2: an index may point into a packed array (``array``)
 # A pool builds a cache of at least this many clips on a host of at least this many CPUs: copying is bound by
 # memory and disk, and on 2 cores a pool lost (benchmarks/train_inputs.py); spawning costs ~1 s.
 POOL_MIN_CLIPS = 256
@@ -124,11 +124,12 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
     if store is not None:
         # Every clip is in its setting's packed array at this size: index it in place, on disk first (as a
         # copied cache is before it is renamed into place).
-        with open(store, "rb+") as f:
+        with open(store, "rb") as f:
             os.fsync(f.fileno())
         clips = [CachedClip(cid, int(metas[cid]["class_index"]), int(metas[cid][STORE_KEY]["row"]),
                             int(metas[cid][STORE_KEY]["frames"])) for cid in clip_ids]
         array_path.parent.mkdir(parents=True, exist_ok=True)
+        array_path.unlink(missing_ok=True)      # a copy made before the clips were packed: not kept twice
         atomic_write_json(index_path, {"version": CACHE_VERSION, "size": size, "signature": signature,
                                        "array": str(store.relative_to(run.root)),
                                        "clips": [c.__dict__ for c in clips], "skipped": {}})

@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import fcntl
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -66,13 +67,24 @@ class FrameStore:
     i*T..(i+1)*T, so that render workers write disjoint rows of one file without coordinating.
 
     The file is made once, at its full size (sparse where the file system allows), under a lock beside it, by
-    whichever process needs it first; others open it. A clip's rows are only trusted once its folder is ``DONE``:
-    a killed render leaves rows that the next render writes again.
+    whichever process needs it first; others open it. Rows are written with ``pwrite``, not through a mapping: a
+    full disk is an ``OSError`` (ENOSPC) the render stage turns into a StorageError, where a write into a mapped
+    sparse page would kill the process (SIGBUS), and a shared file system gets the bytes of the rows alone. A
+    clip's rows are only trusted once its folder is ``DONE``: a killed render leaves rows that the next render
+    writes again. ``pending`` is how many clips this process is about to write: their bytes must be free.
     """
 
-    def __init__(self, path: Path, clips: int, frames: int, resolution: int):
+    def __init__(self, path: Path, clips: int, frames: int, resolution: int, pending: int | None = None):
         self.path, self.clips, self.frames, self.resolution = Path(path), clips, frames, resolution
         self.shape = (clips * frames, resolution, resolution, 3)
+        self.clip_bytes = frames * resolution * resolution * 3
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        need = self.clip_bytes * (clips if pending is None else pending)
+        free = shutil.disk_usage(self.path.parent).free
+        if need > free:
+            raise StorageError(f"the packed frames {self.path} need {need / 2**30:.2f} GiB more but "
+                               f"{self.path.parent} has {free / 2**30:.2f} GiB free: free some space and run the "
+                               f"same command again")
         with open(self.path.with_name(self.path.name + ".lock"), "w") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
             if not self.path.is_file():
@@ -89,11 +101,6 @@ class FrameStore:
                              f"made for other settings; remove it and its clips' DONE markers to render them again")
 
     def _create(self) -> None:
-        need = int(np.prod(self.shape))
-        free = shutil.disk_usage(self.path.parent).free
-        if need > free:
-            raise StorageError(f"the packed frames {self.path} need {need / 2**30:.2f} GiB but {self.path.parent} "
-                               f"has {free / 2**30:.2f} GiB free: free some space and run the same command again")
         with atomic_path(self.path, keep_suffix=True) as tmp:
             np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=self.shape)
 
@@ -105,10 +112,14 @@ class FrameStore:
         if not 0 <= index < self.clips:
             raise ValueError(f"{self.path}: clip index {index} is outside its {self.clips} clips")
         row = index * self.frames
-        rows = np.memmap(self.path, dtype=np.uint8, mode="r+", shape=frames.shape,
-                         offset=self._header + row * self.resolution * self.resolution * 3)
-        rows[:] = frames
-        del rows        # in the page cache, which every process shares; the frame cache syncs the file before use
+        data = memoryview(np.ascontiguousarray(frames)).cast("B")
+        at, fd = self._header + index * self.clip_bytes, os.open(self.path, os.O_WRONLY)
+        try:            # (into the page cache every process shares; the frame cache syncs the file before use)
+            while data:
+                written = os.pwrite(fd, data, at)
+                data, at = data[written:], at + written
+        finally:
+            os.close(fd)
         return {"file": self.path.name, "row": row, "frames": self.frames}
 
 

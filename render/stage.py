@@ -247,7 +247,9 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
             return None
         path = store_path(out_dir.parent, config.resolution)
         if path not in stores:
-            stores[path] = FrameStore(path, run.config.sim.num_clips(), run.config.sim.frames, config.resolution)
+            pending = sum(1 for *_, out in jobs if out.parent == out_dir.parent and not is_done(out))
+            stores[path] = FrameStore(path, run.config.sim.num_clips(), run.config.sim.frames, config.resolution,
+                                      pending=pending)
         return stores[path]
 
     summary: dict = {"backend": mi.variant(), "rendered": 0, "skipped": 0, "failed": [], "frames": 0}

@@ -162,7 +162,10 @@ def test_packed_frames_go_into_one_array_that_the_cache_indexes_in_place(tmp_pat
             mine = ours.clips[cid]
             np.testing.assert_array_equal(ours.frames[mine.offset:mine.offset + mine.num_frames],
                                           theirs.frames[clip.offset:clip.offset + clip.num_frames])
-    assert build_cache(packed, VARIANT, SETTING, 16, progress=False).array_path == store    # the index reused
+    index = packed.frame_cache_path(VARIANT, SETTING, 16).with_suffix(".json")
+    stamp = index.stat().st_mtime_ns
+    assert build_cache(packed, VARIANT, SETTING, 16, progress=False).array_path == store
+    assert index.stat().st_mtime_ns == stamp                                        # the index reused
 
     # A clip killed after its rows were half written has no DONE: the next render writes its rows again.
     rows = np.load(store, mmap_mode="r+")
@@ -176,6 +179,17 @@ def test_packed_frames_go_into_one_array_that_the_cache_indexes_in_place(tmp_pat
                                   reference.frames[clip.offset:clip.offset + clip.num_frames])
     assert len(export_png(folder / "c00001", tmp_path / "look")) == 3     # still inspected frame by frame
 
+    # A clip rendered again without packing (its own frames.npy) beside packed ones: the cache copies them all.
+    (folder / "c00002" / DONE).unlink()
+    assert run_render(with_render(packed, pack_frames=False), progress=False)["rendered"] == 1
+    assert (folder / "c00002" / FRAMES_FILE).is_file()
+    mixed = build_cache(packed, VARIANT, SETTING, 16, progress=False)
+    assert mixed.array_path == packed.frame_cache_path(VARIANT, SETTING, 16)
+    for cid, clip in reference.clips.items():
+        mine = mixed.clips[cid]
+        np.testing.assert_array_equal(mixed.frames[mine.offset:mine.offset + mine.num_frames],
+                                      reference.frames[clip.offset:clip.offset + clip.num_frames])
+
 
 def test_a_packed_array_of_other_settings_or_too_little_disk_stops_the_render_by_name(tmp_path, monkeypatch):
     import shutil as shutil_module
@@ -188,11 +202,18 @@ def test_a_packed_array_of_other_settings_or_too_little_disk_stops_the_render_by
     run = synthetic_sim_run(tmp_path / "run", clips=2, frames=3, pack_frames=True)
     store = store_path(run.render_dir(VARIANT, SETTING), 16)
     real = shutil_module.disk_usage
-    monkeypatch.setattr(shutil_module, "disk_usage", lambda p: real(p)._replace(free=1000))
+    clip_bytes = 3 * 16 * 16 * 3
+    monkeypatch.setattr(shutil_module, "disk_usage", lambda p: real(p)._replace(free=2 * clip_bytes - 1))
     with pytest.raises(StorageError, match="free some space"):
         run_render(run, progress=False)
     assert not store.exists() and not run.done_clips(run.render_dir(VARIANT, SETTING))
+    # Room for the clips to render is enough, not for every clip index's rows (the array is sparse): a test-only
+    # look renders a sixth of them.
+    assert run.config.sim.num_clips() > 2
+    monkeypatch.setattr(shutil_module, "disk_usage", lambda p: real(p)._replace(free=2 * clip_bytes))
+    assert run_render(run, progress=False)["rendered"] == 2
     monkeypatch.setattr(shutil_module, "disk_usage", real)
+    shutil.rmtree(run.render_dir(VARIANT, SETTING))
     store.parent.mkdir(parents=True, exist_ok=True)
     np.save(store, np.zeros((5, 16, 16, 3), np.uint8))          # made for another number of clips
     with pytest.raises(FrameError, match="made for other settings"):

@@ -9,8 +9,8 @@
 #   SIM_ARGS (default gpus.sh's gpu_sim_args: one worker a GPU where there are several, else one process);
 #   "--executor process --workers 2 --gpus-per-worker 0.5" simulates two shards on one GPU, so one's host work
 #   (an adaptive setting's health, remesh and rebuild: a third of its stage) overlaps the other's steps.
-#   The paper preset writes each clip's frames.npy alone; EXTRA='--set render.write_png=true' adds the PNGs
-#   (the cost every clip paid before). The render line's summary has frames and seconds: frames/s over the
+#   The paper preset packs the network's frames alone (render.pack_frames: one array a setting);
+#   EXTRA='--set render.write_png=true' adds the PNGs (the cost every clip paid before). The render line's summary has frames and seconds: frames/s over the
 #   ceiling of scripts/gpu/render_bench.sh (RESOLUTIONS=112) on the same machine is the render's ratio.
 # Every stage resumes, so a call cut off at the device's 10-minute limit loses nothing:
 # call again with the same STAGES. Timings accumulate in $RUN/gpu_timings.jsonl; each
