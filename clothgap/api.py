@@ -189,14 +189,12 @@ def render_test_variants(run: Run, variants: Iterable[str], executor: Any = None
     """Render ``variants`` (looks no model trains on: ``clothgap.executor.run_for_test_variants``) on the clips the
     split tests on (the split training makes, when the run has none yet), through ``executor`` (a
     ``clothgap.executor.ExecutorOptions``; None: this process). Returns the render stage's summary."""
-    from clothgap.executor import ExecutorOptions, run_for_test_variants, run_stage
+    from clothgap.executor import ExecutorOptions, run_stage
     from learn.split import current_split, part_clips
 
-    test_run = run_for_test_variants(run, variants)
-    tested = sorted({clip_index(c) for setting in test_run.config.sim.settings()
-                     for c in part_clips(current_split(test_run, setting), "test")})
-    return run_stage(run, "render", executor or ExecutorOptions(), indices=tested,
-                     test_variants=test_run.config.render.variants)
+    tested = sorted({clip_index(c) for setting in run.config.sim.settings()
+                     for c in part_clips(current_split(run, setting), "test")})
+    return run_stage(run, "render", executor or ExecutorOptions(), indices=tested, test_variants=tuple(variants))
 
 
 class Study:

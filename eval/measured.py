@@ -296,7 +296,7 @@ def fabric_table(videos: pd.DataFrame) -> pd.DataFrame:
             "tables_class": tables, "tables_p": float(classes.p_value(tables)),
             "tables_k": float(classes.k_value(tables)),
             "within1_tables": float(metrics.within_one_bin([tables], [pred])[0]),
-            "k_within1_tables": float(abs(int(classes.k_index(tables)) - int(classes.k_index(pred))) <= 1),
+            "k_within1_tables": float(metrics.bend_within_one([tables], [pred])[0]),
             **values, "pred_stretching_N_m": pred_p * basis["stretching_N_m"],
             "pred_bending_N_m": pred_k * basis["bending_N_m"]})
     return pd.DataFrame(rows)

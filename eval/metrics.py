@@ -91,6 +91,12 @@ def class_distance(truth, pred) -> np.ndarray:
             + np.abs(classes.k_index(truth) - classes.k_index(pred))).astype(float)
 
 
+def bend_within_one(truth, pred) -> np.ndarray:
+    """1 where the bending factor k is at most one bin off, whatever the stretching factor."""
+    truth, pred = _check(truth, pred)
+    return (np.abs(classes.k_index(truth) - classes.k_index(pred)) <= 1).astype(float)
+
+
 def within_one_bin(truth, pred) -> np.ndarray:
     """1 where the prediction is at most one bin off in stretching and at most one in bending."""
     truth, pred = _check(truth, pred)

@@ -35,7 +35,7 @@ from clothgap.errors import MissingInputError, StorageError
 from clothgap.files import atomic_path
 from clothgap.parallel import chunk_size, pool_map, pool_size
 from clothgap.runs import Run, atomic_write_json, read_meta
-from render.frames import STORE_KEY, copy_frames_into, frame_count, read_clip_frames
+from render.frames import STORE_KEY, copy_frames_into, frame_count, read_clip_frames, shared_store
 
 CACHE_VERSION = 2                  # 2: an index may point into a packed array (``array``)
 # A pool builds a cache of at least this many clips on a host of at least this many CPUs: copying is bound by
@@ -120,7 +120,7 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
         index_path.unlink(missing_ok=True)   # stale: rebuilt below
 
     metas = {cid: read_meta(render_dir / cid, "render") for cid in clip_ids}
-    store = _packed_store(render_dir, metas, size)
+    store = shared_store(render_dir, [m.get(STORE_KEY) for m in metas.values()], size)
     if store is not None:
         # Every clip is in its setting's packed array at this size: index it in place, on disk first (as a
         # copied cache is before it is renamed into place).
@@ -169,26 +169,6 @@ def build_cache(run: Run, variant: str, setting: str, size: int, progress: bool 
     atomic_write_json(index_path, {"version": CACHE_VERSION, "size": size, "signature": signature,
                                    "clips": [c.__dict__ for c in clips], "skipped": skipped})
     return FrameCache(array_path, clips)
-
-
-def _packed_store(render_dir: Path, metas: dict[str, dict], size: int) -> Path | None:
-    """The one packed array (``render.pack_frames``) that holds every clip's frames at ``size``, or None: some clip
-    has a frames.npy or PNGs instead, the clips name different arrays, or the array is of another size."""
-    pointers = [m.get(STORE_KEY) for m in metas.values()]
-    if not pointers or any(not isinstance(p, dict) for p in pointers) or len({p.get("file") for p in pointers}) != 1:
-        return None
-    path = render_dir / str(pointers[0]["file"])
-    try:
-        store = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (OSError, ValueError, EOFError):
-        return None             # the copying path names each clip it cannot read
-    try:
-        rows = [(int(p["row"]), int(p["frames"])) for p in pointers]
-    except (KeyError, TypeError, ValueError):
-        return None
-    fits = store.dtype == np.uint8 and store.ndim == 4 and store.shape[1:] == (size, size, 3) and all(
-        0 <= row and row + count <= store.shape[0] for row, count in rows)
-    return path if fits else None
 
 
 # ---------------------------------------------------------------- samples

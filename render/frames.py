@@ -29,6 +29,7 @@ import fcntl
 import json
 import os
 import shutil
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -89,16 +90,15 @@ class FrameStore:
             fcntl.flock(lock, fcntl.LOCK_EX)
             if not self.path.is_file():
                 self._create()
+        again = "remove it and its clips' DONE markers to render them again"
         try:
-            mapped = np.load(self.path, mmap_mode="r", allow_pickle=False)
-        except (OSError, ValueError, EOFError) as err:
-            raise FrameError(f"{self.path} is unreadable ({err}): remove it and its clips' DONE markers to render "
-                             f"them again") from err
-        shape, dtype, self._header = mapped.shape, mapped.dtype, mapped.offset
-        del mapped
-        if tuple(shape) != self.shape or dtype != np.uint8:
-            raise FrameError(f"{self.path} holds a {dtype} array of shape {tuple(shape)}, not {self.shape}: it was "
-                             f"made for other settings; remove it and its clips' DONE markers to render them again")
+            mapped = _open_store(self.path)
+        except FrameError as err:
+            raise FrameError(f"{err}: {again}") from err
+        if mapped.shape != self.shape:
+            raise FrameError(f"{self.path} holds an array of shape {mapped.shape}, not {self.shape}: it was made "
+                             f"for other settings; {again}")
+        self._header = mapped.offset
 
     def _create(self) -> None:
         with atomic_path(self.path, keep_suffix=True) as tmp:
@@ -175,20 +175,55 @@ def stored_rows(clip_dir: Path) -> dict | None:
         return None
 
 
+def _open_store(path: Path) -> np.ndarray:
+    """A packed array, read-only: a FrameError naming it unless it reads as (N, H, W, 3) uint8."""
+    try:
+        store = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError, EOFError) as err:
+        raise FrameError(f"packed frames {path} are unreadable ({err})") from err
+    if store.dtype != np.uint8 or store.ndim != 4 or store.shape[-1] != 3:
+        raise FrameError(f"packed frames {path} hold a {store.dtype} array of shape {store.shape}, not (N, H, W, 3) "
+                         f"uint8")
+    return store
+
+
+def _rows(store: np.ndarray, path: Path, pointer: dict) -> tuple[int, int]:
+    """(first row, frame count) of a clip's ``pointer`` into ``store``: a FrameError unless the store holds them."""
+    try:
+        row, count = int(pointer["row"]), int(pointer["frames"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise FrameError(f"a pointer into {path} without its rows ({pointer!r})") from err
+    if count == 0 or row < 0 or row + count > store.shape[0]:
+        raise FrameError(f"rows {row}..{row + count} are outside {path}'s {store.shape[0]}")
+    return row, count
+
+
 def _read_store(clip_dir: Path, pointer: dict, num_frames: int | None) -> np.ndarray:
     path = Path(clip_dir).parent / str(pointer.get("file"))
     try:
-        store = np.load(path, mmap_mode="r", allow_pickle=False)
-        row, count = int(pointer["row"]), int(pointer["frames"])
-    except (OSError, ValueError, EOFError, KeyError, TypeError) as err:
-        raise FrameError(f"clip {Path(clip_dir).name}: its packed frames {path} are unreadable ({err})") from err
+        store = _open_store(path)
+        row, count = _rows(store, path, pointer)
+    except FrameError as err:
+        raise FrameError(f"clip {Path(clip_dir).name}: {err}") from err
     if num_frames is not None and int(num_frames) != count:
         raise FrameError(f"clip {Path(clip_dir).name}: its meta says {num_frames} frames, its rows of {path} {count}")
-    if store.dtype != np.uint8 or store.ndim != 4 or store.shape[-1] != 3 or count == 0 or row < 0 \
-            or row + count > store.shape[0]:
-        raise FrameError(f"clip {Path(clip_dir).name}: rows {row}..{row + count} of {path} (a {store.dtype} array "
-                         f"of shape {store.shape}) are not {count} frames of (H, W, 3) uint8")
     return store[row:row + count]
+
+
+def shared_store(setting_dir: Path, pointers: Sequence[dict | None], size: int) -> Path | None:
+    """The one packed array of ``setting_dir`` that holds every clip's rows (``pointers``: the clips'
+    ``frames_store``) at ``size`` x ``size``, or None: some clip has none (a frames.npy or PNGs instead), they name
+    different arrays, the array is of another size, or it does not read (readers then name the clip)."""
+    if not pointers or any(not isinstance(p, dict) for p in pointers) or len({p.get("file") for p in pointers}) != 1:
+        return None
+    path = Path(setting_dir) / str(pointers[0]["file"])
+    try:
+        store = _open_store(path)
+        for pointer in pointers:
+            _rows(store, path, pointer)
+    except FrameError:
+        return None
+    return path if store.shape[1:3] == (size, size) else None
 
 
 def copy_frames_into(array_path: str, tasks: list[tuple[str, int, int]], size: int) -> dict:

@@ -33,7 +33,7 @@ import shutil
 import time
 import traceback
 import warnings
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from concurrent.futures import Executor, ThreadPoolExecutor
@@ -238,20 +238,12 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
     if variants is None:
         variants = list({v.name: v for v, *_ in jobs}.values())
     backgrounds = {v.name: Backgrounds(v, config.resolution) for v in variants}
-    stores: dict[Path, FrameStore] = {}
-
-    def store_of(out_dir: Path) -> FrameStore | None:
-        # One store a (variant, setting) folder, a slot a clip index; made or opened before its first clip
-        # renders, so a full disk or a store of other settings stops the stage instead of failing each clip.
-        if not config.pack_frames:
-            return None
-        path = store_path(out_dir.parent, config.resolution)
-        if path not in stores:
-            pending = sum(1 for *_, out in jobs if out.parent == out_dir.parent and not is_done(out))
-            stores[path] = FrameStore(path, run.config.sim.num_clips(), run.config.sim.frames, config.resolution,
-                                      pending=pending)
-        return stores[path]
-
+    # With packing, one store a (variant, setting) folder, made or opened before any clip renders: a full disk or
+    # a store of other settings stops the stage instead of failing each clip.
+    pending = Counter(out.parent for *_, out in jobs if config.pack_frames and not is_done(out))
+    stores = {folder: FrameStore(store_path(folder, config.resolution), run.config.sim.num_clips(),
+                                 run.config.sim.frames, config.resolution, pending=count)
+              for folder, count in pending.items()}
     summary: dict = {"backend": mi.variant(), "rendered": 0, "skipped": 0, "failed": [], "frames": 0}
     start = time.perf_counter()
     render_seconds = 0.0
@@ -263,15 +255,10 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
         fresh_dir(out_dir)
         clip_start = time.perf_counter()
         try:
-            store = store_of(out_dir)
-        except BaseException:
-            writer.shutdown(wait=True)
-            raise
-        try:
             clip = SimClip.load(clip_dir)
             meta = render_clip(clip, variant, out_dir, config=config, run_seed=run.config.seed,
                                clip_index=clip_index_of(clip, clip_dir), backgrounds=backgrounds[variant.name],
-                               writer=writer, store=store)
+                               writer=writer, store=stores.get(out_dir.parent))
         except Exception as e:  # one bad clip must not stop the run; it is recorded and reported
             storage = storage_error(e, out_dir) if isinstance(e, OSError) else None
             if storage is not None:
