@@ -40,6 +40,8 @@ CAMERA_VIGNETTING = 0.3         # strength uniform in [0, 0.3]: the light lost a
 CAMERA_NOISE_STD = 0.02         # per-clip std uniform in [0, 0.02] of Gaussian noise on the encoded values
 # Keep at least this share of free device memory for the model's activations.
 _DEVICE_SHARE = 0.5
+# Rows travel to a device through two pinned buffers of this size: the host holds a chunk, not the set.
+UPLOAD_CHUNK_BYTES = 64 << 20
 
 
 def _fits_on_device(nbytes: int, device: torch.device) -> bool:
@@ -47,6 +49,45 @@ def _fits_on_device(nbytes: int, device: torch.device) -> bool:
         return True
     free, _total = torch.cuda.mem_get_info(device)
     return nbytes <= _DEVICE_SHARE * free
+
+
+def gather_rows(frames: np.ndarray, rows: np.ndarray, device: torch.device | str,
+                chunk_bytes: int | None = None) -> torch.Tensor:
+    """``frames[rows]`` as a tensor on ``device``.
+
+    ``frames`` is usually the frame cache's memory map: a setting's training rows at 384 sequences a class are
+    ~23 GB. To a CUDA device they go ``chunk_bytes`` at a time (default ``UPLOAD_CHUNK_BYTES``) through two
+    pinned buffers, the next chunk gathered while the last one copies, so a training's host memory does not
+    grow with the data (one process a model, several models a host). On the CPU the gathered array is the
+    tensor, unless ``chunk_bytes`` asks for the chunked path there too."""
+    device = torch.device(device)
+    rows = np.asarray(rows, dtype=np.int64)
+    if len(rows) and (rows.min() < 0 or rows.max() >= len(frames)):
+        raise IndexError(f"rows {rows.min()}..{rows.max()} of an array of {len(frames)} frames")
+    cuda = device.type == "cuda"
+    if not cuda and chunk_bytes is None:
+        return torch.from_numpy(np.ascontiguousarray(frames[rows]))
+    shape = (len(rows),) + tuple(frames.shape[1:])
+    out = torch.empty(shape, dtype=torch.from_numpy(frames[:0]).dtype, device=device)
+    row_bytes = max(1, int(np.prod(frames.shape[1:], dtype=np.int64)) * frames.dtype.itemsize)
+    step = max(1, (UPLOAD_CHUNK_BYTES if chunk_bytes is None else chunk_bytes) // row_bytes)
+    buffers = [torch.empty((min(step, len(rows)),) + shape[1:], dtype=out.dtype, pin_memory=cuda)
+               for _ in range(2 if len(rows) > step else 1)]
+    copied: list = [None] * len(buffers)
+    for k, lo in enumerate(range(0, len(rows), step)):
+        b = k % len(buffers)
+        if copied[b] is not None:
+            copied[b].synchronize()      # that buffer's last copy has left it
+        n = min(step, len(rows) - lo)
+        # mode "clip": the rows are checked above, and "raise" would gather through a temporary
+        np.take(frames, rows[lo:lo + n], axis=0, out=buffers[b].numpy()[:n], mode="clip")
+        out[lo:lo + n].copy_(buffers[b][:n], non_blocking=cuda)
+        if cuda:
+            copied[b] = torch.cuda.Event()
+            copied[b].record(torch.cuda.current_stream(device))
+    if cuda:
+        torch.cuda.current_stream(device).synchronize()
+    return out
 
 
 class WindowSet:
@@ -94,10 +135,12 @@ class WindowSet:
             used = np.zeros(0, np.int64)
         row_of = np.full(frames.shape[0] if frames.shape[0] else 1, -1, np.int64)
         row_of[used] = np.arange(len(used))
-        host = torch.from_numpy(np.ascontiguousarray(frames[used]))
-        self.resident = _fits_on_device(host.numel(), self.device)
-        self.frames = host.to(self.device) if self.resident else (host.pin_memory() if self.device.type == "cuda"
-                                                                   else host)
+        nbytes = len(used) * int(np.prod(frames.shape[1:], dtype=np.int64)) * frames.dtype.itemsize
+        self.resident = _fits_on_device(nbytes, self.device)
+        if self.resident:
+            self.frames = gather_rows(frames, used, self.device)
+        else:       # batches are cut on the host and copied each step: pinned, so the copy does not block
+            self.frames = gather_rows(frames, used, "cpu").pin_memory()
         # The index tables a batch is cut with live where the frames do: a step of a resident set copies nothing
         # to the device (a copy from pageable host memory would make the host wait for the GPU every step).
         self._ix = self.device if self.resident else torch.device("cpu")

@@ -11,7 +11,7 @@ import torch
 from clothgap.config import StudyConfig
 from learn.config import TrainConfig
 from learn.dataset import build_cache, read_frames, subsequence_starts
-from learn.windows import WindowSet
+from learn.windows import WindowSet, gather_rows
 from learn.synthetic import synthetic_run
 from sim.config import SimConfig
 from render.config import RenderConfig
@@ -167,3 +167,15 @@ def test_a_cache_built_in_a_process_pool_is_the_one_built_here(tmp_path):
         rows = slice(clip.offset, clip.offset + clip.num_frames)
         assert np.array_equal(pooled.frames[rows], here.frames[rows])
         assert pooled.frames[rows].std() > 0                     # the clip's frames, not an empty stretch
+
+
+def test_rows_gathered_in_chunks_are_the_rows_and_bad_rows_are_named(tmp_path):
+    frames = np.lib.format.open_memmap(tmp_path / "frames.npy", mode="w+", dtype=np.uint8, shape=(50, 4, 3, 3))
+    frames[:] = np.random.default_rng(0).integers(0, 256, frames.shape, dtype=np.uint8)
+    rows = np.array([3, 4, 5, 17, 18, 40, 41, 42, 43, 49, 0])
+    for chunk_bytes in (None, 1, 36 * 2, 36 * 3, 36 * 100):    # a row is 36 bytes: chunks of 1, 2, 3 rows, all
+        got = gather_rows(frames, rows, "cpu", chunk_bytes=chunk_bytes)
+        assert got.dtype == torch.uint8 and np.array_equal(got.numpy(), frames[rows]), chunk_bytes
+    assert gather_rows(frames, np.zeros(0, np.int64), "cpu", chunk_bytes=36).shape == (0, 4, 3, 3)
+    with pytest.raises(IndexError, match="50 frames"):
+        gather_rows(frames, np.array([2, 50]), "cpu", chunk_bytes=72)

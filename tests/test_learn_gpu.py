@@ -14,7 +14,7 @@ from learn.dataset import build_cache
 from learn.models import build_model
 from learn.synthetic import synthetic_run
 from learn.train import run_epoch
-from learn.windows import WindowSet
+from learn.windows import WindowSet, gather_rows
 from render.config import RenderConfig
 from sim.config import SimConfig
 from learn.config import TrainConfig
@@ -81,3 +81,11 @@ def test_the_camera_augmentation_on_the_device_is_the_host_s_and_reproducible(ca
     noisy = [[x for x, _, _ in gpu.batches(5, order=order, camera=camera, camera_noise_seed=9)] for _ in range(2)]
     assert all(torch.equal(a, b) for a, b in zip(*noisy, strict=True))
     assert all(0 <= float(x.min()) and float(x.max()) <= 1 for x in noisy[0])
+
+
+def test_rows_go_to_the_device_chunk_by_chunk_unchanged(cache):
+    rows = np.random.default_rng(1).choice(cache.frames.shape[0], size=cache.frames.shape[0] // 2 + 1, replace=False)
+    row_bytes = int(np.prod(cache.frames.shape[1:]))
+    for chunk_bytes in (row_bytes, 3 * row_bytes, None):      # one row a chunk, three, the default (all at once)
+        got = gather_rows(cache.frames, rows, "cuda", chunk_bytes=chunk_bytes)
+        assert got.is_cuda and np.array_equal(got.cpu().numpy(), cache.frames[rows]), chunk_bytes
