@@ -112,7 +112,9 @@ def training_speed(folder: Path) -> dict:
             "first_epoch_seconds": round(curves[0]["seconds"], 2) if curves else None,
             "windows_per_s": round(windows / (sum(steady) / len(steady)), 1) if steady else None,
             "train_windows": windows, "kept_epoch": done.get("kept_epoch"),
-            "frames_on_device": config.get("frames_on_device")}
+            "frames_on_device": config.get("frames_on_device"),
+            # the last process's set-up: its windows' frames and lattices onto the device (a resumed training's too)
+            "data_seconds": done.get("data_seconds")}
 
 
 def require_test_clips(run: Run, setting: str) -> dict:

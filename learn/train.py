@@ -432,6 +432,7 @@ class Training:
     start_epoch: int                # the first epoch still to train
     writer: object | None = None    # TensorBoard's SummaryWriter, in the process that writes files
     shape_seconds: float | None = None   # the shared regressor's pass over the windows, in this process
+    data_seconds: float | None = None    # the windows' frames and lattices onto the device, in this process
 
     @property
     def reads_shapes(self) -> bool:
@@ -477,7 +478,9 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
     cnn_init = _cnn_init(run, setting, variant, model_name, seed, progress, cfg, root)
     if reads_shared_regressor(cfg.shared_regressor, model_name) and cfg.reader_epochs:
         cfg = dataclasses.replace(cfg, epochs=cfg.reader_epochs)     # (after the regressor, which keeps its own)
+    started = time.perf_counter()
     train_set, val_set = window_sets(run, setting, variant, cfg, device, progress)
+    data_seconds = time.perf_counter() - started
     resolved = _resolved_settings(run, setting, variant, model_name, seed, cfg, cnn_init, device, train_set, val_set)
     shape_seconds = None
     if reads_shared_regressor(cfg.shared_regressor, model_name):
@@ -489,7 +492,7 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
         shape_seconds = time.perf_counter() - started
     _adopt_restarts(out, resolved)
     t = _start(out, cfg, device, resolved, train_set, val_set)
-    t.shape_seconds = shape_seconds
+    t.shape_seconds, t.data_seconds = shape_seconds, data_seconds
 
     bar = tqdm(desc=f"{model_name} {setting}/{variant} s{seed}", disable=not progress, initial=t.start_epoch,
                total=cfg.epochs)
@@ -506,7 +509,7 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
         # Before the epoch is saved: a dead network is never in last.pt, so no resume finishes one.
         if network_is_dead(t.evaluator, t.val_set if len(t.val_set) >= 2 else t.train_set, cfg.batch_size):
             t = _restart_dead(t, epoch)
-            t.shape_seconds = shape_seconds
+            t.shape_seconds, t.data_seconds = shape_seconds, data_seconds
             epoch = t.start_epoch
             bar.reset()
             continue
@@ -715,8 +718,9 @@ def _finish(t: Training) -> None:
     kept_epoch = kept["epoch"] if kept else (final.get("epoch") if metrics else None)
     restarts = {"restarts": resolved["restarts"]} if resolved.get("restarts") else {}
     shapes = {"shape_seconds": round(t.shape_seconds, 3)} if t.shape_seconds is not None else {}
+    data = {"data_seconds": round(t.data_seconds, 3)} if t.data_seconds is not None else {}
     mark_done(t.out, {"epochs": cfg.epochs, "seconds": sum(r["seconds"] for r in metrics),
-                      "kept_epoch": kept_epoch, **restarts, **shapes,
+                      "kept_epoch": kept_epoch, **restarts, **shapes, **data,
                       **{k: None if v is None or math.isnan(v) else v for k, v in summary.items()}})
 
 

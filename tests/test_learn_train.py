@@ -487,6 +487,7 @@ def test_a_shared_regressor_is_taken_frozen_and_its_readers_train_on_its_shapes(
     speed = training_speed(out)
     assert shape_seconds > 0 and speed["shape_seconds"] == shape_seconds       # the shapes' pass is counted
     assert speed["train_seconds"] == pytest.approx(metrics.seconds.sum() + shape_seconds, abs=0.01)
+    assert speed["data_seconds"] > 0      # the set-up (frames onto the device) is recorded apart from the epochs
 
     # The whole model from its checkpoint on the validation frames gives the probabilities written from shapes.
     model = load_model(out)
