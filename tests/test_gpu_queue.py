@@ -8,6 +8,7 @@ import re
 import subprocess
 import sys
 import tarfile
+import time
 from pathlib import Path
 
 import pytest
@@ -192,3 +193,44 @@ def test_every_committed_plan_reads_as_a_plan_and_its_scripts_exist(plan):
     # every project script a step names is there (a renamed script would fail only on the GPU machine)
     for script in re.findall(r"(?:scripts|benchmarks)/[\w/.-]+\.(?:sh|py|plan)", plan.read_text()):
         assert (ROOT / script).is_file(), f"{plan.name} names {script}, which does not exist"
+
+
+DETACHED = ROOT / "scripts" / "gpu" / "detached.sh"
+
+
+def test_a_detached_run_goes_on_after_the_call_returns_and_a_later_call_brings_its_results(tmp_path):
+    starts = tmp_path / "starts.txt"
+    plan = tmp_path / "a.plan"
+    # a step longer than the first call: it runs once, across the calls, never cut and started again
+    plan.write_text(f"long: echo start >> {starts}; sleep 4; echo \"budget $BUDGET\" > $OUT/long.txt\n"
+                    "after: echo after > $OUT/after.txt\n")
+    env = {**os.environ, "QUEUE_STATE": str(tmp_path / "state"), "BUDGET": "16", "RUN_BUDGET": "120",
+           "CUDA_VISIBLE_DEVICES": "", "PYTHON": sys.executable}
+
+    def call(out: str, *plans: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["bash", str(DETACHED), *plans], capture_output=True, text=True,
+                              env={**env, "OUT": str(tmp_path / out)}, timeout=60)
+
+    r = call("out1", str(plan))
+    assert r.returncode == 0 and "started the plans" in r.stdout and "call again" in r.stdout, r.stdout + r.stderr
+    pid = int((tmp_path / "state" / "detached.pid").read_text())
+    assert os.getsid(pid) != os.getsid(0)           # its own process session: the device leaves it running
+    assert "== long" in (tmp_path / "out1" / "lane1" / "queue.log").read_text()   # what ran so far came back
+    for _ in range(100):                             # no call is running now: the run goes on by itself
+        if (tmp_path / "state" / "detached.rc").exists():
+            break
+        time.sleep(0.1)
+    assert (tmp_path / "state" / "detached.rc").read_text().strip() == "0"
+    r = call("out2", str(plan))
+    assert r.returncode == 0 and "ended in an earlier call (exit 0)" in r.stdout, r.stdout + r.stderr
+    assert starts.read_text().splitlines() == ["start"]                   # the step ran once
+    with tarfile.open(tmp_path / "out2" / "lane1" / "queue.tgz") as t:
+        assert t.extractfile("./long/long.txt").read().decode().split()[0] == "budget"
+        assert t.extractfile("./after/after.txt").read().decode().strip() == "after"
+    assert "every step" in (tmp_path / "out2" / "detached.log").read_text()
+
+    bad = tmp_path / "bad.plan"
+    bad.write_text("a: echo one\na: echo two\n")
+    env["QUEUE_STATE"] = str(tmp_path / "state2")
+    r = call("out3", str(bad))
+    assert r.returncode == 2 and "nothing started" in r.stderr and not (tmp_path / "state2" / "detached.pid").exists()
