@@ -165,3 +165,14 @@ def test_a_study_measured_across_calls_is_summed_per_stage_and_says_what_did_not
     missing = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "study.py"), "--timings", str(tmp_path)],
                              capture_output=True, text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert missing.returncode != 0 and "gpu_timings.jsonl does not exist" in missing.stderr
+
+
+def test_train_upload_moves_the_same_rows_both_ways_and_removes_its_array(tmp_path):
+    out = tmp_path / "upload.json"
+    _bench("train_upload.py", "--device", "cpu", "--clips", "12", "--train-clips", "5", "--frames", "3",
+           "--size", "8", "--repeats", "1", "--workdir", str(tmp_path), "--out", str(out))
+    result = json.loads(out.read_text())
+    assert [r["way"] for r in result["runs"]] == ["whole", "chunked"]
+    assert all(r["rows_checked_equal"] and r["seconds"] > 0 for r in result["runs"])
+    assert result["set_gib"] == round(5 * 3 * 8 * 8 * 3 / 2**30, 2) and result["chunked_over_whole_seconds"] > 0
+    assert [p.name for p in tmp_path.iterdir()] == ["upload.json"]      # the stand-in array is gone
