@@ -59,6 +59,9 @@ class TrainConfig:
     compile_readers: bool = True            # with train.shared_regressor, compile the readers on its frozen
                                             # shapes too (under graphs base2/base3's recurrent layers ran
                                             # 1.1-1.6x slower: docs/learning.md)
+    reader_graphs: bool = False             # with train.shared_regressor, the readers' whole training step
+                                            # (batch, forward, backward, update) captured once as a CUDA graph
+                                            # and replayed (learn.steps); the readers are then not compiled
     num_workers: int = 0                    # unused: batches are cut from frames held on the device
                                             # (learn.windows); kept so that older run folders load
     motion: bool = False                    # frame differences beside the frames (6 input channels)

@@ -43,7 +43,7 @@ class ShapeSet:
         empty = torch.zeros(0, self.clip_len, width, device=self.device)
         self.shapes = torch.cat(shapes) if shapes else empty
         self.targets = torch.cat(lattices) if lattices else empty
-        self._labels = self.labels.to(self.device)
+        self.device_labels = self.labels.to(self.device)
 
     def __len__(self) -> int:
         return len(self.clip_ids)
@@ -61,7 +61,7 @@ class ShapeSet:
         stop = len(order) - (len(order) % batch_size if drop_last and len(order) >= batch_size else 0)
         for lo in range(0, stop, batch_size):
             idx = order[lo:lo + batch_size]
-            yield self.shapes[idx], self._labels[idx], self.targets[idx]
+            yield self.shapes[idx], self.device_labels[idx], self.targets[idx]
 
     def predict(self, model: ClipClassifier, batch_size: int = 256, amp: bool | None = None) -> pd.DataFrame:
         """``model``'s readers' prediction frame (``learn.predictions``) on every window, in order, in eval mode:

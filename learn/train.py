@@ -62,6 +62,7 @@ from learn import predictions
 from learn.registry import model_needs, reads_shared_regressor
 from learn.shapes import ShapeSet
 from learn.split import PARTS, get_or_make_split, part_clips, part_windows, training_subset
+from learn.steps import GraphedReaderEpochs, train_step
 from learn.windows import WindowSet
 
 METRIC_COLUMNS = ("epoch", "train_loss", "train_acc", "val_loss", "val_acc", "lr", "seconds")
@@ -117,22 +118,10 @@ def run_epoch(net: torch.nn.Module, model: ClipClassifier, batches, device: torc
     sums = torch.zeros(4, dtype=torch.float64, device=device)   # summed on the device: no sync per step
     with torch.set_grad_enabled(training), _compile_failures_named():
         for x, y, target in tqdm(batches, desc=desc, disable=not progress, leave=False, total=total):
-            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
-                out = net(x, target) if training and truth_weight else net(x)
-            loss = model.loss(out, y, geometry=target, geometry_weight=geometry_weight,
-                              label_smoothing=label_smoothing if training else 0.0, truth_weight=truth_weight)
             if training:
                 optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                optimizer.step()
-            # In place with Python scalars: a tensor made from a number would be a blocking copy to the device,
-            # a wait for the GPU every step.
-            n = len(y)
-            sums[0] += loss.detach().double() * n
-            sums[1] += (model.probs(out).argmax(-1) == y).sum()
-            sums[2] += n
-            sums[3] += (((out["geometry"].detach().float() - target) ** 2).mean().double() * n
-                        if target is not None and "geometry" in out else math.nan)
+            train_step(net, model, x, y, target, device, optimizer, amp, sums, geometry_weight=geometry_weight,
+                       label_smoothing=label_smoothing, truth_weight=truth_weight)
     return sums.cpu()
 
 
@@ -433,6 +422,7 @@ class Training:
     writer: object | None = None    # TensorBoard's SummaryWriter, in the process that writes files
     shape_seconds: float | None = None   # the shared regressor's pass over the windows, in this process
     data_seconds: float | None = None    # the windows' frames and lattices onto the device, in this process
+    graphed: GraphedReaderEpochs | None = None   # a reader's epochs replayed from a CUDA graph (reader_graphs)
 
     @property
     def reads_shapes(self) -> bool:
@@ -501,7 +491,7 @@ def train_one(run: Run, setting: str, variant: str, model_name: str, seed: int, 
         started = time.perf_counter()
         train_loss, train_acc, train_shape = train_epoch(t, epoch, progress)
         val_loss, val_acc, val_shape = validate(t)
-        lr = t.optimizer.param_groups[0]["lr"]
+        lr = float(t.optimizer.param_groups[0]["lr"])     # (a device tensor under reader graphs)
         t.scheduler.step()
         row = {"epoch": epoch, "train_loss": train_loss, "train_acc": train_acc, "val_loss": val_loss,
                "val_acc": val_acc, "lr": lr, "seconds": time.perf_counter() - started,
@@ -608,7 +598,13 @@ def compiles(cfg: TrainConfig, device: torch.device, reads_shapes: bool) -> bool
     are not measured, so it trains eager), and not a reader on a shared regressor's shapes that
     ``train.compile_readers`` leaves eager."""
     return (cfg.compile and device.type == "cuda" and _world_size() == 1
-            and (cfg.compile_readers or not reads_shapes))
+            and (not reads_shapes or (cfg.compile_readers and not graphs_readers(cfg, device))))
+
+
+def graphs_readers(cfg: TrainConfig, device: torch.device) -> bool:
+    """Whether a reader on a shared regressor's shapes trains by replaying its step as one CUDA graph
+    (``train.reader_graphs``, ``learn.steps``): asked for, on CUDA, in one process."""
+    return cfg.reader_graphs and device.type == "cuda" and _world_size() == 1
 
 
 def forward_net(model: ClipClassifier, cfg: TrainConfig, device: torch.device,
@@ -650,6 +646,14 @@ def train_epoch(t: Training, epoch: int, progress: bool = False) -> tuple[float,
     torch_seed = t.resolved["torch_seed"]
     order = t.train_set.order(torch_seed, epoch, _rank(), _world_size())
     steps = len(order) // cfg.batch_size if len(order) >= cfg.batch_size else 1
+    if t.reads_shapes and graphs_readers(cfg, t.device) and len(order) >= cfg.batch_size:
+        if t.graphed is None:
+            t.graphed = GraphedReaderEpochs(t.net, t.model, t.optimizer, t.train_set, cfg.batch_size, t.device,
+                                            t.amp, geometry_weight=cfg.geometry_weight,
+                                            label_smoothing=cfg.label_smoothing, truth_weight=cfg.reader_truth)
+        scores = _epoch_scores(t.graphed.epoch(order), all_ranks=True)
+        _check_finite(t.model, scores[0], cfg, str(t.out), epoch)
+        return scores
     if t.reads_shapes:
         # The frames' augmentations trained the regressor; its readers read the shapes it predicts unaugmented.
         batches = t.train_set.batches(cfg.batch_size, order=order, drop_last=True)

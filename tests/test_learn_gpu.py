@@ -89,3 +89,82 @@ def test_rows_go_to_the_device_chunk_by_chunk_unchanged(cache):
     for chunk_bytes in (row_bytes, 3 * row_bytes, None):      # one row a chunk, three, the default (all at once)
         got = gather_rows(cache.frames, rows, "cuda", chunk_bytes=chunk_bytes)
         assert got.is_cuda and np.array_equal(got.cpu().numpy(), cache.frames[rows]), chunk_bytes
+
+
+def test_a_reader_trained_by_replaying_its_graphed_step_matches_the_eager_reader():
+    from types import SimpleNamespace
+
+    from learn.config import TrainConfig
+    from learn.models import GEOMETRY_DIM, ShapeReader, model_args
+    from learn.steps import GraphedReaderEpochs
+    from learn.train import make_optimizer, make_scheduler
+
+    device = torch.device("cuda")
+    cfg = TrainConfig(bottleneck=True, bottleneck_noise=0.0, reader_truth=1.0, batch_size=8, epochs=3,
+                      schedule="cosine", motion=True)
+    gen = torch.Generator().manual_seed(0)
+    n, t = 45, 6                                  # 5 whole batches of 8, the last 5 windows dropped
+    data = SimpleNamespace(shapes=torch.randn(n, t, GEOMETRY_DIM, generator=gen).to(device),
+                           targets=torch.randn(n, t, GEOMETRY_DIM, generator=gen).to(device),
+                           device_labels=torch.randint(0, 54, (n,), generator=gen).to(device))
+    results = {}
+    for way in ("eager", "graphed"):
+        torch.manual_seed(0)
+        model = build_model("base2", **model_args(replace_image(cfg))).to(device)
+        model.cnn.requires_grad_(False)
+        model.head_geometry.requires_grad_(False)
+        net = ShapeReader(model)
+        optimizer = make_optimizer(model, cfg, device)
+        scheduler = make_scheduler(optimizer, cfg.schedule, cfg.epochs)
+        graphed = GraphedReaderEpochs(net, model, optimizer, data, cfg.batch_size, device, True,
+                                      truth_weight=cfg.reader_truth) if way == "graphed" else None
+        sums = []
+        for epoch in range(cfg.epochs):
+            order = torch.randperm(n, generator=torch.Generator().manual_seed(epoch))
+            if graphed is not None:
+                sums.append(graphed.epoch(order))
+            else:
+                batches = [(data.shapes[i], data.device_labels[i], data.targets[i])
+                           for i in order.to(device).split(cfg.batch_size) if len(i) == cfg.batch_size]
+                sums.append(run_epoch(net, model, batches, device, optimizer, amp=True,
+                                      truth_weight=cfg.reader_truth))
+            scheduler.step()          # the graphed update reads the new rate from the tensor the schedule fills
+        results[way] = (sums, {k: v.detach().float().cpu() for k, v in model.state_dict().items()})
+        if graphed is not None:
+            assert graphed.graph is not None and graphed.failed is None and graphed.eager_steps == 3
+    (eager_sums, eager_w), (graph_sums, graph_w) = results["eager"], results["graphed"]
+    for a, b in zip(eager_sums, graph_sums, strict=True):
+        assert a[2] == b[2] == 40 and torch.allclose(a[:2], b[:2], rtol=1e-3, atol=1e-2)
+    changed = [k for k in eager_w if not torch.equal(eager_w[k], results["graphed"][1][k])]
+    for k in eager_w:
+        assert torch.allclose(eager_w[k], graph_w[k], rtol=1e-3, atol=1e-4), (k, changed)
+
+
+def replace_image(cfg):
+    import dataclasses
+
+    return dataclasses.replace(cfg, image_size=32, width=8, fc6=32, hidden=16)
+
+
+def test_a_reader_on_a_shared_regressor_trains_by_graph_replay_through_train_one(tmp_path):
+    import warnings
+
+    import pandas as pd
+
+    from clothgap.runs import is_done
+    from learn.train import train_one
+    from tests.conftest import tiny_train_config
+    from tests.test_learn_train import _sim_clips_for
+
+    cfg = tiny_train_config(bottleneck=True, dropout=0.0, reader_truth=1.0, bottleneck_noise=0.2, epochs=3,
+                            models=("lrcn", "base2"), shared_regressor="lrcn", reader_graphs=True, device="cuda")
+    run = synthetic_run(tmp_path / "run", cfg)
+    _sim_clips_for(run, cfg.sim.frames)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = train_one(run, SETTING, VARIANT, "base2", 0, progress=False)      # trains lrcn first
+    assert is_done(out)
+    assert not [w for w in caught if "could not be captured" in str(w.message)]
+    metrics = pd.read_csv(out / "metrics.csv")
+    assert len(metrics) == 3 and metrics.train_loss.notna().all() and metrics.lr.map(type).eq(float).all()
+    assert metrics.lr.iloc[1] < metrics.lr.iloc[0]             # the schedule reached the replayed update
