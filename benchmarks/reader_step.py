@@ -10,7 +10,9 @@ Under ``train.shared_regressor`` base1-3 train their readers alone on the regres
 times the `paper` preset's reader (its model arguments, optimiser, truth weight and bf16 on CUDA, through
 ``learn.train.run_epoch``) on random shapes held on the device, both ways in one process from the same weights,
 and writes the ms a step, windows/s and their ratio to benchmarks/results/reader_step-<device>-<model>.json with
-the command.
+the command. On CUDA it also times the one-batch step captured once as a CUDA graph and replayed
+(``train.reader_graphs``, ``learn.steps.GraphedReaderEpochs``), on ``--steps`` distinct batches, against the
+eager one-batch step (``graphed_over_one_batch``).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import torch
 
@@ -27,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from common import RESULTS, torch_device, write_result  # noqa: E402  (benchmarks/common.py)
 from clothgap.config import preset  # noqa: E402
 from learn.models import GEOMETRY_DIM, NUM_CLASSES, ShapeReader, build_model, model_args  # noqa: E402
+from learn.steps import GraphedReaderEpochs  # noqa: E402
 from learn.train import make_optimizer, resolve_device, run_epoch  # noqa: E402
 
 
@@ -82,12 +86,39 @@ def main(argv: list[str] | None = None) -> dict:
         return {"step_ms": round(1000 * seconds / args.steps, 3),
                 "windows_per_s": round(args.steps * args.batch_size / seconds, 1)}
 
+    def graphed() -> dict:
+        """The one-batch step captured as a CUDA graph and replayed (train.reader_graphs, learn.steps), on
+        ``--steps`` distinct batches of random shapes held on the device."""
+        torch.manual_seed(0)
+        model = build_model(args.model, **model_args(cfg)).to(device)
+        model.cnn.requires_grad_(False)
+        model.head_geometry.requires_grad_(False)
+        optimizer = make_optimizer(model, cfg, device)
+        n = args.batch_size * max(args.steps, args.warmup)
+        data = SimpleNamespace(shapes=torch.randn(n, args.frames, GEOMETRY_DIM, generator=gen).to(device),
+                               targets=torch.randn(n, args.frames, GEOMETRY_DIM, generator=gen).to(device),
+                               device_labels=torch.randint(0, NUM_CLASSES, (n,), generator=gen).to(device))
+        epochs = GraphedReaderEpochs(ShapeReader(model), model, optimizer, data, args.batch_size, device, amp,
+                                     label_smoothing=cfg.label_smoothing, truth_weight=cfg.reader_truth)
+        epochs.epoch(torch.arange(args.batch_size * args.warmup))      # warm-up and capture
+        start = time.perf_counter()
+        epochs.epoch(torch.arange(args.batch_size * args.steps))
+        seconds = time.perf_counter() - start
+        return {"step_ms": round(1000 * seconds / args.steps, 3),
+                "windows_per_s": round(args.steps * args.batch_size / seconds, 1),
+                "captured": epochs.graph is not None, "capture_failed": epochs.failed}
+
     apart = timed(one_batch=False)
     together = timed(one_batch=True)
     result = {**torch_device(device), "threads": torch.get_num_threads(), "model": args.model,
               "batch_size": args.batch_size, "frames": args.frames, "warmup": args.warmup, "steps": args.steps,
               "two_passes": apart, "one_batch": together,
               "speedup": round(together["windows_per_s"] / apart["windows_per_s"], 3)}
+    if device.type == "cuda":
+        result["graphed"] = replay = graphed()
+        result["graphed_over_one_batch"] = round(replay["windows_per_s"] / together["windows_per_s"], 3)
+        print(f"{args.model}: graphed {replay['step_ms']} ms a step ({result['graphed_over_one_batch']}x the one "
+              f"batch step){'' if replay['captured'] else ', not captured: ' + str(replay['capture_failed'])}")
     out = args.out or RESULTS / f"reader_step-{device.type}-{args.model}.json"
     write_result("reader_step.py", argv, result, out)
     print(f"{args.model}: {apart['step_ms']} ms a step in two passes, {together['step_ms']} ms as one batch "
