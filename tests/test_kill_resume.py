@@ -43,8 +43,8 @@ CASES = {
     "eval": ("*/eval/predictions/*.json:1", ["eval"], ["sim", "render", "splits", "cache", "train"]),
 }
 
-# JSON keys whose values differ between two identical runs: wall-clock times, the cache index's DONE
-# modification times, the run folder's own path.
+# JSON keys whose values differ between two identical runs: wall-clock times (also any "*_seconds"), the cache
+# index's DONE modification times, the run folder's own path.
 VOLATILE_KEYS = {"seconds", "signature", "run"}
 
 
@@ -76,7 +76,7 @@ def _canonical(value: object) -> object:
         return f"{value.dtype}{value.shape}:{hashlib.sha256(np.ascontiguousarray(value).tobytes()).hexdigest()}"
     if isinstance(value, dict):
         return {str(k): _canonical(v) for k, v in sorted(value.items(), key=lambda kv: str(kv[0]))
-                if k not in VOLATILE_KEYS}
+                if k not in VOLATILE_KEYS and not str(k).endswith("_seconds")}
     if isinstance(value, (list, tuple)):
         return [_canonical(v) for v in value]
     return value
