@@ -10,7 +10,8 @@ render writes and the frame cache indexes in place: at the ``paper`` preset's 38
 at random (a split's training clips: 15,228 at 384 a class) onto the device both ways, ``--repeats`` times, the
 two ways in alternating order. Reports each way's seconds and its peak anonymous host memory over the process's
 own before the gather (RssAnon sampled every 5 ms: the frame array's page-cache pages are shared file pages,
-not counted), checks 64 random rows of each result against the array, and writes
+not counted) and, on CUDA, the pinned allocator's peak; checks 64 random rows of each result against the array;
+the page cache holds the array, as after a render on the same machine. Writes
 benchmarks/results/train_upload-<device>-n<clips>.json with the command. The array is removed.
 """
 
@@ -78,10 +79,16 @@ def child(way: str, array: Path, rows_file: Path, device: str) -> dict:
     sampler.join()
     peak = max(peak, _rss_anon_mib())      # (one numpy gather may hold the interpreter's lock past the samples)
     del host
+    pinned = None
+    if device == "cuda":      # pinned buffers come from the driver and may not show in RssAnon
+        stats = torch.cuda.host_memory_stats()
+        peak_bytes = stats.get("allocated_bytes.peak", stats.get("allocated_bytes.all.peak"))
+        pinned = None if peak_bytes is None else round(peak_bytes / 2**20, 1)
     check = np.random.default_rng(0).choice(len(rows), size=min(64, len(rows)), replace=False)
     same = all(np.array_equal(out[i].cpu().numpy(), frames[rows[i]]) for i in check)
     return {"way": way, "seconds": round(seconds, 6), "gib_per_s": round(out.numel() / seconds / 2**30, 2),
-            "peak_anon_host_mib_over_start": round(peak - base, 1), "rows_checked_equal": bool(same)}
+            "peak_anon_host_mib_over_start": round(peak - base, 1), "peak_pinned_host_mib": pinned,
+            "rows_checked_equal": bool(same)}
 
 
 def main(argv: list[str] | None = None) -> None:

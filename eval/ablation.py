@@ -113,7 +113,8 @@ def training_speed(folder: Path) -> dict:
             "windows_per_s": round(windows / (sum(steady) / len(steady)), 1) if steady else None,
             "train_windows": windows, "kept_epoch": done.get("kept_epoch"),
             "frames_on_device": config.get("frames_on_device"),
-            # the last process's set-up: its windows' frames and lattices onto the device (a resumed training's too)
+            # the last process's set-up (a resumed training's too): split, frame cache, lattices, the windows' frames
+            # and lattices onto the device
             "data_seconds": done.get("data_seconds")}
 
 

@@ -57,8 +57,11 @@ def make_capturable(optimizer: torch.optim.Optimizer, device: torch.device) -> N
     saved groups)."""
     for group in optimizer.param_groups:
         group["capturable"] = True
-        if not torch.is_tensor(group["lr"]):
-            group["lr"] = torch.tensor(float(group["lr"]), dtype=torch.float32, device=device)
+        lr = group["lr"]
+        # A tensor on another device is one too: last.pt is read onto the CPU, and a CPU rate goes to the fused
+        # kernel as a number, which capture would freeze at the resumed epoch's value.
+        if not (torch.is_tensor(lr) and lr.device == device and lr.dtype == torch.float32):
+            group["lr"] = torch.tensor(float(lr), dtype=torch.float32, device=device)
     for state in optimizer.state.values():
         if "step" in state and torch.is_tensor(state["step"]) and state["step"].device != device:
             state["step"] = state["step"].to(device)
@@ -95,14 +98,17 @@ class GraphedReaderEpochs:
     def _capture(self) -> bool:
         self.optimizer.zero_grad(set_to_none=True)      # the graph's backward writes the gradients it made
         graph = torch.cuda.CUDAGraph()
+        stream = torch.cuda.current_stream(self.device)
         try:
             with torch.cuda.graph(graph):
                 self._step()
         except Exception as e:     # an op that cannot be captured: this training goes on eagerly, said once
+            torch.cuda.set_stream(stream)        # (a capture that fails on its way out leaves its own stream set)
             self.failed = f"{type(e).__name__}: {str(e).splitlines()[0][:300] if str(e) else ''}"
             warnings.warn(f"the reader's step could not be captured as a CUDA graph ({self.failed}); it trains "
                           "eagerly", stacklevel=3)
             torch.cuda.synchronize(self.device)
+            self.optimizer.zero_grad(set_to_none=True)
             return False
         self.graph = graph
         return True

@@ -421,7 +421,8 @@ class Training:
     start_epoch: int                # the first epoch still to train
     writer: object | None = None    # TensorBoard's SummaryWriter, in the process that writes files
     shape_seconds: float | None = None   # the shared regressor's pass over the windows, in this process
-    data_seconds: float | None = None    # the windows' frames and lattices onto the device, in this process
+    data_seconds: float | None = None    # the windows ready on the device in this process: split, frame cache
+                                         # (built if missing), lattices, then frames and lattices onto it
     graphed: GraphedReaderEpochs | None = None   # a reader's epochs replayed from a CUDA graph (reader_graphs)
 
     @property

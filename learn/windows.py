@@ -51,24 +51,33 @@ def _fits_on_device(nbytes: int, device: torch.device) -> bool:
     return nbytes <= _DEVICE_SHARE * free
 
 
+def _torch_dtype(frames: np.ndarray) -> torch.dtype:
+    return torch.from_numpy(np.empty(0, frames.dtype)).dtype     # (not the read-only memmap itself: a warning)
+
+
 def gather_rows(frames: np.ndarray, rows: np.ndarray, device: torch.device | str,
-                chunk_bytes: int | None = None) -> torch.Tensor:
+                chunk_bytes: int | None = None, pin_memory: bool = False) -> torch.Tensor:
     """``frames[rows]`` as a tensor on ``device``.
 
     ``frames`` is usually the frame cache's memory map: a setting's training rows at 384 sequences a class are
     ~23 GB. To a CUDA device they go ``chunk_bytes`` at a time (default ``UPLOAD_CHUNK_BYTES``) through two
     pinned buffers, the next chunk gathered while the last one copies, so a training's host memory does not
     grow with the data (one process a model, several models a host). On the CPU the gathered array is the
-    tensor, unless ``chunk_bytes`` asks for the chunked path there too."""
+    tensor, unless ``chunk_bytes`` asks for the chunked path there too; with ``pin_memory`` it is gathered
+    straight into pinned memory (one copy of the set on the host, not a pageable one and a pinned one)."""
     device = torch.device(device)
     rows = np.asarray(rows, dtype=np.int64)
     if len(rows) and (rows.min() < 0 or rows.max() >= len(frames)):
         raise IndexError(f"rows {rows.min()}..{rows.max()} of an array of {len(frames)} frames")
     cuda = device.type == "cuda"
+    if not cuda and pin_memory:
+        out = torch.empty((len(rows),) + tuple(frames.shape[1:]), dtype=_torch_dtype(frames), pin_memory=True)
+        np.take(frames, rows, axis=0, out=out.numpy(), mode="clip")   # (checked above; no temporary)
+        return out
     if not cuda and chunk_bytes is None:
         return torch.from_numpy(np.ascontiguousarray(frames[rows]))
     shape = (len(rows),) + tuple(frames.shape[1:])
-    out = torch.empty(shape, dtype=torch.from_numpy(frames[:0]).dtype, device=device)
+    out = torch.empty(shape, dtype=_torch_dtype(frames), device=device)
     row_bytes = max(1, int(np.prod(frames.shape[1:], dtype=np.int64)) * frames.dtype.itemsize)
     step = max(1, (UPLOAD_CHUNK_BYTES if chunk_bytes is None else chunk_bytes) // row_bytes)
     buffers = [torch.empty((min(step, len(rows)),) + shape[1:], dtype=out.dtype, pin_memory=cuda)
@@ -140,7 +149,7 @@ class WindowSet:
         if self.resident:
             self.frames = gather_rows(frames, used, self.device)
         else:       # batches are cut on the host and copied each step: pinned, so the copy does not block
-            self.frames = gather_rows(frames, used, "cpu").pin_memory()
+            self.frames = gather_rows(frames, used, "cpu", pin_memory=self.device.type == "cuda")
         # The index tables a batch is cut with live where the frames do: a step of a resident set copies nothing
         # to the device (a copy from pageable host memory would make the host wait for the GPU every step).
         self._ix = self.device if self.resident else torch.device("cpu")

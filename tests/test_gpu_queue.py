@@ -234,3 +234,31 @@ def test_a_detached_run_goes_on_after_the_call_returns_and_a_later_call_brings_i
     env["QUEUE_STATE"] = str(tmp_path / "state2")
     r = call("out3", str(bad))
     assert r.returncode == 2 and "nothing started" in r.stderr and not (tmp_path / "state2" / "detached.pid").exists()
+
+
+def test_a_detached_run_whose_wrapper_was_killed_is_still_waited_on_and_not_started_twice(tmp_path):
+    import signal
+
+    starts = tmp_path / "starts.txt"
+    gate = tmp_path / "gate"
+    plan = tmp_path / "a.plan"
+    plan.write_text(f"long: echo start >> {starts}; while [ ! -f {gate} ]; do sleep 0.2; done\n")
+    env = {**os.environ, "QUEUE_STATE": str(tmp_path / "state"), "BUDGET": "16", "RUN_BUDGET": "120",
+           "CUDA_VISIBLE_DEVICES": "", "PYTHON": sys.executable}
+
+    def call(out: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["bash", str(DETACHED), str(plan)], capture_output=True, text=True,
+                              env={**env, "OUT": str(tmp_path / out)}, timeout=60)
+
+    assert "started the plans" in call("out1").stdout
+    os.kill(int((tmp_path / "state" / "detached.pid").read_text()), signal.SIGKILL)   # the run's own processes live
+    r = call("out2")
+    assert "run since an earlier call" in r.stdout and "call again" in r.stdout, r.stdout + r.stderr
+    assert starts.read_text().splitlines() == ["start"]                  # not started a second time
+    gate.touch()
+    for _ in range(100):      # the step ends; its wrapper gone, no exit status: a call goes on from the queue's state
+        r = call("out3")
+        if "call again" not in r.stdout:
+            break
+    assert r.returncode == 0 and "the plans ended (exit 0)" in r.stdout, r.stdout + r.stderr
+    assert starts.read_text().splitlines() == ["start"]                  # the finished step was not run again

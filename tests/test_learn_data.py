@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import numpy as np
 import pytest
@@ -177,5 +178,10 @@ def test_rows_gathered_in_chunks_are_the_rows_and_bad_rows_are_named(tmp_path):
         got = gather_rows(frames, rows, "cpu", chunk_bytes=chunk_bytes)
         assert got.dtype == torch.uint8 and np.array_equal(got.numpy(), frames[rows]), chunk_bytes
     assert gather_rows(frames, np.zeros(0, np.int64), "cpu", chunk_bytes=36).shape == (0, 4, 3, 3)
+    frames.flush()
+    read_only = np.load(tmp_path / "frames.npy", mmap_mode="r")         # as the frame cache opens it
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")              # (torch warns of a tensor made from a read-only array)
+        assert np.array_equal(gather_rows(read_only, rows, "cpu", chunk_bytes=72).numpy(), frames[rows])
     with pytest.raises(IndexError, match="50 frames"):
         gather_rows(frames, np.array([2, 50]), "cpu", chunk_bytes=72)

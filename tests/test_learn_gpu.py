@@ -100,7 +100,7 @@ def test_a_reader_trained_by_replaying_its_graphed_step_matches_the_eager_reader
     from learn.train import make_optimizer, make_scheduler
 
     device = torch.device("cuda")
-    cfg = TrainConfig(bottleneck=True, bottleneck_noise=0.0, reader_truth=1.0, batch_size=8, epochs=3,
+    cfg = TrainConfig(bottleneck=True, bottleneck_noise=0.0, dropout=0.0, reader_truth=1.0, batch_size=8, epochs=3,
                       schedule="cosine", motion=True)
     gen = torch.Generator().manual_seed(0)
     n, t = 45, 6                                  # 5 whole batches of 8, the last 5 windows dropped
@@ -168,3 +168,54 @@ def test_a_reader_on_a_shared_regressor_trains_by_graph_replay_through_train_one
     metrics = pd.read_csv(out / "metrics.csv")
     assert len(metrics) == 3 and metrics.train_loss.notna().all() and metrics.lr.map(type).eq(float).all()
     assert metrics.lr.iloc[1] < metrics.lr.iloc[0]             # the schedule reached the replayed update
+
+
+def test_a_graphed_reader_resumed_from_its_saved_state_follows_the_schedule_as_an_unbroken_one():
+    import io
+    from types import SimpleNamespace
+
+    from learn.config import TrainConfig
+    from learn.models import GEOMETRY_DIM, ShapeReader, model_args
+    from learn.steps import GraphedReaderEpochs
+    from learn.train import make_optimizer, make_scheduler
+
+    device = torch.device("cuda")
+    cfg = TrainConfig(bottleneck=True, bottleneck_noise=0.0, dropout=0.0, reader_truth=1.0, batch_size=8, epochs=4,
+                      schedule="cosine", motion=True)
+    gen = torch.Generator().manual_seed(0)
+    data = SimpleNamespace(shapes=torch.randn(40, 6, GEOMETRY_DIM, generator=gen).to(device),
+                           targets=torch.randn(40, 6, GEOMETRY_DIM, generator=gen).to(device),
+                           device_labels=torch.randint(0, 54, (40,), generator=gen).to(device))
+
+    def fresh():
+        torch.manual_seed(0)
+        model = build_model("base2", **model_args(replace_image(cfg))).to(device)
+        model.cnn.requires_grad_(False)
+        model.head_geometry.requires_grad_(False)
+        optimizer = make_optimizer(model, cfg, device)
+        return model, optimizer, make_scheduler(optimizer, cfg.schedule, cfg.epochs)
+
+    def epochs(model, optimizer, scheduler, which):
+        graphed = GraphedReaderEpochs(ShapeReader(model), model, optimizer, data, cfg.batch_size, device, True,
+                                      truth_weight=cfg.reader_truth)
+        for epoch in which:
+            graphed.epoch(torch.randperm(40, generator=torch.Generator().manual_seed(epoch)))
+            scheduler.step()
+
+    whole = fresh()
+    epochs(*whole, range(4))
+    first = fresh()
+    epochs(*first, range(2))
+    saved = io.BytesIO()       # as last.pt: written, then read onto the CPU
+    torch.save({"model": first[0].state_dict(), "optimizer": first[1].state_dict(),
+                "scheduler": first[2].state_dict()}, saved)
+    saved.seek(0)
+    state = torch.load(saved, map_location="cpu", weights_only=True)
+    resumed = fresh()
+    resumed[0].load_state_dict(state["model"])
+    resumed[1].load_state_dict(state["optimizer"])
+    resumed[2].load_state_dict(state["scheduler"])
+    epochs(*resumed, range(2, 4))
+    assert resumed[1].param_groups[0]["lr"].is_cuda
+    for (k, a), b in zip(whole[0].state_dict().items(), resumed[0].state_dict().values()):
+        assert torch.allclose(a.float(), b.float(), rtol=1e-3, atol=1e-4), k

@@ -18,17 +18,20 @@ state=${QUEUE_STATE:-/tmp/queue}
 out=${OUT:-/tmp/out}
 budget=${BUDGET:-560}
 run_out=$state/detached-out pidfile=$state/detached.pid rcfile=$state/detached.rc runlog=$state/detached.log
+lock=$state/detached.lock
 mkdir -p "$state" "$out"
 t0=$SECONDS
 
-# (its exit status is written just before its process ends: a run that has one has ended)
-alive() { [ ! -f "$rcfile" ] && [ -s "$pidfile" ] && kill -0 "$(cat "$pidfile")" 2>/dev/null; }
+# The run holds a lock on $lock for as long as any of its processes lives (they inherit it): a process id could
+# outlive its run or be reused, the lock cannot. A run with an exit status has ended, whatever still holds it.
+alive() { [ ! -f "$rcfile" ] && ! flock -n "$lock" true 2> /dev/null; }
 # copy: what the run has brought so far into this call's $OUT (each file through a temporary name, so a call cut
 # off mid-copy still returns the last whole one)
 copy() {
   local f rel
   for f in "$run_out"/lane*/*; do
     [ -f "$f" ] || continue
+    [[ "$f" == *.tmp ]] && continue          # a tarball being packed: its last whole one is beside it
     rel=${f#"$run_out"/}
     mkdir -p "$out/$(dirname "$rel")"
     cp -f "$f" "$out/$rel.tmp" 2>/dev/null && mv -f "$out/$rel.tmp" "$out/$rel"
@@ -37,7 +40,7 @@ copy() {
 }
 
 if alive; then
-  echo "detached: the plans run since an earlier call (pid $(cat "$pidfile")); waiting"
+  echo "detached: the plans run since an earlier call (pid $(cat "$pidfile" 2> /dev/null)); waiting"
 elif [ -f "$rcfile" ]; then
   echo "detached: the plans ended in an earlier call (exit $(cat "$rcfile"))"
 else
@@ -46,13 +49,15 @@ else
   done
   mkdir -p "$run_out"
   [ -f "$pidfile" ] && echo "detached: the last run stopped without an exit status; its queues go on from their state"
-  # setsid: a new process session, which the device leaves running when this call returns
-  setsid bash -c 'echo $$ > "$1"; shift; rcfile=$1 runlog=$2; shift 2
+  rm -f "$pidfile"
+  # setsid: a new process session, which the device leaves running when this call returns; fd 9 holds the lock
+  # (waited for: a call's `alive` holds it for an instant)
+  setsid bash -c 'exec 9> "$1"; flock -w 10 9 || exit 0; echo $$ > "$2"; rcfile=$3 runlog=$4; shift 4
                   "$@" >> "$runlog" 2>&1; echo $? > "$rcfile.tmp"; mv -f "$rcfile.tmp" "$rcfile"' \
-    _ "$pidfile" "$rcfile" "$runlog" env BUDGET="${RUN_BUDGET:-1700}" QUEUE_STATE="$state" OUT="$run_out" \
-    bash "$here/lanes.sh" "$@" < /dev/null > /dev/null 2>&1 &
-  for _ in $(seq 50); do [ -s "$pidfile" ] && break; sleep 0.1; done
-  echo "detached: started the plans (pid $(cat "$pidfile" 2>/dev/null), RUN_BUDGET ${RUN_BUDGET:-1700} s)"
+    _ "$lock" "$pidfile" "$rcfile" "$runlog" env BUDGET="${RUN_BUDGET:-1700}" QUEUE_STATE="$state" \
+    OUT="$run_out" bash "$here/lanes.sh" "$@" < /dev/null > /dev/null 2>&1 &
+  for _ in $(seq 50); do { alive || [ -f "$rcfile" ]; } && break; sleep 0.1; done
+  echo "detached: started the plans (pid $(cat "$pidfile" 2> /dev/null), RUN_BUDGET ${RUN_BUDGET:-1700} s)"
 fi
 
 last_copy=$SECONDS
@@ -67,7 +72,11 @@ if alive; then
   for log in "$run_out"/lane*/queue.log; do [ -f "$log" ] && grep '^== ' "$log" | tail -2 | sed 's/^/  /'; done
   exit 0
 fi
-rc=$(cat "$rcfile" 2>/dev/null || echo 1)
+if [ ! -f "$rcfile" ]; then
+  echo "detached: the run's processes are gone without an exit status (killed?): call again to go on from its state"
+  exit 1
+fi
+rc=$(cat "$rcfile")
 echo "detached: the plans ended (exit $rc)"
 tail -20 "$runlog" 2>/dev/null
 exit "$rc"
