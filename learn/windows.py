@@ -38,8 +38,10 @@ CAMERA_WHITE_BALANCE = 0.1      # per-channel linear gains uniform in 1 +- 0.1
 CAMERA_TONE_GAMMA = 1.25        # encoded values ^ g, g log-uniform in [1 / 1.25, 1.25]: as likely darker as lighter
 CAMERA_VIGNETTING = 0.3         # strength uniform in [0, 0.3]: the light lost at the corners (render.camera.vignette)
 CAMERA_NOISE_STD = 0.02         # per-clip std uniform in [0, 0.02] of Gaussian noise on the encoded values
-# Keep at least this share of free device memory for the model's activations.
-_DEVICE_SHARE = 0.5
+# What a training keeps free of its GPU's free memory beside its frames: a quarter of it, and at least 8 GiB (an
+# lrcn at batch 16 peaked ~5 GB over its frames at 384 a class: table3-arm384-h100x4.json). A setting's training
+# frames at 768 a class (~46 GB) then stay resident on an 80 GB GPU, where half its free memory would not hold them.
+_KEEP_FREE_SHARE, _KEEP_FREE_MIN = 0.25, 8 << 30
 # Rows travel to a device through two pinned buffers of this size: the host holds a chunk, not the set.
 UPLOAD_CHUNK_BYTES = 64 << 20
 
@@ -48,7 +50,7 @@ def _fits_on_device(nbytes: int, device: torch.device) -> bool:
     if device.type != "cuda":
         return True
     free, _total = torch.cuda.mem_get_info(device)
-    return nbytes <= _DEVICE_SHARE * free
+    return nbytes <= free - max(_KEEP_FREE_SHARE * free, _KEEP_FREE_MIN)
 
 
 def _torch_dtype(frames: np.ndarray) -> torch.dtype:

@@ -185,3 +185,18 @@ def test_rows_gathered_in_chunks_are_the_rows_and_bad_rows_are_named(tmp_path):
         assert np.array_equal(gather_rows(read_only, rows, "cpu", chunk_bytes=72).numpy(), frames[rows])
     with pytest.raises(IndexError, match="50 frames"):
         gather_rows(frames, np.array([2, 50]), "cpu", chunk_bytes=72)
+
+
+def test_frames_stay_on_the_gpu_while_a_quarter_of_its_free_memory_and_8_gib_stay_free(monkeypatch):
+    from learn import windows
+
+    gib = 1 << 30
+    cuda = torch.device("cuda", 0)
+    for free, nbytes, fits in ((79 * gib, 46 * gib, True),       # 768 a class's training frames, one model a GPU
+                               (79 * gib, 60 * gib, False),
+                               (52 * gib, 23 * gib, True),       # a second 384 model beside one
+                               (30 * gib, 23 * gib, False),      # a third: 8 GiB would not be left
+                               (10 * gib, 3 * gib, False)):
+        monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device, free=free: (free, 80 * gib))
+        assert windows._fits_on_device(nbytes, cuda) is fits, (free / gib, nbytes / gib)
+    assert windows._fits_on_device(10**15, torch.device("cpu"))
