@@ -3,6 +3,7 @@ scripts/gpu/together.sh, commands at once (both run on the GPU machine; their lo
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -262,3 +263,28 @@ def test_a_detached_run_whose_wrapper_was_killed_is_still_waited_on_and_not_star
             break
     assert r.returncode == 0 and "the plans ended (exit 0)" in r.stdout, r.stdout + r.stderr
     assert starts.read_text().splitlines() == ["start"]                  # the finished step was not run again
+
+
+def test_the_graphed_readers_are_marked_for_use_only_when_tested_captured_and_faster(tmp_path):
+    script = ROOT / "scripts" / "gpu" / "reader_graphs_ok.py"
+    tests_ok, mark = tmp_path / "tests-ok", tmp_path / "ok"
+
+    def verdict(*results: dict, tests: bool = True) -> str:
+        files = []
+        for i, r in enumerate(results):
+            files.append(tmp_path / f"r{i}.json")
+            files[-1].write_text(json.dumps(r))
+        tests_ok.unlink(missing_ok=True)
+        if tests:
+            tests_ok.touch()
+        r = subprocess.run([sys.executable, str(script), *map(str, files), "--tests-ok", str(tests_ok),
+                            "--mark", str(mark)], capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0, r.stderr
+        return r.stdout
+
+    fast = {"model": "base2", "graphed": {"captured": True}, "graphed_over_one_batch": 4.1}
+    assert "on: base2 4.1x" in verdict(fast, dict(fast, model="base1")) and mark.is_file()
+    assert "GPU tests did not pass" in verdict(fast, tests=False) and not mark.exists()
+    assert "under 1.2x" in verdict(fast, dict(fast, model="base3", graphed_over_one_batch=1.1)) and not mark.exists()
+    assert "not captured" in verdict(dict(fast, graphed={"captured": False, "capture_failed": "x"}))
+    assert "no reader was timed" in verdict()

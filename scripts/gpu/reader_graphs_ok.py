@@ -1,0 +1,47 @@
+"""Whether the graphed reader step (train.reader_graphs) may train a run's readers on this machine: its GPU tests
+passed and, for every reader timed by benchmarks/reader_step.py, the step was captured and at least ``--min`` times
+the eager one-batch step. Writes the mark file when so; says why not otherwise (exit 0 either way: a plan goes on).
+
+    python scripts/gpu/reader_graphs_ok.py RESULT.json... --tests-ok FILE --mark FILE [--min 1.2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def verdict(results: list[dict], tests_passed: bool, minimum: float) -> tuple[bool, str]:
+    """(use the graphs, why) from reader_step results and whether the GPU tests passed."""
+    if not tests_passed:
+        return False, "the GPU tests did not pass"
+    if not results:
+        return False, "no reader was timed"
+    for r in results:
+        graphed = r.get("graphed")
+        if not graphed or not graphed.get("captured"):
+            return False, f"{r.get('model')}: not captured ({(graphed or {}).get('capture_failed')})"
+        if r.get("graphed_over_one_batch", 0) < minimum:
+            return False, f"{r['model']}: graphed {r.get('graphed_over_one_batch')}x the eager step, under {minimum}x"
+    return True, ", ".join(f"{r['model']} {r['graphed_over_one_batch']}x" for r in results)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("results", nargs="*", type=Path)
+    ap.add_argument("--tests-ok", type=Path, required=True, help="the file the GPU tests' step leaves when they pass")
+    ap.add_argument("--mark", type=Path, required=True)
+    ap.add_argument("--min", type=float, default=1.2)
+    args = ap.parse_args(argv)
+    results = [json.loads(p.read_text()) for p in args.results if p.is_file()]
+    ok, why = verdict(results, args.tests_ok.is_file(), args.min)
+    args.mark.unlink(missing_ok=True)
+    if ok:
+        args.mark.write_text(why + "\n")
+    print(f"reader graphs {'on' if ok else 'off'}: {why}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
