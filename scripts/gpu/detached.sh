@@ -9,6 +9,8 @@
 # (detached.log). Back-to-back calls keep the machine: the run goes on between them. RUN_BUDGET (seconds,
 # default 1700: a session's device time) bounds the whole run, as BUDGET bounds a call of lanes.sh: each step
 # gets what is left of it. The run's state is QUEUE_STATE (default /tmp/queue): remove it to run the plans afresh.
+# Change nothing in the checkout between the calls of a run: each call copies it to the machine again, and the run
+# reads its scripts (bash reads a script as it goes) and imports its modules from that copy.
 # Exit status: 0 while the run goes on or when it ended with 0, 2 for a bad plan (nothing started), else the
 # run's (lanes.sh's) exit status.
 set -uo pipefail
