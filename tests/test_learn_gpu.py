@@ -110,7 +110,7 @@ def test_a_reader_trained_by_replaying_its_graphed_step_matches_the_eager_reader
     results = {}
     for way in ("eager", "graphed"):
         torch.manual_seed(0)
-        model = build_model("base2", **model_args(replace_image(cfg))).to(device)
+        model = build_model("base2", **model_args(_small(cfg))).to(device)
         model.cnn.requires_grad_(False)
         model.head_geometry.requires_grad_(False)
         net = ShapeReader(model)
@@ -133,14 +133,13 @@ def test_a_reader_trained_by_replaying_its_graphed_step_matches_the_eager_reader
         if graphed is not None:
             assert graphed.graph is not None and graphed.failed is None and graphed.eager_steps == 3
     (eager_sums, eager_w), (graph_sums, graph_w) = results["eager"], results["graphed"]
-    for a, b in zip(eager_sums, graph_sums, strict=True):
-        assert a[2] == b[2] == 40 and torch.allclose(a[:2], b[:2], rtol=1e-3, atol=1e-2)
-    changed = [k for k in eager_w if not torch.equal(eager_w[k], results["graphed"][1][k])]
+    for a, b in zip(eager_sums, graph_sums, strict=True):      # (loss x clips, right, clips, -)
+        assert a[2] == b[2] == 40 and torch.allclose(a[0], b[0], rtol=1e-3) and abs(a[1] - b[1]) <= 2
     for k in eager_w:
-        assert torch.allclose(eager_w[k], graph_w[k], rtol=1e-3, atol=1e-4), (k, changed)
+        assert torch.allclose(eager_w[k], graph_w[k], rtol=1e-3, atol=1e-4), k
 
 
-def replace_image(cfg):
+def _small(cfg):
     import dataclasses
 
     return dataclasses.replace(cfg, image_size=32, width=8, fc6=32, hidden=16)
@@ -189,7 +188,7 @@ def test_a_graphed_reader_resumed_from_its_saved_state_follows_the_schedule_as_a
 
     def fresh():
         torch.manual_seed(0)
-        model = build_model("base2", **model_args(replace_image(cfg))).to(device)
+        model = build_model("base2", **model_args(_small(cfg))).to(device)
         model.cnn.requires_grad_(False)
         model.head_geometry.requires_grad_(False)
         optimizer = make_optimizer(model, cfg, device)
