@@ -7,6 +7,7 @@ import argparse
 import json
 import subprocess
 import sys
+import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -23,6 +24,16 @@ RESULTS = Path(__file__).parent / "results"
 def paper_sim_cpu():
     """The ``paper`` preset's sim settings with the simulation on the CPU."""
     return apply_overrides(study_config.preset("paper"), ["sim.device=cpu"]).sim
+
+
+def frame_set_arguments(ap: argparse.ArgumentParser, clips: int = 2592) -> None:
+    """The arguments of the benchmarks that write a setting's frames: --clips (default ``clips``), --frames and
+    --size (the `paper` preset's 40 and 112), --workdir (where their stand-in files go) and --out."""
+    ap.add_argument("--clips", type=int, default=clips)
+    ap.add_argument("--frames", type=int, default=40)
+    ap.add_argument("--size", type=int, default=112)
+    ap.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()))
+    ap.add_argument("--out", type=Path, default=None)
 
 
 def write_result(script: str, argv: list[str] | None, result: dict, out: Path) -> None:

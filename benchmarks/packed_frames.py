@@ -29,7 +29,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common import RESULTS, write_result  # noqa: E402  (benchmarks/common.py)
+from common import RESULTS, frame_set_arguments, write_result  # noqa: E402  (benchmarks/common.py)
 from clothgap.config import preset  # noqa: E402
 from clothgap.runs import Run, atomic_write_json, clip_id, mark_done  # noqa: E402
 from learn.dataset import build_cache  # noqa: E402
@@ -66,11 +66,7 @@ def write_clips(run: Run, packed: bool, clips: int, frames: int, size: int) -> f
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--clips", type=int, default=2592)
-    ap.add_argument("--frames", type=int, default=40)
-    ap.add_argument("--size", type=int, default=112)
-    ap.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()))
-    ap.add_argument("--out", type=Path, default=None)
+    frame_set_arguments(ap)
     args = ap.parse_args(argv)
     frame_bytes = args.clips * args.frames * args.size ** 2 * 3
     if shutil.disk_usage(args.workdir).free < 3.3 * frame_bytes:

@@ -67,13 +67,21 @@ def main(argv: list[str] | None = None) -> dict:
     lattice = torch.randn(args.batch_size, args.frames, GEOMETRY_DIM, generator=gen).to(device)
     labels = torch.randint(0, NUM_CLASSES, (args.batch_size,), generator=gen).to(device)
 
-    def timed(one_batch: bool) -> dict:
+    def reader() -> tuple:
+        """The reader at the same starting weights each time, and its optimiser."""
         torch.manual_seed(0)
         model = build_model(args.model, **model_args(cfg)).to(device)
         model.cnn.requires_grad_(False)             # a shared regressor's readers train alone (take_regressor)
         model.head_geometry.requires_grad_(False)
+        return model, make_optimizer(model, cfg, device)
+
+    def rates(seconds: float) -> dict:
+        return {"step_ms": round(1000 * seconds / args.steps, 3),
+                "windows_per_s": round(args.steps * args.batch_size / seconds, 1)}
+
+    def timed(one_batch: bool) -> dict:
+        model, optimizer = reader()
         net = ShapeReader(model) if one_batch else ReadApart(model)
-        optimizer = make_optimizer(model, cfg, device)
 
         def steps(n: int) -> None:      # the training step itself; run_epoch reads its sums back at the end
             run_epoch(net, model, [(shape, labels, lattice)] * n, device, optimizer, amp,
@@ -82,18 +90,12 @@ def main(argv: list[str] | None = None) -> dict:
         steps(args.warmup)
         start = time.perf_counter()
         steps(args.steps)
-        seconds = time.perf_counter() - start
-        return {"step_ms": round(1000 * seconds / args.steps, 3),
-                "windows_per_s": round(args.steps * args.batch_size / seconds, 1)}
+        return rates(time.perf_counter() - start)
 
     def graphed() -> dict:
         """The one-batch step captured as a CUDA graph and replayed (train.reader_graphs, learn.steps), on
         ``--steps`` distinct batches of random shapes held on the device."""
-        torch.manual_seed(0)
-        model = build_model(args.model, **model_args(cfg)).to(device)
-        model.cnn.requires_grad_(False)
-        model.head_geometry.requires_grad_(False)
-        optimizer = make_optimizer(model, cfg, device)
+        model, optimizer = reader()
         n = args.batch_size * max(args.steps, args.warmup)
         data = SimpleNamespace(shapes=torch.randn(n, args.frames, GEOMETRY_DIM, generator=gen).to(device),
                                targets=torch.randn(n, args.frames, GEOMETRY_DIM, generator=gen).to(device),
@@ -103,10 +105,8 @@ def main(argv: list[str] | None = None) -> dict:
         epochs.epoch(torch.arange(args.batch_size * args.warmup))      # warm-up and capture
         start = time.perf_counter()
         epochs.epoch(torch.arange(args.batch_size * args.steps))
-        seconds = time.perf_counter() - start
-        return {"step_ms": round(1000 * seconds / args.steps, 3),
-                "windows_per_s": round(args.steps * args.batch_size / seconds, 1),
-                "captured": epochs.graph is not None, "capture_failed": epochs.failed}
+        return {**rates(time.perf_counter() - start), "captured": epochs.graph is not None,
+                "capture_failed": epochs.failed}
 
     apart = timed(one_batch=False)
     together = timed(one_batch=True)

@@ -34,7 +34,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common import RESULTS, write_result  # noqa: E402  (benchmarks/common.py)
+from common import RESULTS, frame_set_arguments, write_result  # noqa: E402  (benchmarks/common.py)
 from clothgap.config import preset  # noqa: E402
 from clothgap.parallel import host_processes  # noqa: E402
 from clothgap.runs import Run, atomic_write_json, clip_id, mark_done  # noqa: E402
@@ -83,13 +83,9 @@ def timed(fn) -> float:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--clips", type=int, default=2592)
-    ap.add_argument("--frames", type=int, default=40)
-    ap.add_argument("--size", type=int, default=112)
+    frame_set_arguments(ap)
     ap.add_argument("--vertices", type=int, default=1700, help="mean vertices of a stand-in adaptive frame")
     ap.add_argument("--processes", type=int, default=None, help="the pool's processes (default: every CPU)")
-    ap.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()))
-    ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
     processes = args.processes or host_processes()
     if processes < 2:

@@ -4,15 +4,16 @@ before ``learn.windows.gather_rows``) against gathered and copied chunk by chunk
     python benchmarks/train_upload.py [--clips 20736] [--train-clips 15228] [--frames 40] [--size 112]
                                       [--device auto] [--repeats 2] [--workdir /tmp] [--out FILE]
 
-Writes a frame array of ``--clips`` clips x ``--frames`` frames at ``--size`` px (uint8, the packed layout the
-render writes and the frame cache indexes in place: at the ``paper`` preset's 384 sequences a class, 20,736 clips,
-~31 GB), then, each in a fresh process (its own CUDA context), gathers the rows of ``--train-clips`` clips drawn
-at random (a split's training clips: 15,228 at 384 a class) onto the device both ways, ``--repeats`` times, the
-two ways in alternating order. Reports each way's seconds and its peak anonymous host memory over the process's
-own before the gather (RssAnon sampled every 5 ms: the frame array's page-cache pages are shared file pages,
-not counted) and, on CUDA, the pinned allocator's peak; checks 64 random rows of each result against the array;
-the page cache holds the array, as after a render on the same machine. Writes
-benchmarks/results/train_upload-<device>-n<clips>.json with the command. The array is removed.
+Writes a frame array of ``--clips`` clips x ``--frames`` frames at ``--size`` px through
+``render.frames.FrameStore`` (the packed array the render writes and the frame cache indexes in place: at the
+``paper`` preset's 384 sequences a class, 20,736 clips, ~31 GB), then, each in a fresh process (its own CUDA
+context), gathers the rows of ``--train-clips`` clips drawn at random (a split's training clips: 15,228 at 384 a
+class) onto the device both ways, ``--repeats`` times, the two ways in alternating order. Reports each way's
+seconds and its peak anonymous host memory over the process's own before the gather (RssAnon sampled every 5
+ms: the frame array's page-cache pages are shared file pages, not counted) and, on CUDA, the pinned allocator's
+peak; checks 64 random rows of each result against the array; the page cache holds the array, as after a render
+on the same machine. Writes benchmarks/results/train_upload-<device>-n<clips>.json with the command. The array
+is removed.
 """
 
 from __future__ import annotations
@@ -32,7 +33,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common import RESULTS, either_first, write_result  # noqa: E402  (benchmarks/common.py)
+from common import RESULTS, either_first, frame_set_arguments, write_result  # noqa: E402  (benchmarks/common.py)
+from render.frames import FrameStore, store_path  # noqa: E402
 
 WAYS = ("whole", "chunked")
 
@@ -93,14 +95,10 @@ def child(way: str, array: Path, rows_file: Path, device: str) -> dict:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--clips", type=int, default=20736)
+    frame_set_arguments(ap, clips=20736)
     ap.add_argument("--train-clips", type=int, default=15228)
-    ap.add_argument("--frames", type=int, default=40)
-    ap.add_argument("--size", type=int, default=112)
     ap.add_argument("--device", default="auto", help="cuda, cpu, or auto (cuda when there is one)")
     ap.add_argument("--repeats", type=int, default=2)
-    ap.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()))
-    ap.add_argument("--out", type=Path)
     ap.add_argument("--child", nargs=3, metavar=("WAY", "ARRAY", "ROWS"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     device = args.device
@@ -114,15 +112,13 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(f"--train-clips must be in 1..--clips ({args.clips}), not {args.train_clips}")
     work = Path(tempfile.mkdtemp(prefix="train_upload-", dir=args.workdir))
     try:
-        array, rows_file = work / "frames.npy", work / "rows.npy"
-        shape = (args.clips * args.frames, args.size, args.size, 3)
-        frames = np.lib.format.open_memmap(array, mode="w+", dtype=np.uint8, shape=shape)
-        started = time.perf_counter()
-        block = np.random.default_rng(1).integers(0, 256, (args.frames,) + shape[1:], dtype=np.uint8)
+        rows_file = work / "rows.npy"
+        started = time.perf_counter()       # written as the render writes a setting's packed frames
+        store = FrameStore(store_path(work, args.size), args.clips, args.frames, args.size)
+        array, shape = store.path, store.shape
+        block = np.random.default_rng(1).integers(0, 256, (args.frames, args.size, args.size, 3), dtype=np.uint8)
         for c in range(args.clips):                # each clip a random block shifted by its index: rows differ
-            frames[c * args.frames:(c + 1) * args.frames] = block + np.uint8(c % 251)
-        frames.flush()
-        del frames
+            store.write(c, block + np.uint8(c % 251))
         write_seconds = time.perf_counter() - started
         clips = np.sort(np.random.default_rng(2).choice(args.clips, size=args.train_clips, replace=False))
         rows = (clips[:, None] * args.frames + np.arange(args.frames)).ravel()

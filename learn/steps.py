@@ -95,23 +95,32 @@ class GraphedReaderEpochs:
         self.optimizer.zero_grad(set_to_none=True)
         self._step()
 
-    def _capture(self) -> bool:
+    def _warm_up(self, side: torch.cuda.Stream) -> None:
+        """An eager step on a side stream, as torch.cuda.graph asks before a capture."""
+        side.wait_stream(torch.cuda.current_stream(self.device))
+        with torch.cuda.stream(side):
+            self._eager()
+        torch.cuda.current_stream(self.device).wait_stream(side)
+        self.eager_steps += 1
+
+    def _capture(self) -> None:
+        """Record the step (which runs nothing); if it cannot be captured, say why once (``failed``): the
+        training goes on eagerly."""
         self.optimizer.zero_grad(set_to_none=True)      # the graph's backward writes the gradients it made
         graph = torch.cuda.CUDAGraph()
         stream = torch.cuda.current_stream(self.device)
         try:
             with torch.cuda.graph(graph):
                 self._step()
-        except Exception as e:     # an op that cannot be captured: this training goes on eagerly, said once
+        except Exception as e:     # an op that cannot be captured
             torch.cuda.set_stream(stream)        # (a capture that fails on its way out leaves its own stream set)
             self.failed = f"{type(e).__name__}: {str(e).splitlines()[0][:300] if str(e) else ''}"
             warnings.warn(f"the reader's step could not be captured as a CUDA graph ({self.failed}); it trains "
                           "eagerly", stacklevel=3)
             torch.cuda.synchronize(self.device)
             self.optimizer.zero_grad(set_to_none=True)
-            return False
+            return
         self.graph = graph
-        return True
 
     def epoch(self, order: torch.Tensor) -> torch.Tensor:
         """Train on ``order``'s windows (whole batches; the last partial one dropped, as the eager epoch does);
@@ -119,22 +128,15 @@ class GraphedReaderEpochs:
         self.net.train(True)
         self.sums.zero_()
         order = order.to(self.device, non_blocking=True)
-        steps = len(order) // self.batch_size
         side = torch.cuda.Stream(self.device)
-        for k in range(steps):
+        for k in range(len(order) // self.batch_size):
             self.index.copy_(order[k * self.batch_size:(k + 1) * self.batch_size])
-            if self.graph is None and (self.failed or self.eager_steps < WARMUP_STEPS):
-                if self.failed:
-                    self._eager()
-                else:    # capture's warm-up runs on a side stream (the rules of torch.cuda.graph)
-                    side.wait_stream(torch.cuda.current_stream(self.device))
-                    with torch.cuda.stream(side):
-                        self._eager()
-                    torch.cuda.current_stream(self.device).wait_stream(side)
-                    self.eager_steps += 1
-                continue
-            if self.graph is None and not self._capture():
+            if self.graph is None and not self.failed and self.eager_steps >= WARMUP_STEPS:
+                self._capture()
+            if self.graph is not None:
+                self.graph.replay()
+            elif self.failed:
                 self._eager()
-                continue
-            self.graph.replay()
+            else:
+                self._warm_up(side)
         return self.sums.cpu()

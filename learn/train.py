@@ -652,20 +652,19 @@ def train_epoch(t: Training, epoch: int, progress: bool = False) -> tuple[float,
             t.graphed = GraphedReaderEpochs(t.net, t.model, t.optimizer, t.train_set, cfg.batch_size, t.device,
                                             t.amp, geometry_weight=cfg.geometry_weight,
                                             label_smoothing=cfg.label_smoothing, truth_weight=cfg.reader_truth)
-        scores = _epoch_scores(t.graphed.epoch(order), all_ranks=True)
-        _check_finite(t.model, scores[0], cfg, str(t.out), epoch)
-        return scores
-    if t.reads_shapes:
-        # The frames' augmentations trained the regressor; its readers read the shapes it predicts unaugmented.
-        batches = t.train_set.batches(cfg.batch_size, order=order, drop_last=True)
+        sums = t.graphed.epoch(order)
     else:
-        augment = t.train_set.augment_table(torch_seed, epoch) if cfg.augment else None
-        camera = t.train_set.camera_table(torch_seed, epoch) if cfg.augment_camera else None
-        batches = t.train_set.batches(cfg.batch_size, order=order, augment=augment, drop_last=True,
-                                      crop=cfg.augment_crop, camera=camera,
-                                      camera_noise_seed=t.train_set.camera_noise_seed(torch_seed, epoch, _rank()))
-    sums = run_epoch(t.net, t.model, batches, t.device, t.optimizer, t.amp, progress, f"epoch {epoch}", steps,
-                     cfg.geometry_weight, cfg.label_smoothing, cfg.reader_truth)
+        if t.reads_shapes:
+            # The frames' augmentations trained the regressor; its readers read the shapes it predicts unaugmented.
+            batches = t.train_set.batches(cfg.batch_size, order=order, drop_last=True)
+        else:
+            augment = t.train_set.augment_table(torch_seed, epoch) if cfg.augment else None
+            camera = t.train_set.camera_table(torch_seed, epoch) if cfg.augment_camera else None
+            batches = t.train_set.batches(cfg.batch_size, order=order, augment=augment, drop_last=True,
+                                          crop=cfg.augment_crop, camera=camera,
+                                          camera_noise_seed=t.train_set.camera_noise_seed(torch_seed, epoch, _rank()))
+        sums = run_epoch(t.net, t.model, batches, t.device, t.optimizer, t.amp, progress, f"epoch {epoch}", steps,
+                         cfg.geometry_weight, cfg.label_smoothing, cfg.reader_truth)
     scores = _epoch_scores(sums, all_ranks=True)
     _check_finite(t.model, scores[0], cfg, str(t.out), epoch)
     return scores

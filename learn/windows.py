@@ -39,8 +39,9 @@ CAMERA_TONE_GAMMA = 1.25        # encoded values ^ g, g log-uniform in [1 / 1.25
 CAMERA_VIGNETTING = 0.3         # strength uniform in [0, 0.3]: the light lost at the corners (render.camera.vignette)
 CAMERA_NOISE_STD = 0.02         # per-clip std uniform in [0, 0.02] of Gaussian noise on the encoded values
 # What a training keeps free of its GPU's free memory beside its frames: a quarter of it, and at least 8 GiB (an
-# lrcn at batch 16 peaked ~5 GB over its frames at 384 a class: table3-arm384-h100x4.json). A setting's training
-# frames at 768 a class (~46 GB) then stay resident on an 80 GB GPU, where half its free memory would not hold them.
+# lrcn at batch 16, 384 a class, peaked at 28.5 GiB on its GPU with 24.2 GiB of training and validation frames:
+# table3-arm384-h100x4.json). A setting's training frames at 768 a class (~46 GB) then stay resident on an 80 GB
+# GPU, where half its free memory would not hold them.
 _KEEP_FREE_SHARE, _KEEP_FREE_MIN = 0.25, 8 << 30
 # Rows travel to a device through two pinned buffers of this size: the host holds a chunk, not the set.
 UPLOAD_CHUNK_BYTES = 64 << 20
@@ -72,14 +73,13 @@ def gather_rows(frames: np.ndarray, rows: np.ndarray, device: torch.device | str
     if len(rows) and (rows.min() < 0 or rows.max() >= len(frames)):
         raise IndexError(f"rows {rows.min()}..{rows.max()} of an array of {len(frames)} frames")
     cuda = device.type == "cuda"
-    if not cuda and pin_memory:
-        out = torch.empty((len(rows),) + tuple(frames.shape[1:]), dtype=_torch_dtype(frames), pin_memory=True)
-        np.take(frames, rows, axis=0, out=out.numpy(), mode="clip")   # (checked above; no temporary)
-        return out
-    if not cuda and chunk_bytes is None:
+    if not cuda and chunk_bytes is None and not pin_memory:
         return torch.from_numpy(np.ascontiguousarray(frames[rows]))
     shape = (len(rows),) + tuple(frames.shape[1:])
-    out = torch.empty(shape, dtype=_torch_dtype(frames), device=device)
+    out = torch.empty(shape, dtype=_torch_dtype(frames), device=device, pin_memory=not cuda and pin_memory)
+    if not cuda and pin_memory:
+        np.take(frames, rows, axis=0, out=out.numpy(), mode="clip")   # (checked above; no temporary)
+        return out
     row_bytes = max(1, int(np.prod(frames.shape[1:], dtype=np.int64)) * frames.dtype.itemsize)
     step = max(1, (UPLOAD_CHUNK_BYTES if chunk_bytes is None else chunk_bytes) // row_bytes)
     buffers = [torch.empty((min(step, len(rows)),) + shape[1:], dtype=out.dtype, pin_memory=cuda)

@@ -5,6 +5,8 @@ Deselected by default; on the GPU machine: ``pytest -m gpu tests/test_learn_gpu.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 import torch
@@ -92,30 +94,17 @@ def test_rows_go_to_the_device_chunk_by_chunk_unchanged(cache):
 
 
 def test_a_reader_trained_by_replaying_its_graphed_step_matches_the_eager_reader():
-    from types import SimpleNamespace
-
-    from learn.config import TrainConfig
-    from learn.models import GEOMETRY_DIM, ShapeReader, model_args
+    from learn.models import ShapeReader
     from learn.steps import GraphedReaderEpochs
-    from learn.train import make_optimizer, make_scheduler
 
     device = torch.device("cuda")
-    cfg = TrainConfig(bottleneck=True, bottleneck_noise=0.0, dropout=0.0, reader_truth=1.0, batch_size=8, epochs=3,
-                      schedule="cosine", motion=True)
-    gen = torch.Generator().manual_seed(0)
-    n, t = 45, 6                                  # 5 whole batches of 8, the last 5 windows dropped
-    data = SimpleNamespace(shapes=torch.randn(n, t, GEOMETRY_DIM, generator=gen).to(device),
-                           targets=torch.randn(n, t, GEOMETRY_DIM, generator=gen).to(device),
-                           device_labels=torch.randint(0, 54, (n,), generator=gen).to(device))
+    cfg = _reader_config(epochs=3)
+    n = 45                                        # 5 whole batches of 8, the last 5 windows dropped
+    data = _random_shapes(n)
     results = {}
     for way in ("eager", "graphed"):
-        torch.manual_seed(0)
-        model = build_model("base2", **model_args(_small(cfg))).to(device)
-        model.cnn.requires_grad_(False)
-        model.head_geometry.requires_grad_(False)
+        model, optimizer, scheduler = _fresh_reader(cfg)
         net = ShapeReader(model)
-        optimizer = make_optimizer(model, cfg, device)
-        scheduler = make_scheduler(optimizer, cfg.schedule, cfg.epochs)
         graphed = GraphedReaderEpochs(net, model, optimizer, data, cfg.batch_size, device, True,
                                       truth_weight=cfg.reader_truth) if way == "graphed" else None
         sums = []
@@ -139,10 +128,38 @@ def test_a_reader_trained_by_replaying_its_graphed_step_matches_the_eager_reader
         assert torch.allclose(eager_w[k], graph_w[k], rtol=1e-3, atol=1e-4), k
 
 
-def _small(cfg):
-    import dataclasses
+def _reader_config(epochs: int):
+    from learn.config import TrainConfig
 
-    return dataclasses.replace(cfg, image_size=32, width=8, fc6=32, hidden=16)
+    # no noise and no dropout: two trainings from the same weights draw nothing at random
+    return TrainConfig(bottleneck=True, bottleneck_noise=0.0, dropout=0.0, reader_truth=1.0, batch_size=8,
+                       epochs=epochs, schedule="cosine", motion=True, image_size=32, width=8, fc6=32, hidden=16)
+
+
+def _random_shapes(n: int, frames: int = 6):
+    """A ShapeSet's tensors, random, on the GPU: what GraphedReaderEpochs reads."""
+    from types import SimpleNamespace
+
+    from learn.models import GEOMETRY_DIM
+
+    gen = torch.Generator().manual_seed(0)
+    return SimpleNamespace(shapes=torch.randn(n, frames, GEOMETRY_DIM, generator=gen).cuda(),
+                           targets=torch.randn(n, frames, GEOMETRY_DIM, generator=gen).cuda(),
+                           device_labels=torch.randint(0, 54, (n,), generator=gen).cuda())
+
+
+def _fresh_reader(cfg):
+    """base2 at the same starting weights each time, its CNN and lattice head frozen (a shared regressor's
+    reader), with its optimiser and schedule."""
+    from learn.models import model_args
+    from learn.train import make_optimizer, make_scheduler
+
+    torch.manual_seed(0)
+    model = build_model("base2", **model_args(cfg)).cuda()
+    model.cnn.requires_grad_(False)
+    model.head_geometry.requires_grad_(False)
+    optimizer = make_optimizer(model, cfg, torch.device("cuda"))
+    return model, optimizer, make_scheduler(optimizer, cfg.schedule, cfg.epochs)
 
 
 def test_a_reader_on_a_shared_regressor_trains_by_graph_replay_through_train_one(tmp_path):
@@ -171,28 +188,14 @@ def test_a_reader_on_a_shared_regressor_trains_by_graph_replay_through_train_one
 
 def test_a_graphed_reader_resumed_from_its_saved_state_follows_the_schedule_as_an_unbroken_one():
     import io
-    from types import SimpleNamespace
 
-    from learn.config import TrainConfig
-    from learn.models import GEOMETRY_DIM, ShapeReader, model_args
+    from learn.models import ShapeReader
     from learn.steps import GraphedReaderEpochs
-    from learn.train import make_optimizer, make_scheduler
 
     device = torch.device("cuda")
-    cfg = TrainConfig(bottleneck=True, bottleneck_noise=0.0, dropout=0.0, reader_truth=1.0, batch_size=8, epochs=4,
-                      schedule="cosine", motion=True)
-    gen = torch.Generator().manual_seed(0)
-    data = SimpleNamespace(shapes=torch.randn(40, 6, GEOMETRY_DIM, generator=gen).to(device),
-                           targets=torch.randn(40, 6, GEOMETRY_DIM, generator=gen).to(device),
-                           device_labels=torch.randint(0, 54, (40,), generator=gen).to(device))
-
-    def fresh():
-        torch.manual_seed(0)
-        model = build_model("base2", **model_args(_small(cfg))).to(device)
-        model.cnn.requires_grad_(False)
-        model.head_geometry.requires_grad_(False)
-        optimizer = make_optimizer(model, cfg, device)
-        return model, optimizer, make_scheduler(optimizer, cfg.schedule, cfg.epochs)
+    cfg = _reader_config(epochs=4)
+    data = _random_shapes(40)
+    fresh = functools.partial(_fresh_reader, cfg)
 
     def epochs(model, optimizer, scheduler, which):
         graphed = GraphedReaderEpochs(ShapeReader(model), model, optimizer, data, cfg.batch_size, device, True,
