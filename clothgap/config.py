@@ -162,16 +162,20 @@ def _paper() -> StudyConfig:
     # over 192 +10.3 [+8.5, +11.9] (on test clips 68.1 against 57.3 %, 90.6 % within one bin;
     # benchmarks/results/learn_data384-arm-uniform1-h100x4.json), each for twice a setting's sim, render, epoch time and
     # disk (at 384: ~31 GB of packed frames at 112 px a setting). Wind, measured after the choices: 192 over 96 +8.9
-    # points on test clips (89.2 against 80.3 %, benchmarks/results/table3-192-wind-h100x2.json); 384 not measured.
+    # points on test clips (89.2 against 80.3 %, benchmarks/results/table3-192-wind-h100x2.json); at 384 its Table 3 row
+    # reads 93.7 % (benchmarks/results/table3-wind384-h100x4.json; another run than 192's, not paired).
     # Arm's cloth framed 1.3x closer than its camera box (sim.arm_view_zoom), chosen on arm's validation windows at 192
     # a class (+10.0 points [+7.6, +12.5]; on test clips 57.9 against 49.2 %, seeds 0 and 1 pooled, the same simulations
     # rendered both ways; benchmarks/results/table3-close192-arm-h100x2.json): its cloth is wide and low in the box,
     # which holds the rarest poses. Wind's framing was not compared. 120 epochs over 80 were not chosen (arm's
     # validation windows -1.0 points [-3.0, +1.0]; benchmarks/results/learn_epochs120-arm-uniform1-h100x2.json). The CNN
     # trainings replay CUDA graphs (train.compile, mode reduce-overhead): at 192 a class, two lrcn a GPU, an epoch took
-    # 6.10 s against 8.05 eager (1.32x; about 21 s more in the first epoch to compile), the same file; the readers on
-    # the shared regressor stay eager (train.compile_readers=false): graphs ran base2's and base3's 1.1-1.6x slower and
-    # base1's 1.26x faster (docs/learning.md). Compiling changes rounding, not the computation.
+    # 6.10 s against 8.05 eager (1.32x; about 21 s more in the first epoch to compile), the same file. The readers on
+    # the shared regressor are not compiled (train.compile_readers=false: torch.compile's graphs ran base2's and
+    # base3's 1.1-1.6x slower, docs/learning.md); each replays its whole training step from one CUDA graph instead
+    # (train.reader_graphs): on an H100 a step took 0.26-0.64 ms against 2.6-3.6 ms eager (base1 10.2x, base2 5.7x,
+    # base3 7.5x; benchmarks/results/reader_step-graphed-cuda-*-h100.json), and a Table 3 row's six readers at 384 a
+    # class trained in 142 s on four H100s. Compiling and graphs change rounding, not the computation.
     return StudyConfig(
         name="paper",
         sim=SimConfig(motions=("wind", "arm"), remeshing=("uniform1", "uniform2", "uniform3", "adaptive"),
@@ -185,7 +189,7 @@ def _paper() -> StudyConfig:
                           batch_size=16, clip_len=40, weight_decay=0.05, width=64, fc6=512, hidden=256, device="cuda",
                           motion=True, keep="best", bottleneck=True, dropout=0.0, reader_truth=1.0,
                           bottleneck_noise=0.2, shared_regressor="lrcn", compile=True, compile_mode="reduce-overhead",
-                          compile_readers=False),
+                          compile_readers=False, reader_graphs=True),
         eval=EvalConfig(measured_sequences=4, sim_analysis=("table2", "sensitivity")),
     )
 

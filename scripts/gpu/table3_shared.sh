@@ -41,13 +41,10 @@ own=shared_regressor=base1+seeds=0 half=train_fraction=0.5
 export RUN=$run MOTIONS=$motion SPP=16
 looks=${LOOKS:-paper}
 IFS=, read -r first second _ <<< "$looks"
-# READER_GRAPHS=auto (the default): a run made after scripts/gpu/plans/reader-graphs.plan passed on this machine
-# (its mark READER_GRAPHS_OK) trains its readers graphed (train.reader_graphs); 1 always, 0 never.
+# READER_GRAPHS=0 trains the readers eagerly; else as the preset does, each step replayed from a CUDA graph
+# (train.reader_graphs; scripts/gpu/plans/reader-graphs.plan checks it on a machine)
 reader_graphs=
-case ${READER_GRAPHS:-auto} in
-  1) reader_graphs="--set train.reader_graphs=true" ;;
-  auto) [ -f "${READER_GRAPHS_OK:-/tmp/reader-graphs.ok}" ] && reader_graphs="--set train.reader_graphs=true" ;;
-esac
+[ "${READER_GRAPHS:-1}" = 0 ] && reader_graphs="--set train.reader_graphs=false"
 export EXTRA="--set train.seeds=0,1 --set eval.seed_ensemble=true --set eval.measured_sequences=0 --set train.shared_regressor=lrcn --set render.variants=$looks $reader_graphs ${PLAN_SETS:-}"
 source "$here/gpus.sh"
 # `train` after `looks`: the readers of the chosen look only
