@@ -175,7 +175,8 @@ def _paper() -> StudyConfig:
     # base3's 1.1-1.6x slower, docs/learning.md); each replays its whole training step from one CUDA graph instead
     # (train.reader_graphs): on an H100 a step took 0.26-0.64 ms against 2.6-3.6 ms eager (base1 10.2x, base2 5.7x,
     # base3 7.5x; benchmarks/results/reader_step-graphed-cuda-*-h100.json), and a Table 3 row's six readers at 384 a
-    # class trained in 142 s on four H100s. Compiling and graphs change rounding, not the computation.
+    # class trained in 142 s on four H100s. Compiling changes rounding, not the computation; a graphed reader draws its
+    # bottleneck noise from the same generator in another order, as reproducible as an eager one but not the same draws.
     return StudyConfig(
         name="paper",
         sim=SimConfig(motions=("wind", "arm"), remeshing=("uniform1", "uniform2", "uniform3", "adaptive"),

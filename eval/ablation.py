@@ -51,7 +51,7 @@ LEVERS: dict[str, dict] = {
     "narrow": {"width": 32, "fc6": 256, "hidden": 128},
     "decay": {"weight_decay": 0.05},
     "graphs": {"compile": True, "compile_mode": "reduce-overhead"},   # CUDA graphs (speed; rounding only)
-    "eager": {"compile": False},               # no compiling: against a preset that trains under graphs
+    "eager": {"compile": False, "reader_graphs": False},   # no compiling, no graphed readers: against the preset
 }
 
 

@@ -1,8 +1,8 @@
 """A training step, and the readers' epochs replayed from one CUDA graph (``train.reader_graphs``).
 
 The readers of a shared regressor (``learn.shapes``) train on small tensors already on the GPU: a step is a few
-hundred tiny kernels, and launching them from Python costs more than running them (base2 6.7 ms a step on an
-H100, ``benchmarks/reader_step.py``). ``GraphedReaderEpochs`` captures the whole step, the batch cut from the
+hundred tiny kernels, and launching them from Python costs more than running them (base2 3.64 ms a step on an
+H100, 0.64 ms graphed: ``benchmarks/reader_step.py``, ``benchmarks/results/reader_step-graphed-cuda-base2-h100.json``). ``GraphedReaderEpochs`` captures the whole step, the batch cut from the
 cached shapes by an index buffer, forward, loss, backward and the optimiser's update, once, and replays it for
 every batch: one launch a step. torch.compile's graphs (``train.compile_readers``) ran base2's and base3's
 recurrent readers slower instead (docs/learning.md).

@@ -267,7 +267,7 @@ def test_a_detached_run_whose_wrapper_was_killed_is_still_waited_on_and_not_star
 
 def test_the_graphed_readers_hold_only_when_tested_captured_and_faster(tmp_path):
     script = ROOT / "scripts" / "gpu" / "reader_graphs_ok.py"
-    tests_ok = tmp_path / "tests-ok"
+    tests_ok, off = tmp_path / "tests-ok", tmp_path / "off"
 
     def verdict(*results: dict, tests: bool = True, holds: bool = False) -> str:
         files = []
@@ -277,14 +277,15 @@ def test_the_graphed_readers_hold_only_when_tested_captured_and_faster(tmp_path)
         tests_ok.unlink(missing_ok=True)
         if tests:
             tests_ok.touch()
-        r = subprocess.run([sys.executable, str(script), *map(str, files), "--tests-ok", str(tests_ok)],
-                           capture_output=True, text=True, timeout=60)
+        off.write_text("unchecked\n")                  # as the plans leave it before the check
+        r = subprocess.run([sys.executable, str(script), *map(str, files), "--tests-ok", str(tests_ok),
+                            "--off", str(off)], capture_output=True, text=True, timeout=60)
         assert r.returncode == (0 if holds else 1), r.stdout + r.stderr
         return r.stdout
 
     fast = {"model": "base2", "graphed": {"captured": True}, "graphed_over_one_batch": 4.1}
-    assert "hold: base2 4.1x" in verdict(fast, dict(fast, model="base1"), holds=True)
-    assert "GPU tests did not pass" in verdict(fast, tests=False)
-    assert "under 1.2x" in verdict(fast, dict(fast, model="base3", graphed_over_one_batch=1.1))
+    assert "hold: base2 4.1x" in verdict(fast, dict(fast, model="base1"), holds=True) and not off.exists()
+    assert "GPU tests did not pass" in verdict(fast, tests=False) and "GPU tests" in off.read_text()
+    assert "under 1.2x" in verdict(fast, dict(fast, model="base3", graphed_over_one_batch=1.1)) and off.is_file()
     assert "not captured" in verdict(dict(fast, graphed={"captured": False, "capture_failed": "x"}))
     assert "no reader was timed" in verdict()

@@ -598,11 +598,14 @@ def test_compile_readers_off_compiles_the_cnn_trainings_and_leaves_the_readers_e
     assert len(compiled) == 2
     graphs = recipe_config(StudyConfig(), "graphs")
     assert (graphs.compile, graphs.compile_mode, graphs.compile_readers) == (True, "reduce-overhead", True)
-    # The paper preset replays graphs in its CNN trainings and leaves its readers eager; `eager` turns both off.
+    # The paper preset replays graphs in its CNN trainings and replays its readers' whole step from one graph
+    # (not torch.compile); `eager` turns both off.
     paper = preset("paper")
     assert learn.train.compiles(paper.train, cuda, reads_shapes=False)
     assert not learn.train.compiles(paper.train, cuda, reads_shapes=True)
+    assert learn.train.graphs_readers(paper.train, cuda) and not learn.train.graphs_readers(paper.train, torch.device("cpu"))
     assert not learn.train.compiles(recipe_config(paper, "eager"), cuda, reads_shapes=False)
+    assert not learn.train.graphs_readers(recipe_config(paper, "eager"), cuda)
     assert learn.train.compiles(preset("study").train, cuda, reads_shapes=False)
     monkeypatch.setattr(learn.train, "_world_size", lambda: 2)     # torchrun's DDP trains eager
     assert not learn.train.compiles(paper.train, cuda, reads_shapes=False)

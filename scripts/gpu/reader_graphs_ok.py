@@ -1,9 +1,10 @@
 """Whether the graphed reader step (train.reader_graphs, the `paper` preset's) holds on this machine: its GPU tests
 passed and, for every reader timed by benchmarks/reader_step.py, the step was captured and at least ``--min`` times
-the eager one-batch step. Says which, and why not (exit 1: a plan's step that fails is recorded and the plan goes on;
-a run may then train its readers eagerly, ``--set train.reader_graphs=false``).
+the eager one-batch step. Says which, and why not (exit 1: a plan's step that fails is recorded and the plan goes
+on). ``--off FILE`` is removed when they hold and written (with why) when not: scripts/gpu/table3_shared.sh then
+trains the readers eagerly (the plans write it before the check, so a check that never finishes leaves it too).
 
-    python scripts/gpu/reader_graphs_ok.py RESULT.json... --tests-ok FILE [--min 1.2]
+    python scripts/gpu/reader_graphs_ok.py RESULT.json... --tests-ok FILE [--off FILE] [--min 1.2]
 """
 
 from __future__ import annotations
@@ -32,10 +33,15 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("results", nargs="*", type=Path)
     ap.add_argument("--tests-ok", type=Path, required=True, help="the file the GPU tests' step leaves when they pass")
+    ap.add_argument("--off", type=Path, help="removed when the graphs hold, else written with why")
     ap.add_argument("--min", type=float, default=1.2)
     args = ap.parse_args(argv)
     results = [json.loads(p.read_text()) for p in args.results if p.is_file()]
     ok, why = verdict(results, args.tests_ok.is_file(), args.min)
+    if args.off:
+        args.off.unlink(missing_ok=True)
+        if not ok:
+            args.off.write_text(why + "\n")
     print(f"reader graphs {'hold' if ok else 'do not hold'}: {why}")
     return 0 if ok else 1
 

@@ -41,10 +41,13 @@ own=shared_regressor=base1+seeds=0 half=train_fraction=0.5
 export RUN=$run MOTIONS=$motion SPP=16
 looks=${LOOKS:-paper}
 IFS=, read -r first second _ <<< "$looks"
-# READER_GRAPHS=0 trains the readers eagerly; else as the preset does, each step replayed from a CUDA graph
-# (train.reader_graphs; scripts/gpu/plans/reader-graphs.plan checks it on a machine)
+# The readers train as the preset does, each step replayed from a CUDA graph (train.reader_graphs), unless
+# READER_GRAPHS=0 or scripts/gpu/plans/reader-graphs.plan's check did not pass on this machine (its mark
+# READER_GRAPHS_OFF, which the check writes first and removes when the graphs hold): then eagerly.
 reader_graphs=
-[ "${READER_GRAPHS:-1}" = 0 ] && reader_graphs="--set train.reader_graphs=false"
+if [ "${READER_GRAPHS:-1}" = 0 ] || [ -f "${READER_GRAPHS_OFF:-/tmp/reader-graphs.off}" ]; then
+  reader_graphs="--set train.reader_graphs=false"
+fi
 export EXTRA="--set train.seeds=0,1 --set eval.seed_ensemble=true --set eval.measured_sequences=0 --set train.shared_regressor=lrcn --set render.variants=$looks $reader_graphs ${PLAN_SETS:-}"
 source "$here/gpus.sh"
 # `train` after `looks`: the readers of the chosen look only
