@@ -200,12 +200,14 @@ DETACHED = ROOT / "scripts" / "gpu" / "detached.sh"
 
 
 def test_a_detached_run_goes_on_after_the_call_returns_and_a_later_call_brings_its_results(tmp_path):
-    starts = tmp_path / "starts.txt"
+    starts, gate = tmp_path / "starts.txt", tmp_path / "gate"
     plan = tmp_path / "a.plan"
-    # a step longer than the first call: it runs once, across the calls, never cut and started again
-    plan.write_text(f"long: echo start >> {starts}; sleep 4; echo \"budget $BUDGET\" > $OUT/long.txt\n"
+    # a step longer than the first call (it waits for the gate, opened after the call): it runs once, across the
+    # calls, never cut and started again. The call waits BUDGET - 15 = 5 s, time for the run to start on a busy CPU.
+    plan.write_text(f"long: echo start >> {starts}; while [ ! -f {gate} ]; do sleep 0.2; done; "
+                    "echo \"budget $BUDGET\" > $OUT/long.txt\n"
                     "after: echo after > $OUT/after.txt\n")
-    env = {**os.environ, "QUEUE_STATE": str(tmp_path / "state"), "BUDGET": "16", "RUN_BUDGET": "120",
+    env = {**os.environ, "QUEUE_STATE": str(tmp_path / "state"), "BUDGET": "20", "RUN_BUDGET": "120",
            "CUDA_VISIBLE_DEVICES": "", "PYTHON": sys.executable}
 
     def call(out: str, *plans: str) -> subprocess.CompletedProcess:
@@ -217,6 +219,7 @@ def test_a_detached_run_goes_on_after_the_call_returns_and_a_later_call_brings_i
     pid = int((tmp_path / "state" / "detached.pid").read_text())
     assert os.getsid(pid) != os.getsid(0)           # its own process session: the device leaves it running
     assert "== long" in (tmp_path / "out1" / "lane1" / "queue.log").read_text()   # what ran so far came back
+    gate.touch()
     for _ in range(100):                             # no call is running now: the run goes on by itself
         if (tmp_path / "state" / "detached.rc").exists():
             break
