@@ -21,7 +21,6 @@ import argparse
 import sys
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 import torch
 
@@ -30,6 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from common import RESULTS, torch_device, write_result  # noqa: E402  (benchmarks/common.py)
 from clothgap.config import preset  # noqa: E402
 from learn.models import GEOMETRY_DIM, NUM_CLASSES, ShapeReader, build_model, model_args  # noqa: E402
+from learn.shapes import ShapeSet  # noqa: E402
 from learn.steps import GraphedReaderEpochs  # noqa: E402
 from learn.train import make_optimizer, resolve_device, run_epoch  # noqa: E402
 
@@ -97,9 +97,9 @@ def main(argv: list[str] | None = None) -> dict:
         ``--steps`` distinct batches of random shapes held on the device."""
         model, optimizer = reader()
         n = args.batch_size * max(args.steps, args.warmup)
-        data = SimpleNamespace(shapes=torch.randn(n, args.frames, GEOMETRY_DIM, generator=gen).to(device),
-                               targets=torch.randn(n, args.frames, GEOMETRY_DIM, generator=gen).to(device),
-                               device_labels=torch.randint(0, NUM_CLASSES, (n,), generator=gen).to(device))
+        data = ShapeSet.of_tensors(torch.randn(n, args.frames, GEOMETRY_DIM, generator=gen).to(device),
+                                   torch.randint(0, NUM_CLASSES, (n,), generator=gen),
+                                   torch.randn(n, args.frames, GEOMETRY_DIM, generator=gen))
         epochs = GraphedReaderEpochs(ShapeReader(model), model, optimizer, data, args.batch_size, device, amp,
                                      label_smoothing=cfg.label_smoothing, truth_weight=cfg.reader_truth)
         epochs.epoch(torch.arange(args.batch_size * args.warmup))      # warm-up and capture

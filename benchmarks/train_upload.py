@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import shutil
 import statistics
 import subprocess
 import sys
@@ -50,7 +51,7 @@ def child(way: str, array: Path, rows_file: Path, device: str) -> dict:
     """One way, in this process: seconds and peak anonymous host memory; the rows checked."""
     import torch
 
-    from learn.windows import gather_rows
+    from learn.windows import UPLOAD_CHUNK_BYTES, gather_rows
 
     frames = np.load(array, mmap_mode="r")
     rows = np.load(rows_file)
@@ -73,7 +74,7 @@ def child(way: str, array: Path, rows_file: Path, device: str) -> dict:
         host = torch.from_numpy(np.ascontiguousarray(frames[rows]))
         out = host.to(device)
     else:
-        out = gather_rows(frames, rows, device, chunk_bytes=None if device == "cuda" else 64 << 20)
+        out = gather_rows(frames, rows, device, chunk_bytes=UPLOAD_CHUNK_BYTES)   # (on a CPU too: its chunks)
     if device == "cuda":
         torch.cuda.synchronize()
     seconds = time.perf_counter() - started
@@ -130,9 +131,7 @@ def main(argv: list[str] | None = None) -> None:
             runs.append(json.loads(r.stdout.strip().splitlines()[-1]))
             print(runs[-1], flush=True)
     finally:
-        for f in work.iterdir():
-            f.unlink()
-        work.rmdir()
+        shutil.rmtree(work)
     summary = {}
     for way in WAYS:
         mine = [r for r in runs if r["way"] == way]

@@ -45,6 +45,19 @@ class ShapeSet:
         self.targets = torch.cat(lattices) if lattices else empty
         self.device_labels = self.labels.to(self.device)
 
+    @classmethod
+    def of_tensors(cls, shapes: torch.Tensor, labels: torch.Tensor, targets: torch.Tensor) -> ShapeSet:
+        """A shape set of given (N, T, geometry_dim) shapes and true lattices and (N,) labels, on the shapes'
+        device, without a regressor or windows (benchmarks/reader_step.py, the graphed reader's GPU tests); its
+        windows are named w0, w1, ... and start at frame 0."""
+        self = cls.__new__(cls)
+        self.device, self.clip_len = shapes.device, shapes.shape[1]
+        self.clip_ids = [f"w{i}" for i in range(len(shapes))]
+        self.starts = torch.zeros(len(shapes), dtype=torch.long)
+        self.labels = labels.cpu()
+        self.shapes, self.targets, self.device_labels = shapes, targets.to(shapes.device), labels.to(shapes.device)
+        return self
+
     def __len__(self) -> int:
         return len(self.clip_ids)
 

@@ -21,6 +21,7 @@ import warnings
 import torch
 
 from learn.models import ClipClassifier
+from learn.shapes import ShapeSet
 
 WARMUP_STEPS = 3
 
@@ -70,7 +71,7 @@ def make_capturable(optimizer: torch.optim.Optimizer, device: torch.device) -> N
 class GraphedReaderEpochs:
     """A reader's training epochs on a ``ShapeSet`` as replays of one captured step (CUDA only, one process)."""
 
-    def __init__(self, net: torch.nn.Module, model: ClipClassifier, optimizer: torch.optim.Optimizer, shapes,
+    def __init__(self, net: torch.nn.Module, model: ClipClassifier, optimizer: torch.optim.Optimizer, shapes: ShapeSet,
                  batch_size: int, device: torch.device, amp: bool, *, geometry_weight: float = 0.0,
                  label_smoothing: float = 0.0, truth_weight: float = 0.0):
         if device.type != "cuda":

@@ -39,8 +39,8 @@ CAMERA_TONE_GAMMA = 1.25        # encoded values ^ g, g log-uniform in [1 / 1.25
 CAMERA_VIGNETTING = 0.3         # strength uniform in [0, 0.3]: the light lost at the corners (render.camera.vignette)
 CAMERA_NOISE_STD = 0.02         # per-clip std uniform in [0, 0.02] of Gaussian noise on the encoded values
 # What a training keeps free of its GPU's free memory beside its frames: a quarter of it, and at least 8 GiB (an
-# lrcn at batch 16, 384 a class, peaked at 28.5 GiB on its GPU with 24.2 GiB of training and validation frames:
-# table3-arm384-h100x4.json). A setting's training frames at 768 a class (~46 GB) then stay resident on an 80 GB
+# lrcn at batch 16, 384 a class, peaked at 28,527 MiB (27.9 GiB) on its GPU with 24.2 GiB of training and
+# validation frames: table3-arm384-h100x4.json's gpu_timings). A setting's training frames at 768 a class (~46 GB) then stay resident on an 80 GB
 # GPU, where half its free memory would not hold them.
 _KEEP_FREE_SHARE, _KEEP_FREE_MIN = 0.25, 8 << 30
 # Rows travel to a device through two pinned buffers of this size: the host holds a chunk, not the set.
@@ -52,6 +52,11 @@ def _fits_on_device(nbytes: int, device: torch.device) -> bool:
         return True
     free, _total = torch.cuda.mem_get_info(device)
     return nbytes <= free - max(_KEEP_FREE_SHARE * free, _KEEP_FREE_MIN)
+
+
+def row_bytes(frames: np.ndarray) -> int:
+    """Bytes of one row (one frame) of a frame array."""
+    return int(np.prod(frames.shape[1:], dtype=np.int64)) * frames.dtype.itemsize
 
 
 def _torch_dtype(frames: np.ndarray) -> torch.dtype:
@@ -80,8 +85,7 @@ def gather_rows(frames: np.ndarray, rows: np.ndarray, device: torch.device | str
     if not cuda and pin_memory:
         np.take(frames, rows, axis=0, out=out.numpy(), mode="clip")   # (checked above; no temporary)
         return out
-    row_bytes = max(1, int(np.prod(frames.shape[1:], dtype=np.int64)) * frames.dtype.itemsize)
-    step = max(1, (UPLOAD_CHUNK_BYTES if chunk_bytes is None else chunk_bytes) // row_bytes)
+    step = max(1, (UPLOAD_CHUNK_BYTES if chunk_bytes is None else chunk_bytes) // max(1, row_bytes(frames)))
     buffers = [torch.empty((min(step, len(rows)),) + shape[1:], dtype=out.dtype, pin_memory=cuda)
                for _ in range(2 if len(rows) > step else 1)]
     copied: list = [None] * len(buffers)
@@ -146,8 +150,7 @@ class WindowSet:
             used = np.zeros(0, np.int64)
         row_of = np.full(frames.shape[0] if frames.shape[0] else 1, -1, np.int64)
         row_of[used] = np.arange(len(used))
-        nbytes = len(used) * int(np.prod(frames.shape[1:], dtype=np.int64)) * frames.dtype.itemsize
-        self.resident = _fits_on_device(nbytes, self.device)
+        self.resident = _fits_on_device(len(used) * row_bytes(frames), self.device)
         if self.resident:
             self.frames = gather_rows(frames, used, self.device)
         else:       # batches are cut on the host and copied each step: pinned, so the copy does not block

@@ -16,7 +16,7 @@ from learn.dataset import build_cache
 from learn.models import build_model
 from learn.synthetic import synthetic_run
 from learn.train import run_epoch
-from learn.windows import WindowSet, gather_rows
+from learn.windows import WindowSet, gather_rows, row_bytes
 from render.config import RenderConfig
 from sim.config import SimConfig
 from learn.config import TrainConfig
@@ -87,8 +87,8 @@ def test_the_camera_augmentation_on_the_device_is_the_host_s_and_reproducible(ca
 
 def test_rows_go_to_the_device_chunk_by_chunk_unchanged(cache):
     rows = np.random.default_rng(1).choice(cache.frames.shape[0], size=cache.frames.shape[0] // 2 + 1, replace=False)
-    row_bytes = int(np.prod(cache.frames.shape[1:]))
-    for chunk_bytes in (row_bytes, 3 * row_bytes, None):      # one row a chunk, three, the default (all at once)
+    row = row_bytes(cache.frames)
+    for chunk_bytes in (row, 3 * row, None):      # one row a chunk, three, the default (all at once)
         got = gather_rows(cache.frames, rows, "cuda", chunk_bytes=chunk_bytes)
         assert got.is_cuda and np.array_equal(got.cpu().numpy(), cache.frames[rows]), chunk_bytes
 
@@ -137,15 +137,14 @@ def _reader_config(epochs: int):
 
 
 def _random_shapes(n: int, frames: int = 6):
-    """A ShapeSet's tensors, random, on the GPU: what GraphedReaderEpochs reads."""
-    from types import SimpleNamespace
-
+    """A ShapeSet of random shapes, lattices and labels on the GPU."""
     from learn.models import GEOMETRY_DIM
+    from learn.shapes import ShapeSet
 
     gen = torch.Generator().manual_seed(0)
-    return SimpleNamespace(shapes=torch.randn(n, frames, GEOMETRY_DIM, generator=gen).cuda(),
-                           targets=torch.randn(n, frames, GEOMETRY_DIM, generator=gen).cuda(),
-                           device_labels=torch.randint(0, 54, (n,), generator=gen).cuda())
+    shapes = torch.randn(n, frames, GEOMETRY_DIM, generator=gen).cuda()
+    targets = torch.randn(n, frames, GEOMETRY_DIM, generator=gen)
+    return ShapeSet.of_tensors(shapes, torch.randint(0, 54, (n,), generator=gen), targets)
 
 
 def _fresh_reader(cfg):

@@ -1,5 +1,5 @@
-"""learn.steps on the CPU: what makes an optimiser capturable (the graphed reader itself needs a CUDA GPU:
-tests/test_learn_gpu.py)."""
+"""learn.steps on the CPU: what makes an optimiser capturable, and the shape set a graphed reader reads (the
+graphed reader itself needs a CUDA GPU: tests/test_learn_gpu.py)."""
 
 from __future__ import annotations
 
@@ -23,3 +23,14 @@ def test_a_capturable_optimiser_reads_its_rate_from_a_float32_tensor_on_the_devi
         group = optimizer.param_groups[0]
         assert group["capturable"] and torch.is_tensor(group["lr"]) and group["lr"].dtype == torch.float32
         assert group["lr"].device == cpu and abs(float(group["lr"]) - 2e-4) < 1e-9
+
+
+def test_a_shape_set_of_given_tensors_serves_them_as_a_regressor_s_would():
+    from learn.shapes import ShapeSet
+
+    shapes, targets = torch.randn(5, 4, 3), torch.randn(5, 4, 3)
+    labels = torch.tensor([7, 1, 0, 53, 2])
+    data = ShapeSet.of_tensors(shapes, labels, targets)
+    assert len(data) == 5 and data.clip_len == 4 and data.device == shapes.device
+    x, y, t = next(data.batches(2, order=torch.tensor([3, 0, 4, 1, 2])))
+    assert torch.equal(x, shapes[[3, 0]]) and torch.equal(y, labels[[3, 0]]) and torch.equal(t, targets[[3, 0]])
