@@ -36,6 +36,8 @@ class Estimate:
         if not np.isfinite(self.value):
             return "n/a"
         v, lo, hi = (x * scale for x in (self.value, self.low, self.high))
+        if not (np.isfinite(lo) and np.isfinite(hi)):
+            return f"{v:.{digits}f} [no interval]"
         return f"{v:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
 
 
@@ -242,9 +244,22 @@ def _correlation_rows(x: np.ndarray, y: np.ndarray, picks: np.ndarray, method: s
     return _pearson_rows(x[picks], y[picks])
 
 
+def _correlation_interval(samples: np.ndarray, confidence: float) -> tuple[float, float]:
+    """The percentile interval of resampled correlations; nan where too many resamples have none.
+
+    A resample whose x or y is constant has no correlation. Dropping those would give the interval of
+    the resamples that happen to keep the varying rows, and on ten fabrics that one model answers
+    almost alike it can exclude its own point estimate. So when more resamples are undefined than
+    one tail of the interval holds, there is no interval.
+    """
+    if np.mean(~np.isfinite(samples)) > (1.0 - confidence) / 2.0:
+        return float("nan"), float("nan")
+    return _interval(samples, confidence)
+
+
 def bootstrap_correlation(x, y, *, method: str = "pearson", groups=None, resamples: int = 1000,
                           confidence: float = 0.95, rng: np.random.Generator | None = None) -> Estimate:
-    """Correlation of x and y with a percentile interval.
+    """Correlation of x and y with a percentile interval (nan where ``_correlation_interval`` says so).
 
     Resamples units (rows), or whole ``groups`` when given: e.g. a fabric filmed
     under three wind strengths is one fabric, not three independent samples.
@@ -264,14 +279,14 @@ def bootstrap_correlation(x, y, *, method: str = "pearson", groups=None, resampl
     sizes = np.bincount(codes)
     if (sizes == 1).all():
         picks = rng.integers(0, len(x), size=(resamples, len(x)))
-        return Estimate(point, *_interval(_correlation_rows(x, y, picks, method), confidence))
+        return Estimate(point, *_correlation_interval(_correlation_rows(x, y, picks, method), confidence))
     # Whole groups: one draw of group ids per resample, in that order (the intervals depend on the
     # stream). Groups may differ in size, so resamples of one length are correlated together.
     draws = np.stack([rng.integers(0, len(sizes), len(sizes)) for _ in range(resamples)])
     members = np.argsort(codes, kind="stable")          # the rows of group 0, then of group 1, ...
     if (sizes == sizes[0]).all():
         samples = _correlation_rows(x, y, members.reshape(len(sizes), -1)[draws].reshape(resamples, -1), method)
-        return Estimate(point, *_interval(samples, confidence))
+        return Estimate(point, *_correlation_interval(samples, confidence))
     rows_of = np.split(members, np.cumsum(sizes)[:-1])
     lengths = sizes[draws].sum(axis=1)
     samples = np.empty(resamples)
@@ -279,7 +294,7 @@ def bootstrap_correlation(x, y, *, method: str = "pearson", groups=None, resampl
         which = np.flatnonzero(lengths == length)
         picks = np.stack([np.concatenate([rows_of[g] for g in draws[r]]) for r in which])
         samples[which] = _correlation_rows(x, y, picks, method)
-    return Estimate(point, *_interval(samples, confidence))
+    return Estimate(point, *_correlation_interval(samples, confidence))
 
 
 # ------------------------------------------------------------------ one summary

@@ -99,6 +99,23 @@ def test_grouped_correlation_and_degenerate_input():
     assert np.isnan(metrics.pearson([1, 1, 1, 1], [1, 2, 3, 4]))
 
 
+def test_a_correlation_most_resamples_lack_has_no_interval():
+    # Ten fabrics, a model that answers one bending for eight and a lower one for the two least stiff: a
+    # resample drawing neither of the two (about one in nine) has no rank, and the resamples that keep them
+    # would give an interval that leaves out the point estimate.
+    measured = np.arange(10.0)
+    predicted = np.r_[4.0, 4.0, np.full(8, 10.0)]
+    est = metrics.bootstrap_correlation(predicted, measured, method="spearman", resamples=1000,
+                                        rng=np.random.default_rng(0))
+    assert est.value == pytest.approx(stats.spearmanr(predicted, measured).statistic)
+    assert np.isnan(est.low) and np.isnan(est.high)
+    assert est.fmt(1.0, 2) == f"{est.value:.2f} [no interval]"
+    # Answers that vary keep their interval.
+    varied = metrics.bootstrap_correlation(np.array([1.0, 0, 2, 3, 5, 4, 6, 7, 9, 8]), measured, method="spearman",
+                                           resamples=1000, rng=np.random.default_rng(0))
+    assert np.isfinite(varied.low) and varied.low < varied.value <= varied.high
+
+
 def _correlation_one_by_one(x, y, groups, method, resamples, rng):
     """The grouped bootstrap the plain way: per resample, draw the groups, gather their rows, correlate."""
     codes = metrics.group_codes(groups)
