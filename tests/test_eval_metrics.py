@@ -101,8 +101,8 @@ def test_grouped_correlation_and_degenerate_input():
 
 def test_a_correlation_most_resamples_lack_has_no_interval():
     # Ten fabrics, a model that answers one bending for eight and a lower one for the two least stiff: a
-    # resample drawing neither of the two (about one in nine) has no rank, and the resamples that keep them
-    # would give an interval that leaves out the point estimate.
+    # resample drawing neither of the two (about one in nine) has no rank. The resamples that keep them give
+    # an interval conditioned on keeping them, which on such data can leave out its own point estimate.
     measured = np.arange(10.0)
     predicted = np.r_[4.0, 4.0, np.full(8, 10.0)]
     est = metrics.bootstrap_correlation(predicted, measured, method="spearman", resamples=1000,
