@@ -11,7 +11,7 @@ file's stem (or by --name's new key):
   scripts/plot_learning_curves.py reads as ``NAME.json:KEY``;
 - ``paired``: scripts/pooled_recipes.py's comparisons (``acc_a_minus_b``);
 - ``measured``: `clothgap eval measured` (``fabrics`` and ``models``), with each model's per-fabric table from the
-  Markdown of the same stem in ``measured_fabrics``;
+  Markdown the same step wrote of the same stem in ``measured_fabrics``;
 - ``gpu_timings``: benchmarks/study.py --timings (``timings``);
 - ``other``: any other JSON.
 The same stem from two steps is kept once when the files are the same, else under ``STEP/STEM`` each. The queue
@@ -99,7 +99,7 @@ def _inputs(specs: list[str]):
 
 def gather(specs: list[str], renames: dict[str, str]) -> dict:
     found: dict[str, dict[str, list[tuple[str, bytes, object]]]] = {k: {} for k in KINDS}
-    markdown: dict[str, str] = {}
+    markdown: dict[tuple[str, str], str] = {}         # (step, stem): a measured JSON's tables are its step's
     steps: dict[str, dict[str, float]] = {}
     read: dict[str, list[str]] = {}          # what each input gave, by file name (no machine's paths)
     for label, log, tarballs in _inputs(specs):
@@ -110,7 +110,7 @@ def gather(specs: list[str], renames: dict[str, str]) -> dict:
             for step, name, data in _members(tarball):
                 stem, suffix = Path(name).stem, Path(name).suffix
                 if suffix == ".md":
-                    markdown.setdefault(stem, data.decode(errors="replace"))
+                    markdown[step, stem] = data.decode(errors="replace")
                 if suffix != ".json":
                     continue
                 try:
@@ -119,6 +119,7 @@ def gather(specs: list[str], renames: dict[str, str]) -> dict:
                     raise SystemExit(f"gather_lease: {tarball}: {step}/{name} is not JSON ({e})") from e
                 found[kind_of(doc)].setdefault(stem, []).append((step, data, doc))
     result: dict = {k: {} for k in KINDS}
+    fabrics: dict[str, dict] = {}
     for kind, by_stem in found.items():
         for stem, copies in sorted(by_stem.items()):
             distinct: dict[bytes, tuple[str, object]] = {}
@@ -129,10 +130,8 @@ def gather(specs: list[str], renames: dict[str, str]) -> dict:
                 if key in result[kind]:
                     raise SystemExit(f"gather_lease: two {kind} files would both be {key!r}: rename one with --name")
                 result[kind][key] = doc
-    fabrics = {}
-    for stem in found["measured"]:
-        if stem in markdown:
-            fabrics[renames.get(stem, stem)] = fabric_tables(markdown[stem])
+                if kind == "measured" and (step, stem) in markdown:
+                    fabrics[key] = fabric_tables(markdown[step, stem])
     result["measured_fabrics"] = fabrics
     result["queue_step_seconds"] = steps
     result["gathered_by"] = {"script": "scripts/gather_lease.py", "inputs": read, "names": renames}

@@ -22,6 +22,15 @@ SETTING, VARIANT = "wind-uniform1", "paper"
 RENDER_BACKEND = "scalar_rgb"       # no LLVM or GPU needed, and the same pixels on every machine
 
 
+def coarse_analysis_setup():
+    """sim.analysis's set-up on coarse meshes, a short sweep and a short settle (Table 2 and the sensitivity curves
+    in seconds): the properties the tests check hold at any resolution."""
+    from sim.analysis import Setup
+
+    return Setup(hang_vertices=6, strip_length=0.03, strip_vertices=11, seconds=1.0, average_seconds=0.2,
+                 samples=2, sweep=tuple(np.geomspace(1 / 64, 4, 9)))
+
+
 def tiny_sim_run(root: Path, seed: int = 0, render: RenderConfig | None = None, **sim) -> Run:
     """A new run of a clip per class (classes 0 and 53 unless ``sim`` says otherwise), three frames on a 6x6 grid
     on the CPU: a second or two to simulate on one core. ``sim`` overrides sim settings, ``render`` replaces the

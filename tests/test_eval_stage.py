@@ -254,10 +254,11 @@ def test_report_is_self_contained(tmp_path, monkeypatch):
     from eval.report import write_report
     from sim import analysis
 
+    from tests.conftest import coarse_analysis_setup
+
     # The real Table 2 on a coarse strip: this test reads what the report shows of it; its accuracy is
     # tests/test_sim_analysis.py's (the same coarse set-up there).
-    coarse = analysis.Setup(hang_vertices=6, strip_length=0.03, strip_vertices=11, seconds=1.0, average_seconds=0.2,
-                            samples=2, sweep=tuple(np.geomspace(1 / 64, 4, 9)))
+    coarse = coarse_analysis_setup()
     full_table2 = analysis.table2
     monkeypatch.setattr(analysis, "table2", lambda out, device="cpu": full_table2(out, device=device, setup=coarse))
     run = make_fake_run(tmp_path / "run", variants=("paper", "grid"), models=("lrcn",), sim_analysis=("table2",))

@@ -95,6 +95,16 @@ def test_one_stem_from_two_steps_is_kept_once_when_the_same_and_under_each_step_
     _tarball(tarball, {"w-train/transfer.json": _json(other)})
     result = _run(tmp_path, str(lane1), str(tarball))
     assert result["tables"] == {"t-train/transfer": TABLE, "w-train/transfer": other}
+    # two lanes' measured fabrics of one name: each keeps its own step's per-fabric tables
+    wind_md = MEASURED_MD.replace("royal-target | 4 | (2, 5)", "royal-target | 4 | (20, 10)")
+    _tarball(tarball, {"w-measured/measured.json": _json(dict(MEASURED, variant="paper")),
+                       "w-measured/measured.md": wind_md.encode()})
+    arm = _lane(tmp_path / "lane3", {"a-measured/measured.json": _json(MEASURED),
+                                     "a-measured/measured.md": MEASURED_MD.encode()})
+    result = _run(tmp_path, str(arm), str(tarball))
+    royal = {key: next(r["Predicted (p, k)"] for r in tables[next(iter(tables))] if r["Fabric"] == "royal-target")
+             for key, tables in result["measured_fabrics"].items()}
+    assert royal == {"a-measured/measured": "(2, 5)", "w-measured/measured": "(20, 10)"}
 
 
 def test_bad_inputs_are_named(tmp_path):

@@ -9,10 +9,9 @@ import pytest
 from sim import classes
 from sim.analysis import PAPER_TABLE2, Setup, invert_curve, match_counts, sensitivity, table2
 from sim.materials import list_materials
+from tests.conftest import coarse_analysis_setup
 
-# Coarse meshes, a short sweep and a short settle: the properties below hold at any resolution.
-CHEAP = Setup(hang_vertices=6, strip_length=0.03, strip_vertices=11, seconds=1.0, average_seconds=0.2,
-              samples=2, sweep=tuple(np.geomspace(1 / 64, 4, 9)))
+CHEAP = coarse_analysis_setup()
 
 
 @pytest.fixture(scope="module")
