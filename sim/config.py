@@ -27,6 +27,10 @@ class SimConfig:
     sequences_per_class: int = 48                   # 54 x 48 = 2,592, the paper's dataset size
     basis: str = "camel-ponte-roma"                 # the paper's basis material
     jitter: float = 0.1                             # relative jitter of (p, k) around the class value
+    # A class clip's area density, kg/m^2: () keeps the basis fabric's (the paper: the classes differ in stiffness
+    # only); (lo, hi) draws it log-uniform in [lo, hi] per clip (meta "density"), so that a class is read from
+    # motion made at many weights, as real fabrics have (the measured ones: 0.11-0.32). The label stays (p, k).
+    density_range: tuple[float, ...] = ()
     grid_vertices: int = 16                         # vertices per side at uniform level 1
     cloth_size_m: float = 0.5                       # side of the square cloth, metres
     frames: int = 20                                # frames written per sequence
@@ -63,6 +67,12 @@ class SimConfig:
         out += checks.choice("sim.basis", self.basis, list_materials())
         out += checks.number("sim.sequences_per_class", self.sequences_per_class, 1)
         out += checks.number("sim.jitter", self.jitter, 0, 1, hi_open=True)
+        if self.density_range:
+            lo_hi = list(self.density_range)
+            if len(lo_hi) != 2 or not 0 < lo_hi[0] <= lo_hi[1] or lo_hi[1] > 10:
+                out.append(f"sim.density_range={','.join(f'{v:g}' for v in lo_hi)}: give two area densities "
+                           "LO,HI in kg/m^2 with 0 < LO <= HI <= 10 (e.g. 0.1,0.35), or leave it empty for the "
+                           "basis fabric's")
         out += checks.number("sim.grid_vertices", self.grid_vertices, 2)
         out += checks.number("sim.cloth_size_m", self.cloth_size_m, 0, lo_open=True)
         out += checks.number("sim.frames", self.frames, 1)

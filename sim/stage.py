@@ -234,6 +234,13 @@ def clip_material(cfg: SimConfig, seed: int, index: int) -> tuple[int, float, fl
     return class_index, p, k
 
 
+def clip_density(cfg: SimConfig, seed: int, index: int) -> float:
+    """A class clip's area density under ``sim.density_range`` (log-uniform, from its own ``density`` stream, so
+    that the range changes no other draw of the clip)."""
+    lo, hi = cfg.density_range
+    return float(np.exp(seeding.rng(seed, index, seeding.SIM, "density").uniform(np.log(lo), np.log(hi))))
+
+
 def build_scene(cfg: SimConfig, seed: int, index: int, setting: Setting, mesh: ClothMesh,
                 fabric: str | None = None, density: float | None = None) -> tuple[ClipScene, dict]:
     """The scene of one clip and the label part of its meta.
@@ -250,9 +257,11 @@ def build_scene(cfg: SimConfig, seed: int, index: int, setting: Setting, mesh: C
         class_index, p, k = clip_material(cfg, seed, index)
         basis = load_material(cfg.basis)
         material = basis.scaled(p, k)
+        if cfg.density_range:
+            material = replace(material, density=clip_density(cfg, seed, index))
         p_class, k_class = classes.class_values(class_index)
         meta = {"class_index": class_index, "p_class": p_class, "k_class": k_class, "p": p, "k": k,
-                "basis": cfg.basis, "density": basis.density}
+                "basis": cfg.basis, "density": material.density}
     else:
         from sim.measured import fabric_labels
 

@@ -902,3 +902,35 @@ def test_arm_clips_record_the_runs_view_zoom_and_wind_clips_none(tmp_path):
     for setting, zoom in (("arm-uniform1", 1.3), ("wind-uniform1", 1.0)):
         metas = [SimClip.load(run.sim_dir(setting) / clip_id(i)).meta for i in (0, 1)]
         assert [m["view_zoom"] for m in metas] == [zoom, zoom]
+
+
+def test_density_range_draws_each_class_clip_a_weight_and_changes_nothing_else():
+    """sim.density_range: each class clip's area density drawn in the range from its own stream (the same clip
+    the same weight), its class, jittered (p, k) and motion draws as without the range, the meta recording
+    the weight; without it every class clip has the basis fabric's density (the paper)."""
+    from sim.stage import build_scene, parse_setting
+
+    plain = SimConfig(motions=("arm",), device="cpu", grid_vertices=6)
+    ranged = replace(plain, density_range=(0.1, 0.35))
+    setting = parse_setting("arm-uniform1")
+    mesh = square_cloth(plain.cloth_size_m, plain.grid_vertices, 1)
+    basis = load_material(plain.basis).density
+    weights = []
+    for i in range(0, 540, 7):
+        (s0, m0), (s1, m1) = build_scene(plain, 0, i, setting, mesh), build_scene(ranged, 0, i, setting, mesh)
+        assert s0.spec.density == m0["density"] == basis
+        assert 0.1 <= s1.spec.density == m1["density"] <= 0.35
+        assert build_scene(ranged, 0, i, setting, mesh)[0].spec.density == s1.spec.density    # reproducible
+        assert {k: m0[k] for k in m0 if k != "density"} == {k: m1[k] for k in m1 if k != "density"}
+        assert s0.motion_params == s1.motion_params and np.array_equal(s0.spec.positions, s1.spec.positions)
+        weights.append(s1.spec.density)
+    assert len(set(weights)) == len(weights)
+    logs = np.log(weights)       # log-uniform: the halves of the log range hold about half the clips each
+    assert 0.3 < np.mean(logs < np.log(0.1) + 0.5 * np.log(3.5)) < 0.7
+    assert build_scene(ranged, 1, 7, setting, mesh)[0].spec.density != build_scene(ranged, 0, 7, setting, mesh)[0].spec.density
+
+
+@pytest.mark.parametrize("bad", [(0.3,), (0.0, 0.3), (0.35, 0.1), (0.1, 20.0), (0.1, 0.2, 0.3)])
+def test_a_bad_density_range_is_named(bad):
+    problems = SimConfig(density_range=bad).problems()
+    assert len(problems) == 1 and problems[0].startswith("sim.density_range=") and "LO,HI" in problems[0]
