@@ -16,7 +16,8 @@ file's stem (or by --name's new key):
 - ``other``: any other JSON.
 The same stem from two steps is kept once when the files are the same, else under ``STEP/STEM`` each. The queue
 logs' step times go in ``queue_step_seconds`` per input, ``--fact KEY=VALUE`` adds what the logs do not hold (a
-call's wall time, device time left), a value read as JSON where it parses.
+call's wall time, device time left), a value read as JSON where it parses. A path into the step's own output
+folder (``.../out/STEP/``, the machine's $OUT) is written as ``$OUT/``, as the plans' commands name it.
 """
 from __future__ import annotations
 
@@ -63,6 +64,11 @@ def fabric_tables(markdown: str) -> dict[str, list[dict[str, str]]]:
 def step_seconds(log: str) -> dict[str, float]:
     """The queue's ``== STEP: exit 0 after N s`` lines (steps that finished)."""
     return {m.group(1): float(m.group(2)) for m in re.finditer(r"^== (\S+): exit 0 after (\d+(?:\.\d+)?) s", log, re.M)}
+
+
+def with_out_named(text: str, step: str) -> str:
+    """``text`` with each path into the step's output folder (``/ANY/out/STEP/FILE``) as ``$OUT/FILE``."""
+    return re.sub(rf'(?:/[^\s"/]+)*/out/{re.escape(step)}/', "$OUT/", text)
 
 
 def _members(tarball: Path):
@@ -113,6 +119,7 @@ def gather(specs: list[str], renames: dict[str, str]) -> dict:
                     markdown[step, stem] = data.decode(errors="replace")
                 if suffix != ".json":
                     continue
+                data = with_out_named(data.decode(errors="replace"), step).encode()
                 try:
                     doc = json.loads(data)
                 except ValueError as e:

@@ -121,3 +121,14 @@ def test_bad_inputs_are_named(tmp_path):
         _run(tmp_path, str(tmp_path / "cut.tgz"))
     with pytest.raises(SystemExit, match="KEY=VALUE"):
         _run(tmp_path, str(tmp_path / "lane1"), "--name", "no-equals")
+
+
+def test_a_path_into_the_steps_own_output_folder_is_written_as_out(tmp_path):
+    timings = {"command": "python3 benchmarks/study.py --timings /tmp/arm384t --out "
+                          "/tmp/queue/lane1/out/a4-data/study-timings.json", "run": "/tmp/arm384t",
+               "timings": {"log": "/tmp/queue/out/a4-data/x.txt", "other": "/tmp/queue/out/a4-train/y.txt"}}
+    lane = _lane(tmp_path / "lane1", {"a4-data/study-timings.json": _json(timings)})
+    got = _run(tmp_path, str(lane))["gpu_timings"]["study-timings"]
+    assert got["command"] == "python3 benchmarks/study.py --timings /tmp/arm384t --out $OUT/study-timings.json"
+    assert got["run"] == "/tmp/arm384t"                          # the run the plan names is not a machine's folder
+    assert got["timings"] == {"log": "$OUT/x.txt", "other": "/tmp/queue/out/a4-train/y.txt"}   # another step's stays
