@@ -38,7 +38,9 @@ folder); the tables are rebuilt from those folders each time. Outputs:
 ``eval/measured_ensembles.csv``     one row per (seeds' ensemble, fabric), as measured.csv, its ``seed`` the
                                     members' seeds as text (``0+1``); only when two seeds of a model were scored
 ``eval/measured.md``, ``eval/measured.json``  the same for people and programs (match rates with intervals,
-                                    definitions, generation summaries, files; the ensembles under "ensembles")
+                                    definitions, generation summaries, files; each model's and ensemble's
+                                    measured.csv rows as numbers under its "per_fabric"; the ensembles under
+                                    "ensembles")
 
 Pearson is taken on the raw values, as in Table 4 (``eval.real``); Spearman on ranks.
 """
@@ -548,7 +550,8 @@ def _scored(run: Run, entry: dict, key: dict, videos: pd.DataFrame, *, checkpoin
     corr = correlation_table(videos, table, **opts)
     match = match_table(table, **opts)
     entry.update({"match": json.loads(match.to_json(orient="records")),
-                  "correlations": json.loads(corr.to_json(orient="records"))})
+                  "correlations": json.loads(corr.to_json(orient="records")),
+                  "per_fabric": json.loads(table.to_json(orient="records"))})
     return entry, (table.assign(**key, checkpoint=checkpoint, folder=folder), corr.assign(**key), match.assign(**key))
 
 

@@ -10,8 +10,9 @@ file's stem (or by --name's new key):
 - ``tables``: results of `clothgap eval ablation` and scripts/gpu/learn_grid.py (a ``recipes`` list), which
   scripts/plot_learning_curves.py reads as ``NAME.json:KEY``;
 - ``paired``: scripts/pooled_recipes.py's comparisons (``acc_a_minus_b``);
-- ``measured``: `clothgap eval measured` (``fabrics`` and ``models``), with each model's per-fabric table from the
-  Markdown the same step wrote of the same stem in ``measured_fabrics``;
+- ``measured``: `clothgap eval measured` (``fabrics`` and ``models``). Its models carry their per-fabric rows as
+  numbers (``per_fabric``); for a file without them, each model's per-fabric table is taken, as text, from the
+  Markdown the same step wrote of the same stem, into ``measured_fabrics``;
 - ``gpu_timings``: benchmarks/study.py --timings (``timings``);
 - ``other``: any other JSON.
 The same stem from two steps is kept once when the files are the same, else under ``STEP/STEM`` each. The queue
@@ -137,7 +138,8 @@ def gather(specs: list[str], renames: dict[str, str]) -> dict:
                 if key in result[kind]:
                     raise SystemExit(f"gather_lease: two {kind} files would both be {key!r}: rename one with --name")
                 result[kind][key] = doc
-                if kind == "measured" and (step, stem) in markdown:
+                has_rows = all("per_fabric" in m for m in doc.get("models", [])) if kind == "measured" else False
+                if kind == "measured" and (step, stem) in markdown and not has_rows:
                     fabrics[key] = fabric_tables(markdown[step, stem])
     result["measured_fabrics"] = fabrics
     result["queue_step_seconds"] = steps

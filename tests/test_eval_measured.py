@@ -97,6 +97,12 @@ def test_measured_set_end_to_end_through_the_command(tmp_path):
     assert all(f in md for f in FABRICS) and "Table 2 (p, k)" in md and "Spearman" in md
     info = json.loads((run.eval_dir / "measured.json").read_text())
     assert info["heldout"] and info["fabrics"] == list(FABRICS) and info["models"][0]["clips"] == 2
+    rows = info["models"][0]["per_fabric"]          # measured.csv's rows as numbers, for programs
+    assert [r["fabric"] for r in rows] == list(table["fabric"])
+    for row, (_, csv_row) in zip(rows, table.iterrows()):
+        assert row["pred"] == csv_row["pred"] and row["table2_class"] == csv_row["table2_class"]
+        assert row["bending_N_m"] == pytest.approx(csv_row["bending_N_m"], rel=1e-5)
+        assert row["pred_bending_N_m"] == pytest.approx(csv_row["pred_bending_N_m"], rel=1e-5)
     folder = run.root / info["models"][0]["folder"]       # the real-video path's own outputs
     assert (folder / "table4.csv").is_file() and (folder / "videos.csv").is_file() and (folder / "DONE").is_file()
 
@@ -403,6 +409,7 @@ def test_seeds_are_also_scored_as_their_ensemble(tmp_path):
     assert [e["seed"] for e in summary["models"]] == [0, 1, 2]
     (entry,) = summary["ensembles"]
     assert entry["ensemble_of"] == [0, 1] and entry["seed"] == "0+1" and entry["clips"] == 2 * len(fabrics)
+    assert [r["exact"] for r in entry["per_fabric"]] == [1.0] * len(fabrics)
     table = pd.read_csv(run.eval_dir / "measured.csv")
     assert table["seed"].dtype.kind == "i" and table.groupby("seed")["exact"].mean().to_dict() == {0: 0.9, 1: 0.9,
                                                                                                    2: 1.0}

@@ -132,3 +132,12 @@ def test_a_path_into_the_steps_own_output_folder_is_written_as_out(tmp_path):
     assert got["command"] == "python3 benchmarks/study.py --timings /tmp/arm384t --out $OUT/study-timings.json"
     assert got["run"] == "/tmp/arm384t"                          # the run the plan names is not a machine's folder
     assert got["timings"] == {"log": "$OUT/x.txt", "other": "/tmp/queue/out/a4-train/y.txt"}   # another step's stays
+
+
+def test_a_measured_file_with_its_rows_as_numbers_needs_no_markdown(tmp_path):
+    rows = [{"fabric": "royal-target", "pred": 44, "table2_class": 53, "bending_N_m": 0.000171}]
+    doc = dict(MEASURED, models=[{"seed": 0, "match": [], "per_fabric": rows}])
+    lane = _lane(tmp_path / "lane1", {"m/measured.json": _json(doc), "m/measured.md": MEASURED_MD.encode()})
+    result = _run(tmp_path, str(lane))
+    assert result["measured"]["measured"]["models"][0]["per_fabric"] == rows
+    assert "measured_fabrics" not in result                  # the text tables only for files without the rows
