@@ -173,6 +173,7 @@ def simulate_panels(panels: list[tuple[str, int]], sim_cfg, garment, motion, *, 
     from sim.materials import load_material
 
     basis = load_material(sim_cfg.basis)
+    # the basis density even under sim.density_range: a panel is its class, and a class has no weight of its own
     materials = [basis.scaled(*classes.class_values(c)) for _, c in panels]
     out: dict[str, np.ndarray] = {}
     todo = list(range(len(panels)))

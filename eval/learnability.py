@@ -239,7 +239,8 @@ def probe_measured(run: Run, setting: str, sequences: int | None = None, clip_le
                    classifiers: tuple[str, ...] = CLASSIFIERS, progress: bool = True,
                    folder: Path | None = None, fitted: dict | None = None) -> dict:
     """What the geometry of the measured fabrics' clips says their class is: each classifier trained on every
-    simulated clip of the setting (``fit_classes``: the 54 classes, the basis fabric's density) reads the windows
+    simulated clip of the setting (``fit_classes``: the 54 classes at the run's class density, the basis fabric's
+    unless ``sim.density_range`` draws one per clip) reads the windows
     of the clips simulated with the fabrics' own tables (``run.measured_sim_dir``); a fabric's class is the argmax
     of its clips' mean probabilities, set beside its Table 2 class by ``eval.measured.fabric_table``, as for a
     network's predictions.

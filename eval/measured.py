@@ -551,7 +551,7 @@ def _scored(run: Run, entry: dict, key: dict, videos: pd.DataFrame, *, checkpoin
     match = match_table(table, **opts)
     entry.update({"match": json.loads(match.to_json(orient="records")),
                   "correlations": json.loads(corr.to_json(orient="records")),
-                  "per_fabric": json.loads(table.to_json(orient="records"))})
+                  "per_fabric": json.loads(table.to_json(orient="records", double_precision=15))})
     return entry, (table.assign(**key, checkpoint=checkpoint, folder=folder), corr.assign(**key), match.assign(**key))
 
 

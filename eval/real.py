@@ -35,9 +35,9 @@ argmax of the mean sub-sequence probabilities. Two scores are correlated:
   bending stiffness (camel-ponte-roma, ``eval.classes.BASIS_MEAN_BENDING_N_M``),
   the model's estimate of stiffness. The stretching factor p does not enter: p
   scales in-plane stiffness, which the bending measurement does not see. Density
-  is not part of the sub-space at all (every class has the basis density), so
-  its correlation asks only whether stiffer-looking cloth is also heavier, as it
-  is in Bouman's data.
+  is not part of the sub-space at all (a class has the basis density, or weights
+  drawn apart from its label under ``sim.density_range``), so its correlation asks
+  only whether stiffer-looking cloth is also heavier, as it is in Bouman's data.
 * ``class_index``: the class index 0..53 itself, as the paper correlates it.
 
 Pearson's and Spearman's r come with percentile bootstrap intervals over videos

@@ -18,7 +18,8 @@ file's stem (or by --name's new key):
 The same stem from two steps is kept once when the files are the same, else under ``STEP/STEM`` each. The queue
 logs' step times go in ``queue_step_seconds`` per input, ``--fact KEY=VALUE`` adds what the logs do not hold (a
 call's wall time, device time left), a value read as JSON where it parses. A path into the step's own output
-folder (``.../out/STEP/``, the machine's $OUT) is written as ``$OUT/``, as the plans' commands name it.
+folder (``/ANY/out/STEP/``, the machine's $OUT) is written as ``$OUT/``, as the plans' commands name it; files that
+then differ in nothing else are kept once.
 """
 from __future__ import annotations
 
@@ -69,7 +70,8 @@ def step_seconds(log: str) -> dict[str, float]:
 
 def with_out_named(text: str, step: str) -> str:
     """``text`` with each path into the step's output folder (``/ANY/out/STEP/FILE``) as ``$OUT/FILE``."""
-    return re.sub(rf'(?:/[^\s"/]+)*/out/{re.escape(step)}/', "$OUT/", text)
+    # an absolute path only, starting where a value or a word starts (not inside a relative path or a URL)
+    return re.sub(rf'(?<![^\s"\'=])(?:/[^\s"\'/]+)*/out/{re.escape(step)}/', "$OUT/", text)
 
 
 def _members(tarball: Path):
@@ -120,10 +122,10 @@ def gather(specs: list[str], renames: dict[str, str]) -> dict:
                     markdown[step, stem] = data.decode(errors="replace")
                 if suffix != ".json":
                     continue
-                data = with_out_named(data.decode(errors="replace"), step).encode()
                 try:
+                    data = with_out_named(data.decode(), step).encode()
                     doc = json.loads(data)
-                except ValueError as e:
+                except ValueError as e:         # UnicodeDecodeError too
                     raise SystemExit(f"gather_lease: {tarball}: {step}/{name} is not JSON ({e})") from e
                 found[kind_of(doc)].setdefault(stem, []).append((step, data, doc))
     result: dict = {k: {} for k in KINDS}

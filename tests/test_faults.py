@@ -183,6 +183,9 @@ def test_config_json_with_unknown_or_missing_settings_is_never_silently_defaulte
     write(lambda d: d["sim"].pop("arm_view_zoom"))             # runs before it framed arm by its camera box alone
     with pytest.warns(UserWarning, match="sim.arm_view_zoom"):
         assert Run.open(run.root).config.sim.arm_view_zoom == 1.0
+    write(lambda d: d["sim"].pop("density_range"))            # runs before it made every class at the basis's
+    with pytest.warns(UserWarning, match="sim.density_range"):
+        assert Run.open(run.root).config.sim.density_range == ()
 
 
 @pytest.mark.skipif(not can_mount_tmpfs(), reason="needs unshare and tmpfs for a real read-only folder")

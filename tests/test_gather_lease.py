@@ -126,12 +126,14 @@ def test_bad_inputs_are_named(tmp_path):
 def test_a_path_into_the_steps_own_output_folder_is_written_as_out(tmp_path):
     timings = {"command": "python3 benchmarks/study.py --timings /tmp/arm384t --out "
                           "/tmp/queue/lane1/out/a4-data/study-timings.json", "run": "/tmp/arm384t",
-               "timings": {"log": "/tmp/queue/out/a4-data/x.txt", "other": "/tmp/queue/out/a4-train/y.txt"}}
+               "timings": {"log": "/tmp/queue/out/a4-data/x.txt", "other": "/tmp/queue/out/a4-train/y.txt"},
+               "kept": ["lane1/out/a4-data/x", "/tmp/my dir/out/a4-data/x", "https://h/out/a4-data/x"]}
     lane = _lane(tmp_path / "lane1", {"a4-data/study-timings.json": _json(timings)})
     got = _run(tmp_path, str(lane))["gpu_timings"]["study-timings"]
     assert got["command"] == "python3 benchmarks/study.py --timings /tmp/arm384t --out $OUT/study-timings.json"
     assert got["run"] == "/tmp/arm384t"                          # the run the plan names is not a machine's folder
     assert got["timings"] == {"log": "$OUT/x.txt", "other": "/tmp/queue/out/a4-train/y.txt"}   # another step's stays
+    assert got["kept"] == timings["kept"]            # not an absolute path from its start: a relative one, a URL
 
 
 def test_a_measured_file_with_its_rows_as_numbers_needs_no_markdown(tmp_path):
@@ -141,3 +143,9 @@ def test_a_measured_file_with_its_rows_as_numbers_needs_no_markdown(tmp_path):
     result = _run(tmp_path, str(lane))
     assert result["measured"]["measured"]["models"][0]["per_fabric"] == rows
     assert "measured_fabrics" not in result                  # the text tables only for files without the rows
+
+
+def test_a_file_that_is_not_utf8_is_named(tmp_path):
+    lane = _lane(tmp_path / "lane1", {"a-data/bad.json": b'{"x": "\xff"}'})
+    with pytest.raises(SystemExit, match="a-data/bad.json is not JSON"):
+        _run(tmp_path, str(lane))
