@@ -140,8 +140,8 @@ def gather(specs: list[str], renames: dict[str, str]) -> dict:
                 if key in result[kind]:
                     raise SystemExit(f"gather_lease: two {kind} files would both be {key!r}: rename one with --name")
                 result[kind][key] = doc
-                has_rows = all("per_fabric" in m for m in doc.get("models", [])) if kind == "measured" else False
-                if kind == "measured" and (step, stem) in markdown and not has_rows:
+                if (kind == "measured" and (step, stem) in markdown
+                        and not all("per_fabric" in m for m in doc["models"])):    # rows as numbers: no text needed
                     fabrics[key] = fabric_tables(markdown[step, stem])
     result["measured_fabrics"] = fabrics
     result["queue_step_seconds"] = steps
