@@ -1,6 +1,7 @@
 # Issue 14: the render stage itself under CUDA MPS, 2,592 wind clips at 112 px 16 spp on four H100s, from one
 # simulation: one worker a GPU (the multi-GPU default), four a GPU without MPS, four a GPU under an MPS control daemon.
-# Figures: benchmarks/results/render_stage-mps-h100x4-n2592.json. Run on the device after staging the bundle.
+# Figures: benchmarks/results/render_stage-mps-h100x4-n2592.json (2026-11-26) and readme-multi-h100x4-20261127.json.
+# Run on the device after staging the bundle. Each mode's stage summary (its own clock) goes to $OUT/render_stage.json.
 source scripts/gpu/env.sh; unset CUDA_VISIBLE_DEVICES
 RUN=/tmp/w STAGES=sim SEQ=48 SPP=16 bash scripts/gpu/paper_study.sh > $OUT/sim.log 2>&1; tail -3 $OUT/sim.log
 for mode in gpw1 gpw025 gpw025-mps; do
@@ -15,3 +16,5 @@ for mode in gpw1 gpw025 gpw025-mps; do
   echo "$mode rc=$rc seconds=$(python3 -c "print(round($t1-$t0,1))") clips_done=$n" | tee -a $OUT/summary.txt
 done
 echo quit | nvidia-cuda-mps-control; cp -r /tmp/mps-log $OUT/ 2>/dev/null; ls /tmp/w/render/
+python3 scripts/stage_summaries.py gpw1=$OUT/render-gpw1.log gpw025=$OUT/render-gpw025.log \
+  gpw025-mps=$OUT/render-gpw025-mps.log --out $OUT/render_stage.json > /dev/null

@@ -1,0 +1,92 @@
+"""scripts/epoch_seconds.py and scripts/stage_summaries.py: the README's speed rows read from what a run leaves
+(metrics.csv, the stages' summary lines), and nothing written from a file that does not hold them."""
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _script(name: str):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+epoch_seconds = _script("epoch_seconds")
+stage_summaries = _script("stage_summaries")
+
+
+def _model(run: Path, recipe: str, seed: int, seconds: list[float], windows: int = 100, done: bool = True) -> Path:
+    folder = run / "ablation" / recipe / "arm-uniform1" / "paper" / "lrcn" / f"s{seed}"
+    folder.mkdir(parents=True)
+    rows = ["epoch,train_loss,train_acc,val_loss,val_acc,lr,seconds"]
+    rows += [f"{i},1.0,0.5,1.0,{0.1 * (i + 1):.2f},0.001,{s}" for i, s in enumerate(seconds)]
+    (folder / "metrics.csv").write_text("\n".join(rows) + "\n")
+    (folder / "config.json").write_text(json.dumps({"train_subsequences": windows, "train": {"clip_len": 40}}))
+    if done:
+        (folder / "DONE").write_text("{}")
+    return folder
+
+
+def test_epoch_seconds_leaves_out_the_compiling_epoch_and_gives_the_ratio(tmp_path, capsys):
+    for seed in (0, 1):
+        _model(tmp_path, f"eager{seed}", seed, [30.0, 9.0, 8.0, 7.0])     # with the first epoch the median is 8.5
+        _model(tmp_path, f"graphs{seed}", seed, [60.0, 7.0, 6.0, 5.0])
+    _model(tmp_path, "graphs9", 9, [1.0, 1.0, 1.0, 1.0], done=False)      # unfinished: not counted
+    out = tmp_path / "e.json"
+    epoch_seconds.main([str(tmp_path), "--a", "eager*", "--b", "graphs*", "--epochs", "1-3", "--out", str(out)])
+    result = json.loads(out.read_text())
+    assert result["a"]["median_epoch_s"] == 8.0 and result["b"]["median_epoch_s"] == 6.0
+    assert result["ratio_a_over_b"] == pytest.approx(8.0 / 6.0, abs=1e-3)
+    assert len(result["b"]["models"]) == 2
+    model = result["a"]["models"]["eager0/arm-uniform1/paper/lrcn/s0"]
+    assert model["epochs"] == 4 and model["first_epoch_s"] == 30.0 and model["best_val_acc"] == 0.4
+    assert result["a"]["frames_per_s_per_gpu"] == round(2 * 100 * 40 / 8.0)
+    assert json.loads(capsys.readouterr().out) == result
+
+
+def test_epoch_seconds_names_what_it_cannot_measure(tmp_path):
+    _model(tmp_path, "eager", 0, [30.0, 8.0, 8.0])
+    _model(tmp_path, "graphs", 0, [60.0, 6.0, 6.0])
+    _model(tmp_path, "graphs-small", 1, [60.0, 3.0, 3.0], windows=50)
+    with pytest.raises(SystemExit, match="has 2 of epochs 1-3"):
+        epoch_seconds.main([str(tmp_path), "--a", "eager", "--b", "graphs", "--epochs", "1-3"])
+    with pytest.raises(SystemExit, match="no finished model"):
+        epoch_seconds.main([str(tmp_path), "--a", "nothing*", "--b", "graphs"])
+    with pytest.raises(SystemExit, match="different data"):
+        epoch_seconds.main([str(tmp_path), "--a", "eager", "--b", "graphs*", "--epochs", "1-2"])
+    with pytest.raises(SystemExit, match="the same models"):
+        epoch_seconds.main([str(tmp_path), "--a", "g*s", "--b", "graphs", "--epochs", "1-2"])
+    with pytest.raises(SystemExit, match="FIRST-LAST"):
+        epoch_seconds.main([str(tmp_path), "--a", "eager", "--b", "graphs", "--epochs", "two"])
+
+
+def test_stage_summaries_reads_the_line_the_cli_prints(tmp_path, capsys):
+    from clothgap.cli import _echo_summary
+
+    _echo_summary("render", {"rendered": 3, "frames": 120, "seconds": 2.0}, 9.0)    # a killed try's line first
+    _echo_summary("render", {"rendered": 4, "frames": 160, "seconds": 2.5}, 3.04)
+    log = tmp_path / "render.log"
+    log.write_text("render (process x4): 100%|##########| 4/4\n" + capsys.readouterr().out)
+    out = tmp_path / "stage.json"
+    stage_summaries.main([f"mps={log}", "--out", str(out)])
+    row = json.loads(out.read_text())["mps"]
+    assert row == {"stage": "render", "wall_s": 3.0, "rendered": 4, "frames": 160, "seconds": 2.5, "frames_per_s": 64.0}
+
+
+def test_stage_summaries_names_a_log_without_a_summary_and_writes_nothing(tmp_path):
+    good, cut = tmp_path / "good.log", tmp_path / "cut.log"
+    good.write_text('[sim] done in 1.0 s: {"simulated": 2, "seconds": 0.9}\n')
+    cut.write_text("render (process x4):  25%|##        | 1/4\n")
+    out = tmp_path / "stage.json"
+    with pytest.raises(SystemExit, match="cut.log has no"):
+        stage_summaries.main([f"a={good}", f"b={cut}", "--out", str(out)])
+    assert not out.exists()
+    with pytest.raises(SystemExit, match="LABEL=LOG"):
+        stage_summaries.main([str(good)])
