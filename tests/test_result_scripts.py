@@ -1,11 +1,13 @@
-"""scripts/epoch_seconds.py and scripts/stage_summaries.py: the README's speed rows read from what a run leaves
-(metrics.csv, the stages' summary lines), and nothing written from a file that does not hold them."""
+"""scripts/epoch_seconds.py, stage_summaries.py and bending_over_weight.py: figures read from what a run leaves
+(metrics.csv, the stages' summary lines, the measured-fabric probe's rows), and nothing written from a file that
+does not hold them."""
 from __future__ import annotations
 
 import importlib.util
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -90,3 +92,31 @@ def test_stage_summaries_names_a_log_without_a_summary_and_writes_nothing(tmp_pa
     assert not out.exists()
     with pytest.raises(SystemExit, match="LABEL=LOG"):
         stage_summaries.main([str(good)])
+
+
+def test_bending_over_weight_sets_a_reading_beside_the_weight_alone(tmp_path):
+    bending_over_weight = _script("bending_over_weight")
+    weight = [0.1, 0.2, 0.3, 0.15, 0.25]
+    bending = [1.0, 5.0, 3.3, 2.0, 4.0]
+    per_weight = [b / w for b, w in zip(bending, weight)]
+
+    def fabrics(pred_k):
+        return [{"pred_k": k, "bending_N_m": b, "density_kg_m2": w} for k, b, w in zip(pred_k, bending, weight)]
+
+    constant = [2.0] * 5                                    # knows nothing: times the weight it is the weight
+    follows_bending_over_weight = [float(r + 1) for r in np.argsort(np.argsort(per_weight))]    # its ranks
+    report = {"settings": [{"setting": "arm-uniform1", "results": [
+        {"classifier": "constant", "fabrics": fabrics(constant)},
+        {"classifier": "per_weight", "fabrics": fabrics(follows_bending_over_weight)}]}]}
+    path = tmp_path / "learnability-measured.json"
+    path.write_text(json.dumps(report))
+    out = tmp_path / "ranks.json"
+    bending_over_weight.main([str(path), "--out", str(out)])
+    result = json.loads(out.read_text())["arm-uniform1"]
+    alone = result["weight_alone~bending"]["spearman"]
+    assert result["classifiers"]["constant"]["pred_k_times_weight~bending"]["spearman"] == alone
+    assert result["classifiers"]["per_weight"]["pred_k~bending_over_weight"]["spearman"] == 1.0
+    assert result["fabrics"] == 5
+    path.write_text("{}")
+    with pytest.raises(SystemExit, match="not a learnability-measured.json"):
+        bending_over_weight.main([str(path)])
