@@ -6,7 +6,7 @@ eager against CUDA graphs, every epoch but the first, which compiles).
         --models-per-gpu 2 --out epochs.json
 
 ``--epochs`` are values of metrics.csv's ``epoch`` column, which counts from 0. ``--a`` and ``--b`` are glob patterns of recipe folders under ``RUN/ablation``; a model folder counts when it
-has ``DONE``. The ratio is a's seconds over b's (how many times faster b is). Frames a second per GPU are the
+has ``DONE`` (``--expect N``: each side must have N). Both sides must have trained on the same data. The ratio is a's seconds over b's (how many times faster b is). Frames a second per GPU are the
 training windows' frames an epoch (``config.json``: ``train_subsequences`` x ``clip_len``) times the models
 sharing a GPU, over the side's median epoch: validation's frames are not counted, its time is.
 """
@@ -47,17 +47,20 @@ def model_row(folder: Path, epochs: tuple[int, int]) -> dict:
             "best_val_acc": None if pd.isna(best) else round(float(best), 6)}
 
 
-def side(run: Path, pattern: str, epochs: tuple[int, int], per_gpu: int) -> dict:
+def side(run: Path, pattern: str, epochs: tuple[int, int], per_gpu: int, expect: int | None = None) -> dict:
     folders = sorted(p.parent for p in run.glob(f"ablation/{pattern}/*/*/*/s*/DONE"))
     if not folders:
         raise SystemExit(f"no finished model under {run}/ablation/{pattern}")
+    if expect is not None and len(folders) != expect:
+        raise SystemExit(f"{pattern}: {len(folders)} finished models, expected {expect}")
     models = {str(f.relative_to(run / "ablation")): model_row(f, epochs) for f in folders}
     median = statistics.median(m["median_epoch_s"] for m in models.values())
     frames = {m["frames_an_epoch"] for m in models.values()}
     if len(frames) != 1:
         raise SystemExit(f"{pattern}: the models trained on different data ({sorted(frames)} frames an epoch)")
-    return {"models": models, "median_epoch_s": median,
-            "frames_per_s_per_gpu": round(per_gpu * frames.pop() / median)}
+    frames_an_epoch = frames.pop()
+    return {"models": models, "median_epoch_s": median, "frames_an_epoch": frames_an_epoch,
+            "frames_per_s_per_gpu": round(per_gpu * frames_an_epoch / median)}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -68,10 +71,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--epochs", type=epoch_range, default=(1, 7),
                     help="FIRST-LAST of metrics.csv's epoch column, which counts from 0 (default 1-7)")
     ap.add_argument("--models-per-gpu", type=int, default=2)
+    ap.add_argument("--expect", type=int, help="finished models each side must have (default: any number)")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
-    a = side(args.run, args.a, args.epochs, args.models_per_gpu)
-    b = side(args.run, args.b, args.epochs, args.models_per_gpu)
+    a = side(args.run, args.a, args.epochs, args.models_per_gpu, args.expect)
+    b = side(args.run, args.b, args.epochs, args.models_per_gpu, args.expect)
+    if a["frames_an_epoch"] != b["frames_an_epoch"]:
+        raise SystemExit(f"--a and --b trained on different data ({a['frames_an_epoch']} and "
+                         f"{b['frames_an_epoch']} frames an epoch): their epochs are not comparable")
     shared = set(a["models"]) & set(b["models"])
     if shared:
         raise SystemExit(f"--a and --b match the same models: {sorted(shared)}")

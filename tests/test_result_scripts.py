@@ -63,6 +63,10 @@ def test_epoch_seconds_names_what_it_cannot_measure(tmp_path):
         epoch_seconds.main([str(tmp_path), "--a", "nothing*", "--b", "graphs"])
     with pytest.raises(SystemExit, match="different data"):
         epoch_seconds.main([str(tmp_path), "--a", "eager", "--b", "graphs*", "--epochs", "1-2"])
+    with pytest.raises(SystemExit, match="different data.*not comparable"):
+        epoch_seconds.main([str(tmp_path), "--a", "eager", "--b", "graphs-small", "--epochs", "1-2"])
+    with pytest.raises(SystemExit, match="1 finished models, expected 4"):
+        epoch_seconds.main([str(tmp_path), "--a", "eager", "--b", "graphs", "--epochs", "1-2", "--expect", "4"])
     with pytest.raises(SystemExit, match="the same models"):
         epoch_seconds.main([str(tmp_path), "--a", "g*s", "--b", "graphs", "--epochs", "1-2"])
     with pytest.raises(SystemExit, match="FIRST-LAST"):
@@ -96,14 +100,14 @@ def test_stage_summaries_names_a_log_without_a_summary_and_writes_nothing(tmp_pa
 
 def test_bending_over_weight_sets_a_reading_beside_the_weight_alone(tmp_path):
     bending_over_weight = _script("bending_over_weight")
-    weight = [0.1, 0.2, 0.3, 0.15, 0.25]
-    bending = [1.0, 5.0, 3.3, 2.0, 4.0]
+    weight = [0.1, 0.2, 0.3, 0.15, 0.25, 0.12]
+    bending = [1.0, 5.0, 3.3, 2.0, 4.0, 2.6]
     per_weight = [b / w for b, w in zip(bending, weight)]
 
     def fabrics(pred_k):
         return [{"pred_k": k, "bending_N_m": b, "density_kg_m2": w} for k, b, w in zip(pred_k, bending, weight)]
 
-    constant = [2.0] * 5                                    # knows nothing: times the weight it is the weight
+    constant = [2.0] * 6                                    # knows nothing: times the weight it is the weight
     follows_bending_over_weight = [float(r + 1) for r in np.argsort(np.argsort(per_weight))]    # its ranks
     report = {"settings": [{"setting": "arm-uniform1", "results": [
         {"classifier": "constant", "fabrics": fabrics(constant)},
@@ -113,10 +117,19 @@ def test_bending_over_weight_sets_a_reading_beside_the_weight_alone(tmp_path):
     out = tmp_path / "ranks.json"
     bending_over_weight.main([str(path), "--out", str(out)])
     result = json.loads(out.read_text())["arm-uniform1"]
-    alone = result["weight_alone~bending"]["spearman"]
-    assert result["classifiers"]["constant"]["pred_k_times_weight~bending"]["spearman"] == alone
-    assert result["classifiers"]["per_weight"]["pred_k~bending_over_weight"]["spearman"] == 1.0
-    assert result["fabrics"] == 5
+    alone, constant_ranks = result["weight_alone~bending"], result["classifiers"]["constant"]
+    # the same resamples for every column: a constant reading times the weight is the weight, interval and all
+    assert constant_ranks["pred_k_times_weight~bending"] == alone and alone["lo"] < alone["spearman"] < alone["hi"]
+    assert constant_ranks["pred_k~bending"] == {"spearman": None, "lo": None, "hi": None}
+    ranked = result["classifiers"]["per_weight"]
+    assert ranked["pred_k~bending_over_weight"]["spearman"] == pytest.approx(1.0)
+    difference = ranked["pred_k~bending_over_weight minus pred_k~bending"]
+    assert difference["spearman"] == pytest.approx(1.0 - ranked["pred_k~bending"]["spearman"])
+    assert difference["lo"] <= difference["spearman"] <= difference["hi"]
+    assert result["fabrics"] == 6
     path.write_text("{}")
     with pytest.raises(SystemExit, match="not a learnability-measured.json"):
+        bending_over_weight.main([str(path)])
+    path.write_text(json.dumps({"settings": [{"setting": "arm-uniform1", "results": [{"classifier": "mlp"}]}]}))
+    with pytest.raises(SystemExit, match="lacks the per-fabric rows"):
         bending_over_weight.main([str(path)])

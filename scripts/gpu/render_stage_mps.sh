@@ -3,6 +3,7 @@
 # Figures: benchmarks/results/render_stage-mps-h100x4-n2592.json (2026-11-26) and readme-multi-h100x4-20261127.json.
 # Run on the device after staging the bundle. Each mode's stage summary (its own clock) goes to $OUT/render_stage.json.
 source scripts/gpu/env.sh; unset CUDA_VISIBLE_DEVICES
+rm -f $OUT/summary.txt       # one line a mode, of this run only
 RUN=/tmp/w STAGES=sim SEQ=48 SPP=16 bash scripts/gpu/paper_study.sh > $OUT/sim.log 2>&1; tail -3 $OUT/sim.log
 for mode in gpw1 gpw025 gpw025-mps; do
   rm -rf /tmp/w/render
