@@ -195,6 +195,13 @@ def test_measured_tables_against_table2_and_scipy(tmp_path):
     assert row["spearman_lo"] <= row["spearman"] <= row["spearman_hi"]
     dens = corr[(corr.unit == "clip") & (corr.score == "pred_bending_N_m") & (corr.target == "density_kg_m2")]
     assert dens["pearson"].item() == pytest.approx(stats.pearsonr(bending, density).statistic, rel=1e-4)
+    # the weight-alone baseline: the same for every model, scipy's over the fabrics, 0.59 on the ten of Table 2
+    alone = corr[(corr.unit == "fabric") & (corr.score == "density_kg_m2") & (corr.target == "bending_N_m")]
+    weights = [measured_values(f)["density_kg_m2"] for f in sorted(fabrics)]
+    bendings = [measured_values(f)["bending_N_m"] for f in sorted(fabrics)]
+    assert len(alone) == 1 and alone["fabrics"].item() == 10
+    assert alone["spearman"].item() == pytest.approx(stats.spearmanr(weights, bendings).statistic, rel=1e-4)
+    assert round(alone["spearman"].item(), 2) == 0.59
     k_row = corr[(corr.unit == "fabric") & (corr.score == "pred_k")].iloc[0]
     paper_k = [table.loc[f, "table2_k_est"] for f in sorted(fabrics)]
     assert k_row["spearman"] == pytest.approx(stats.spearmanr(table["pred_k"], paper_k).statistic, rel=1e-4)
