@@ -49,6 +49,13 @@ def atomic_write_json(path: Path, data: Any) -> None:
     atomic_write_text(path, json.dumps(data, indent=2, default=_json_default) + "\n")
 
 
+def print_json(data: Any, out: Path | None = None) -> None:
+    """A script's result: printed as JSON, and written to ``out`` (atomically) when given."""
+    print(json.dumps(data, indent=2, default=_json_default, allow_nan=False))
+    if out is not None:
+        atomic_write_json(out, data)
+
+
 def _json_default(o: Any) -> Any:
     import numpy as np
 

@@ -16,10 +16,15 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
 from scipy.stats import spearmanr
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from clothgap.files import print_json  # noqa: E402
 
 RESAMPLES, CONFIDENCE, SEED = 1000, 0.95, 0
 
@@ -82,10 +87,7 @@ def main(argv: list[str] | None = None) -> None:
     except (OSError, ValueError, KeyError) as e:
         raise SystemExit(f"bending_over_weight: {args.report} is not a learnability-measured.json ({e!r})") from e
     result = {report.get("setting", str(i)): setting_ranks(report) for i, report in enumerate(settings)}
-    text = json.dumps(result, indent=1, allow_nan=False)
-    print(text)
-    if args.out:
-        args.out.write_text(text + "\n")
+    print_json(result, args.out)
 
 
 if __name__ == "__main__":

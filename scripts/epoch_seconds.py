@@ -21,6 +21,10 @@ from pathlib import Path
 
 import pandas as pd
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from clothgap.files import print_json  # noqa: E402
+
 
 def epoch_range(text: str) -> tuple[int, int]:
     first, sep, last = text.partition("-")
@@ -85,10 +89,7 @@ def main(argv: list[str] | None = None) -> None:
     result = {"command": " ".join(["python3", "scripts/epoch_seconds.py", *(argv if argv is not None else sys.argv[1:])]),
               "epochs": list(args.epochs), "models_per_gpu": args.models_per_gpu, "a": a, "b": b,
               "ratio_a_over_b": round(a["median_epoch_s"] / b["median_epoch_s"], 3)}
-    text = json.dumps(result, indent=1)
-    print(text)
-    if args.out:
-        args.out.write_text(text + "\n")
+    print_json(result, args.out)
 
 
 if __name__ == "__main__":

@@ -12,7 +12,12 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import sys
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from clothgap.files import print_json  # noqa: E402
 
 SUMMARY = re.compile(r"^\[([^\]]+)\] done in ([\d.]+) s: (\{.*\})\s*$", re.M)
 
@@ -45,10 +50,7 @@ def main(argv: list[str] | None = None) -> None:
         if not sep or not label:
             raise SystemExit(f"stage_summaries: expected LABEL=LOG, got {spec!r}")
         result[label] = summary(Path(path))
-    text = json.dumps(result, indent=1)
-    print(text)
-    if args.out:
-        args.out.write_text(text + "\n")
+    print_json(result, args.out)
 
 
 if __name__ == "__main__":
