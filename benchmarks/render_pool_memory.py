@@ -1,0 +1,73 @@
+"""A render process's memory as it renders one dataset after another: its resident set and its pooled scenes.
+
+    python benchmarks/render_pool_memory.py RUN --setting wind-uniform1 \\
+        --variants paper,grid,color,lighting-random,heldout,daylight,paper,grid --out pool.json
+
+Renders the setting's finished sim clips of RUN under each variant in turn, in this one process and the run's
+render settings, into a scratch folder (not the run's), and after each variant records the process's resident
+memory (VmRSS) and how many scenes ``render.scene``'s pool keeps alive (at most ``MAX_POOLED_SCENES`` structures a
+process, least recently used dropped). Why a render worker's memory rises over a study's first datasets and where
+it stops (issue 14: host memory across settings).
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import clothgap.config  # noqa: E402,F401  (registers the study config that Run.open reads)
+from clothgap.files import print_json  # noqa: E402
+from clothgap.runs import Run  # noqa: E402
+
+
+def resident_mib() -> int:
+    return int(re.search(r"VmRSS:\s+(\d+)", Path("/proc/self/status").read_text()).group(1)) // 1024
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("run", type=Path)
+    ap.add_argument("--setting", default="wind-uniform1")
+    ap.add_argument("--variants", required=True, help="comma-separated, rendered in this order (repeats allowed)")
+    ap.add_argument("--clips", type=int, default=4, help="clips rendered under each variant (default 4)")
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args(argv)
+
+    from render.scene import MAX_POOLED_SCENES, _POOLS
+    from render.stage import render_jobs
+    from render.variants import get_variant
+
+    run = Run.open(args.run)
+    folder = run.sim_dir(args.setting)
+    clips = [folder / c for c in run.done_clips(folder)][:args.clips]
+    if not clips:
+        raise SystemExit(f"render_pool_memory: no finished sim clips in {folder}")
+    variants = [get_variant(name) for name in args.variants.split(",")]     # unknown names fail before any render
+    rows = [{"after": "start", "resident_mib": resident_mib(), "pooled_scenes": 0}]
+    scratch = Path(tempfile.mkdtemp(prefix="render-pool-memory-"))
+    try:
+        for variant in variants:
+            out = scratch / variant.name
+            shutil.rmtree(out, ignore_errors=True)
+            render_jobs(run, [(variant, args.setting, c, out / c.name) for c in clips], progress=False,
+                        variants=[variant])
+            rows.append({"after": variant.name, "resident_mib": resident_mib(),
+                         "pooled_scenes": sum(len(p._scenes) for p in _POOLS.values())})
+            print(rows[-1], file=sys.stderr, flush=True)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    print_json({"command": " ".join(["python", "benchmarks/render_pool_memory.py",
+                                     *(argv if argv is not None else sys.argv[1:])]),
+                "run": str(args.run), "setting": args.setting, "clips": len(clips),
+                "backend": run.config.render.backend, "resolution": run.config.render.resolution,
+                "max_pooled_scenes": MAX_POOLED_SCENES, "rows": rows}, args.out)
+
+
+if __name__ == "__main__":
+    main()
