@@ -292,3 +292,20 @@ def test_the_graphed_readers_hold_only_when_tested_captured_and_faster(tmp_path)
     assert "under 1.2x" in verdict(fast, dict(fast, model="base3", graphed_over_one_batch=1.1)) and off.is_file()
     assert "not captured" in verdict(dict(fast, graphed={"captured": False, "capture_failed": "x"}))
     assert "no reader was timed" in verdict()
+
+
+@pytest.mark.parametrize("plan", sorted((ROOT / "scripts" / "gpu" / "plans").glob("*.plan")), ids=lambda p: p.stem)
+def test_every_shipped_plan_is_one_the_queue_accepts(plan):
+    # a plan the queue refuses costs a GPU session's staging before anyone sees it
+    result = subprocess.run(["bash", str(QUEUE), "--check", str(plan)], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+
+
+def test_a_line_that_is_no_step_is_refused_before_anything_runs(tmp_path):
+    for text, message in (("first: true\nthe rest of a comment whose # was lost\n", "is not 'NAME: command'"),
+                          ("first: true\nsecond:   \n", "step second in .* has no command")):
+        plan = tmp_path / "bad.plan"
+        plan.write_text(text)
+        result = _queue(plan, tmp_path / "state", tmp_path / "out")
+        assert result.returncode == 2 and re.search(message, result.stdout + result.stderr)
+        assert not (tmp_path / "state" / "first.done").exists()

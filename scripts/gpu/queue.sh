@@ -99,9 +99,11 @@ for plan in "$@"; do
     line=${line%%#*}
     [[ "$line" =~ ^[[:space:]]*$ ]] && continue
     line=${line%"${line##*[![:space:]]}"}     # trailing blanks (before a comment) are not the command
+    [[ "$line" == *:* ]] || refuse "a line of $plan is not 'NAME: command' (is it a comment without its #?): $line"
     name=$(echo "${line%%:*}" | tr -d '[:space:]')
     cmd=${line#*:}
     [[ "$name" =~ ^[A-Za-z0-9_.-]+$ ]] || refuse "bad step name '$name' in $plan"
+    [[ "$cmd" =~ [^[:space:]] ]] || refuse "step $name in $plan has no command"
     [[ "$seen" == *" $name "* ]] && refuse "step $name twice in $plan"
     seen+="$name "
     for k in "${!names[@]}"; do
