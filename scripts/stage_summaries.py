@@ -31,7 +31,8 @@ def summary(log: Path) -> dict:
         raise SystemExit(f"stage_summaries: {log} has no '[STAGE] done in ... s: {{...}}' line (did the stage finish?)")
     stage, wall, fields = found[-1]
     try:
-        row = {"stage": stage, "wall_s": float(wall), **json.loads(fields)}
+        # the CLI prints with json.dumps, which writes NaN; the summary written here has null instead
+        row = {"stage": stage, "wall_s": float(wall), **json.loads(fields, parse_constant=lambda _: None)}
     except ValueError as e:
         raise SystemExit(f"stage_summaries: {log}: its summary is not JSON ({e})") from e
     if isinstance(row.get("frames"), int) and row.get("seconds"):

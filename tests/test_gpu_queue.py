@@ -303,7 +303,8 @@ def test_every_shipped_plan_is_one_the_queue_accepts(plan):
 
 def test_a_line_that_is_no_step_is_refused_before_anything_runs(tmp_path):
     for text, message in (("first: true\nthe rest of a comment whose # was lost\n", "is not 'NAME: command'"),
-                          ("first: true\nsecond:   \n", "step second in .* has no command")):
+                          ("first: true\nsecond:   \n", "step second in .* has no command"),
+                          ("first: true\nIssue 14 goal 4: is the host's memory flat?\n", "bad step name 'Issue 14")):
         plan = tmp_path / "bad.plan"
         plan.write_text(text)
         result = _queue(plan, tmp_path / "state", tmp_path / "out")

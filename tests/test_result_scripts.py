@@ -86,6 +86,14 @@ def test_stage_summaries_reads_the_line_the_cli_prints(tmp_path, capsys):
     assert row == {"stage": "render", "wall_s": 3.0, "rendered": 4, "frames": 160, "seconds": 2.5, "frames_per_s": 64.0}
 
 
+def test_stage_summaries_writes_null_where_the_cli_printed_nan(tmp_path):
+    log = tmp_path / "train.log"
+    log.write_text('[eval] done in 2.0 s: {"acc": NaN, "seconds": 1.5}\n')
+    out = tmp_path / "stage.json"
+    stage_summaries.main([f"eval={log}", "--out", str(out)])
+    assert json.loads(out.read_text())["eval"]["acc"] is None
+
+
 def test_stage_summaries_names_a_log_without_a_summary_and_writes_nothing(tmp_path):
     good, cut = tmp_path / "good.log", tmp_path / "cut.log"
     good.write_text('[sim] done in 1.0 s: {"simulated": 2, "seconds": 0.9}\n')

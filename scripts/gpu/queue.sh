@@ -100,9 +100,10 @@ for plan in "$@"; do
     [[ "$line" =~ ^[[:space:]]*$ ]] && continue
     line=${line%"${line##*[![:space:]]}"}     # trailing blanks (before a comment) are not the command
     [[ "$line" == *:* ]] || refuse "a line of $plan is not 'NAME: command' (is it a comment without its #?): $line"
+    [[ "${line%%:*}" =~ ^[[:space:]]*[A-Za-z0-9_.-]+[[:space:]]*$ ]] ||
+      refuse "bad step name '${line%%:*}' in $plan (one word before the colon; is it a comment without its #?)"
     name=$(echo "${line%%:*}" | tr -d '[:space:]')
     cmd=${line#*:}
-    [[ "$name" =~ ^[A-Za-z0-9_.-]+$ ]] || refuse "bad step name '$name' in $plan"
     [[ "$cmd" =~ [^[:space:]] ]] || refuse "step $name in $plan has no command"
     [[ "$seen" == *" $name "* ]] && refuse "step $name twice in $plan"
     seen+="$name "
