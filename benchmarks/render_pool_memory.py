@@ -36,6 +36,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--setting", default="wind-uniform1")
     ap.add_argument("--variants", required=True, help="comma-separated, rendered in this order (repeats allowed)")
     ap.add_argument("--clips", type=int, default=4, help="clips rendered under each variant (default 4)")
+    ap.add_argument("--flush-jit-caches", action="store_true",
+                    help="after each variant, flush Dr.Jit's kernel and memory caches (dr.flush_kernel_cache, "
+                         "dr.flush_malloc_cache): whether what stays resident is theirs")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
 
@@ -57,6 +60,11 @@ def main(argv: list[str] | None = None) -> None:
             shutil.rmtree(out, ignore_errors=True)
             render_jobs(run, [(variant, args.setting, c, out / c.name) for c in clips], progress=False,
                         variants=[variant])
+            if args.flush_jit_caches:
+                import drjit as dr      # loaded by render_jobs, after the backend set LLVM's path
+
+                dr.flush_kernel_cache()
+                dr.flush_malloc_cache()
             rows.append({"after": variant.name, "resident_mib": resident_mib(),
                          "pooled_scenes": sum(len(p._scenes) for p in _POOLS.values())})
             print(rows[-1], file=sys.stderr, flush=True)
@@ -66,7 +74,8 @@ def main(argv: list[str] | None = None) -> None:
                                      *(argv if argv is not None else sys.argv[1:])]),
                 "run": str(args.run), "setting": args.setting, "clips": len(clips),
                 "backend": run.config.render.backend, "resolution": run.config.render.resolution,
-                "max_pooled_scenes": MAX_POOLED_SCENES, "rows": rows}, args.out)
+                "max_pooled_scenes": MAX_POOLED_SCENES, "flush_jit_caches": args.flush_jit_caches, "rows": rows},
+               args.out)
 
 
 if __name__ == "__main__":
