@@ -13,10 +13,12 @@ it stops (issue 14: host memory across settings).
 from __future__ import annotations
 
 import argparse
+import gc
 import re
 import shutil
 import sys
 import tempfile
+import tracemalloc
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -39,6 +41,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--flush-jit-caches", action="store_true",
                     help="after each variant, flush Dr.Jit's kernel and memory caches (dr.flush_kernel_cache, "
                          "dr.flush_malloc_cache): whether what stays resident is theirs")
+    ap.add_argument("--trace-python", action="store_true",
+                    help="also record the memory Python's own allocations hold (tracemalloc), to tell them from "
+                         "native memory (Dr.Jit, Mitsuba, LLVM, CUDA)")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
 
@@ -52,7 +57,14 @@ def main(argv: list[str] | None = None) -> None:
     if not clips:
         raise SystemExit(f"render_pool_memory: no finished sim clips in {folder}")
     variants = [get_variant(name) for name in args.variants.split(",")]     # unknown names fail before any render
-    rows = [{"after": "start", "resident_mib": resident_mib(), "pooled_scenes": 0}]
+    if args.trace_python:
+        tracemalloc.start()
+
+    def row(after: str, pooled: int) -> dict:
+        python = {"python_mib": round(tracemalloc.get_traced_memory()[0] / 2**20, 1)} if args.trace_python else {}
+        return {"after": after, "resident_mib": resident_mib(), "pooled_scenes": pooled, **python}
+
+    rows = [row("start", 0)]
     scratch = Path(tempfile.mkdtemp(prefix="render-pool-memory-"))
     try:
         for variant in variants:
@@ -65,8 +77,8 @@ def main(argv: list[str] | None = None) -> None:
 
                 dr.flush_kernel_cache()
                 dr.flush_malloc_cache()
-            rows.append({"after": variant.name, "resident_mib": resident_mib(),
-                         "pooled_scenes": sum(len(p._scenes) for p in _POOLS.values())})
+            gc.collect()
+            rows.append(row(variant.name, sum(len(p._scenes) for p in _POOLS.values())))
             print(rows[-1], file=sys.stderr, flush=True)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
@@ -74,7 +86,8 @@ def main(argv: list[str] | None = None) -> None:
                                      *(argv if argv is not None else sys.argv[1:])]),
                 "run": str(args.run), "setting": args.setting, "clips": len(clips),
                 "backend": run.config.render.backend, "resolution": run.config.render.resolution,
-                "max_pooled_scenes": MAX_POOLED_SCENES, "flush_jit_caches": args.flush_jit_caches, "rows": rows},
+                "max_pooled_scenes": MAX_POOLED_SCENES, "flush_jit_caches": args.flush_jit_caches,
+                "trace_python": args.trace_python, "rows": rows},
                args.out)
 
 
