@@ -5,7 +5,7 @@
 
 Renders the setting's finished sim clips of RUN under each variant in turn, in this one process and the run's
 render settings, into a scratch folder (not the run's), and after each variant records the process's resident
-memory (VmRSS) and how many scenes ``render.scene``'s pool keeps alive (at most ``MAX_POOLED_SCENES`` structures a
+memory (VmRSS, after a garbage collection) and how many scenes ``render.scene``'s pool keeps alive (at most ``MAX_POOLED_SCENES`` structures a
 process, least recently used dropped). Why a render worker's memory rises over a study's first datasets and where
 it stops (issue 14: host memory across settings).
 """
@@ -61,7 +61,10 @@ def main(argv: list[str] | None = None) -> None:
         tracemalloc.start()
 
     def row(after: str, pooled: int) -> dict:
-        python = {"python_mib": round(tracemalloc.get_traced_memory()[0] / 2**20, 1)} if args.trace_python else {}
+        # live Python allocations, and what tracing them costs (counted in the resident memory too)
+        python = ({"python_mib": round(tracemalloc.get_traced_memory()[0] / 2**20, 1),
+                   "tracemalloc_mib": round(tracemalloc.get_tracemalloc_memory() / 2**20, 1)}
+                  if args.trace_python else {})
         return {"after": after, "resident_mib": resident_mib(), "pooled_scenes": pooled, **python}
 
     rows = [row("start", 0)]
@@ -72,12 +75,12 @@ def main(argv: list[str] | None = None) -> None:
             shutil.rmtree(out, ignore_errors=True)
             render_jobs(run, [(variant, args.setting, c, out / c.name) for c in clips], progress=False,
                         variants=[variant])
+            gc.collect()                # what the look left unreferenced is freed before anything is read
             if args.flush_jit_caches:
                 import drjit as dr      # loaded by render_jobs, after the backend set LLVM's path
 
                 dr.flush_kernel_cache()
                 dr.flush_malloc_cache()
-            gc.collect()
             rows.append(row(variant.name, sum(len(p._scenes) for p in _POOLS.values())))
             print(rows[-1], file=sys.stderr, flush=True)
     finally:

@@ -31,7 +31,7 @@ def summary(log: Path) -> dict:
         raise SystemExit(f"stage_summaries: {log} has no '[STAGE] done in ... s: {{...}}' line (did the stage finish?)")
     stage, wall, fields = found[-1]
     try:
-        # the CLI prints with json.dumps, which writes NaN; the summary written here has null instead
+        # the CLI prints with json.dumps, which writes NaN and Infinity; the summary written here has null instead
         row = {"stage": stage, "wall_s": float(wall), **json.loads(fields, parse_constant=lambda _: None)}
     except ValueError as e:
         raise SystemExit(f"stage_summaries: {log}: its summary is not JSON ({e})") from e

@@ -102,7 +102,7 @@ for plan in "$@"; do
     [[ "$line" == *:* ]] || refuse "a line of $plan is not 'NAME: command' (is it a comment without its #?): $line"
     [[ "${line%%:*}" =~ ^[[:space:]]*[A-Za-z0-9_.-]+[[:space:]]*$ ]] ||
       refuse "bad step name '${line%%:*}' in $plan (one word before the colon; is it a comment without its #?)"
-    name=$(echo "${line%%:*}" | tr -d '[:space:]')
+    name=${line%%:*}; name=${name//[[:space:]]/}
     cmd=${line#*:}
     [[ "$cmd" =~ [^[:space:]] ]] || refuse "step $name in $plan has no command"
     [[ "$seen" == *" $name "* ]] && refuse "step $name twice in $plan"
