@@ -26,6 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import clothgap.config  # noqa: E402,F401  (registers the study config that Run.open reads)
 from clothgap.files import print_json  # noqa: E402
 from clothgap.runs import Run  # noqa: E402
+from common import write_result  # noqa: E402  (benchmarks/common.py)
 
 
 def resident_mib() -> int:
@@ -47,7 +48,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
 
-    from render.scene import MAX_POOLED_SCENES, _POOLS
+    from render.backend import load_mitsuba
+    from render.scene import MAX_POOLED_SCENES, scene_pool
     from render.stage import render_jobs
     from render.variants import get_variant
 
@@ -67,7 +69,9 @@ def main(argv: list[str] | None = None) -> None:
                   if args.trace_python else {})
         return {"after": after, "resident_mib": resident_mib(), "pooled_scenes": pooled, **python}
 
-    rows = [row("start", 0)]
+    rows = [row("start", 0)]           # before Mitsuba loads, so the first look's row includes it
+    mi = load_mitsuba(run.config.render.backend)       # the backend render_jobs loads, so drjit imports after it
+    import drjit as dr
     scratch = Path(tempfile.mkdtemp(prefix="render-pool-memory-"))
     try:
         for variant in variants:
@@ -77,21 +81,20 @@ def main(argv: list[str] | None = None) -> None:
                         variants=[variant])
             gc.collect()                # what the look left unreferenced is freed before anything is read
             if args.flush_jit_caches:
-                import drjit as dr      # loaded by render_jobs, after the backend set LLVM's path
-
                 dr.flush_kernel_cache()
                 dr.flush_malloc_cache()
-            rows.append(row(variant.name, sum(len(p._scenes) for p in _POOLS.values())))
+            rows.append(row(variant.name, len(scene_pool(mi))))
             print(rows[-1], file=sys.stderr, flush=True)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
-    print_json({"command": " ".join(["python", "benchmarks/render_pool_memory.py",
-                                     *(argv if argv is not None else sys.argv[1:])]),
-                "run": str(args.run), "setting": args.setting, "clips": len(clips),
-                "backend": run.config.render.backend, "resolution": run.config.render.resolution,
-                "max_pooled_scenes": MAX_POOLED_SCENES, "flush_jit_caches": args.flush_jit_caches,
-                "trace_python": args.trace_python, "rows": rows},
-               args.out)
+    result = {"run": str(args.run), "setting": args.setting, "clips": len(clips),
+              "backend": run.config.render.backend, "resolution": run.config.render.resolution,
+              "max_pooled_scenes": MAX_POOLED_SCENES, "flush_jit_caches": args.flush_jit_caches,
+              "trace_python": args.trace_python, "rows": rows}
+    if args.out:
+        write_result("render_pool_memory.py", argv, result, args.out)
+    else:
+        print_json(result)
 
 
 if __name__ == "__main__":

@@ -298,6 +298,26 @@ def bootstrap_correlation(x, y, *, method: str = "pearson", groups=None, resampl
     return Estimate(point, *_correlation_interval(samples, confidence))
 
 
+def bootstrap_correlation_difference(x_a, y_a, x_b, y_b, *, method: str = "pearson", resamples: int = 1000,
+                                     confidence: float = 0.95, rng: np.random.Generator | None = None) -> Estimate:
+    """The correlation of (x_b, y_b) minus that of (x_a, y_a), two readings of the same rows, with a percentile
+    interval: each resample draws the rows once for both (paired), as ``bootstrap_correlation`` draws them (the
+    same ``rng`` state gives the same rows), under the same rule for resamples that have no correlation."""
+    if method not in ("pearson", "spearman"):
+        raise ValueError(f"method must be 'pearson' or 'spearman', got {method!r}")
+    x_a, y_a, x_b, y_b = (np.asarray(v, float) for v in (x_a, y_a, x_b, y_b))
+    if not x_a.shape == y_a.shape == x_b.shape == y_b.shape:
+        raise ValueError(f"the readings differ in length: {x_a.shape}, {y_a.shape}, {x_b.shape}, {y_b.shape}")
+    correlation = pearson if method == "pearson" else spearman
+    point = correlation(x_b, y_b) - correlation(x_a, y_a)
+    if not np.isfinite(point):
+        return Estimate(point, float("nan"), float("nan"))
+    rng = rng or np.random.default_rng(0)
+    picks = rng.integers(0, len(x_a), size=(resamples, len(x_a)))
+    samples = _correlation_rows(x_b, y_b, picks, method) - _correlation_rows(x_a, y_a, picks, method)
+    return Estimate(point, *_correlation_interval(samples, confidence))
+
+
 # ------------------------------------------------------------------ one summary
 
 SCORES = {

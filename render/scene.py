@@ -145,6 +145,9 @@ class ScenePool:
             self._scenes.popitem(last=False)
         return entry, True
 
+    def __len__(self) -> int:
+        return len(self._scenes)
+
     def clear(self) -> None:
         self._scenes.clear()
 

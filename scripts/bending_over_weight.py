@@ -8,7 +8,8 @@ Reads `clothgap eval learnability RUN --measured N`'s JSON (each classifier's pe
 w). For each classifier: Spearman of predicted k against B and against B / w, and of predicted k times w against
 B (a reading corrected by the weight), and each of the last two minus the first; once: w alone against B.
 Every figure resamples the same fabrics (1,000 draws, 95 % percentile intervals, seed 0), so the columns are
-paired; a constant reading has no rank (null). Values are kept unrounded.
+paired (``eval.metrics.bootstrap_correlation`` and ``bootstrap_correlation_difference``, with their rule for
+resamples that have no rank); a constant reading has no rank (null). Values are kept unrounded.
 """
 
 from __future__ import annotations
@@ -20,41 +21,29 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from scipy.stats import spearmanr
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from clothgap.files import print_json  # noqa: E402
+from eval import metrics  # noqa: E402
 
 RESAMPLES, CONFIDENCE, SEED = 1000, 0.95, 0
 
 
-def _rho(x: np.ndarray, y: np.ndarray) -> float:
-    if np.ptp(x) == 0 or np.ptp(y) == 0:
-        return math.nan                      # a constant reading ranks nothing
-    return float(spearmanr(x, y)[0])
+def _estimate(est: metrics.Estimate) -> dict:
+    return {k: (v if math.isfinite(v) else None) for k, v in zip(("spearman", "lo", "hi"), (est.value, est.low, est.high))}
 
 
-def _estimate(values: np.ndarray, point: float) -> dict:
-    finite = values[np.isfinite(values)]
-    if not np.isfinite(point) or len(finite) < 0.9 * len(values):
-        return {"spearman": None if not np.isfinite(point) else point, "lo": None, "hi": None}
-    lo, hi = np.quantile(finite, [(1 - CONFIDENCE) / 2, (1 + CONFIDENCE) / 2])
-    return {"spearman": point, "lo": float(lo), "hi": float(hi)}
-
-
-def ranks(columns: dict[str, tuple[np.ndarray, np.ndarray]], picks: np.ndarray) -> dict:
-    """Each column's Spearman (x against y) with a percentile interval, every column over the same resamples of
-    fabrics (``picks``), so columns are paired; and the difference of each later column from the first."""
-    out, samples = {}, {}
-    for name, (x, y) in columns.items():
-        samples[name] = np.array([_rho(x[p], y[p]) for p in picks])
-        out[name] = _estimate(samples[name], _rho(x, y))
-    first = next(iter(columns))
-    for name in list(columns)[1:]:
-        point = (out[name]["spearman"] - out[first]["spearman"]
-                 if out[name]["spearman"] is not None and out[first]["spearman"] is not None else math.nan)
-        out[f"{name} minus {first}"] = _estimate(samples[name] - samples[first], point)
+def ranks(columns: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict:
+    """Each column's Spearman (x against y) with a percentile interval, and the difference of each later column
+    from the first; every figure over the same resamples of fabrics (one seed), so the columns are paired."""
+    opts = {"method": "spearman", "resamples": RESAMPLES, "confidence": CONFIDENCE}
+    out = {name: _estimate(metrics.bootstrap_correlation(x, y, rng=np.random.default_rng(SEED), **opts))
+           for name, (x, y) in columns.items()}
+    first, *later = columns
+    for name in later:
+        out[f"{name} minus {first}"] = _estimate(metrics.bootstrap_correlation_difference(
+            *columns[first], *columns[name], rng=np.random.default_rng(SEED), **opts))
     return out
 
 
@@ -65,15 +54,18 @@ def setting_ranks(report: dict) -> dict:
         bending = np.array([f["bending_N_m"] for f in first], float)
         weight = np.array([f["density_kg_m2"] for f in first], float)
         readings = {r["classifier"]: np.array([f["pred_k"] for f in r["fabrics"]], float) for r in results}
+        order = [f.get("fabric") for f in first]
+        if any([f.get("fabric") for f in r["fabrics"]] != order for r in results):
+            raise SystemExit(f"bending_over_weight: setting {report.get('setting')!r}: the classifiers list the "
+                             "fabrics in different orders")
     except (KeyError, IndexError, TypeError) as e:
         raise SystemExit(f"bending_over_weight: setting {report.get('setting')!r} lacks the per-fabric rows "
                          f"(pred_k, bending_N_m, density_kg_m2): {e!r}") from e
-    picks = np.random.default_rng(SEED).integers(0, len(bending), size=(RESAMPLES, len(bending)))
     return {"fabrics": len(bending),
-            "weight_alone~bending": ranks({"weight~bending": (weight, bending)}, picks)["weight~bending"],
+            "weight_alone~bending": ranks({"weight~bending": (weight, bending)})["weight~bending"],
             "classifiers": {kind: ranks({"pred_k~bending": (k, bending),
                                          "pred_k~bending_over_weight": (k, bending / weight),
-                                         "pred_k_times_weight~bending": (k * weight, bending)}, picks)
+                                         "pred_k_times_weight~bending": (k * weight, bending)})
                             for kind, k in readings.items()}}
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import statistics
 import sys
 from pathlib import Path
@@ -86,7 +87,7 @@ def main(argv: list[str] | None = None) -> None:
     shared = set(a["models"]) & set(b["models"])
     if shared:
         raise SystemExit(f"--a and --b match the same models: {sorted(shared)}")
-    result = {"command": " ".join(["python3", "scripts/epoch_seconds.py", *(argv if argv is not None else sys.argv[1:])]),
+    result = {"command": shlex.join(["python3", "scripts/epoch_seconds.py", *(argv if argv is not None else sys.argv[1:])]),
               "epochs": list(args.epochs), "models_per_gpu": args.models_per_gpu, "a": a, "b": b,
               "ratio_a_over_b": round(a["median_epoch_s"] / b["median_epoch_s"], 3)}
     print_json(result, args.out)

@@ -160,3 +160,22 @@ def test_summarize_keys():
     out = metrics.summarize(truth, probs.argmax(1), probs, ["a", "a", "b", "b"], resamples=50)
     assert out["rows"] == 4 and out["sequences"] == 2
     assert out["acc"] == 0.75 and {"acc_lo", "top3_hi", "class_dist"} <= set(out)
+
+
+@pytest.mark.parametrize("method", ["pearson", "spearman"])
+def test_a_correlation_difference_is_paired_over_the_same_resampled_rows(method):
+    rng = np.random.default_rng(3)
+    truth = rng.normal(size=12)
+    a, b = truth + rng.normal(size=12), truth + 0.3 * rng.normal(size=12)
+    corr = stats.pearsonr if method == "pearson" else stats.spearmanr
+    est = metrics.bootstrap_correlation_difference(a, truth, b, truth, method=method, resamples=400,
+                                                   rng=np.random.default_rng(7))
+    assert est.value == pytest.approx(corr(b, truth).statistic - corr(a, truth).statistic)
+    # each resample's difference, one by one with scipy, over the rows bootstrap_correlation would draw
+    picks = np.random.default_rng(7).integers(0, 12, size=(400, 12))
+    diffs = [corr(b[p], truth[p]).statistic - corr(a[p], truth[p]).statistic for p in picks]
+    assert (est.low, est.high) == pytest.approx(tuple(np.quantile(diffs, [0.025, 0.975])))
+    same = metrics.bootstrap_correlation_difference(a, truth, a, truth, method=method, rng=np.random.default_rng(7))
+    assert (same.value, same.low, same.high) == (0.0, 0.0, 0.0)       # a reading against itself: paired, no spread
+    with pytest.raises(ValueError, match="differ in length"):
+        metrics.bootstrap_correlation_difference(a, truth, b[:5], truth[:5])
