@@ -5,9 +5,12 @@
 
 Renders the setting's finished sim clips of RUN under each variant in turn, in this one process and the run's
 render settings, into a scratch folder (not the run's), and after each variant records the process's resident
-memory (VmRSS, after a garbage collection) and how many scenes ``render.scene``'s pool keeps alive (at most ``MAX_POOLED_SCENES`` structures a
-process, least recently used dropped). Why a render worker's memory rises over a study's first datasets and where
-it stops (issue 14: host memory across settings).
+memory (VmRSS, after a garbage collection) and how many scenes ``render.scene``'s pool keeps alive (at most
+``MAX_POOLED_SCENES`` structures a process, least recently used dropped). ``--one-call`` renders every look in one
+call of the stage's loop, as a render worker does (its readings after each clip, no collection in between).
+``--keep-looks`` turns off the stage's release of a finished look (``render.stage.release_look``): the baseline
+of what it saves. Why a render worker's memory rises over a study's datasets (issue 14: host memory across
+settings).
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import re
 import shutil
 import sys
 import tempfile
+import time
 import tracemalloc
 from pathlib import Path
 
@@ -25,12 +29,24 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import clothgap.config  # noqa: E402,F401  (registers the study config that Run.open reads)
 from clothgap.files import print_json  # noqa: E402
-from clothgap.runs import Run  # noqa: E402
+from clothgap.runs import Run, is_done  # noqa: E402
 from common import write_result  # noqa: E402  (benchmarks/common.py)
 
 
 def resident_mib() -> int:
     return int(re.search(r"VmRSS:\s+(\d+)", Path("/proc/self/status").read_text()).group(1)) // 1024
+
+
+class ReadJobs(list):
+    """The stage's job list, read after each clip: a clip is read when the stage's loop asks for the next job (or
+    finishes) and its folder is DONE, so the stage's passes over the list before it renders take no reading."""
+
+    def __iter__(self):
+        self.readings = getattr(self, "readings", [])
+        for k, job in enumerate(list.__iter__(self)):
+            yield job
+            if is_done(job[3]) and len(self.readings) == k:
+                self.readings.append({"after_job": k + 1, **self.reading(job)})
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -45,11 +61,18 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--trace-python", action="store_true",
                     help="also record the memory Python's own allocations hold (tracemalloc), to tell them from "
                          "native memory (Dr.Jit, Mitsuba, LLVM, CUDA)")
+    ap.add_argument("--one-call", action="store_true",
+                    help="every look in one render_jobs call, as a stage worker renders its shard, with a reading "
+                         "after each clip")
+    ap.add_argument("--keep-looks", action="store_true",
+                    help="do not release a finished look's scenes and kernels (render.stage.RELEASE_LOOKS off): "
+                         "the baseline")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
 
     from render.backend import load_mitsuba
     from render.scene import MAX_POOLED_SCENES, scene_pool
+    import render.stage
     from render.stage import render_jobs
     from render.variants import get_variant
 
@@ -72,25 +95,45 @@ def main(argv: list[str] | None = None) -> None:
     rows = [row("start", 0)]           # before Mitsuba loads, so the first look's row includes it
     mi = load_mitsuba(run.config.render.backend)       # the backend render_jobs loads, so drjit imports after it
     import drjit as dr
+    render.stage.RELEASE_LOOKS = not args.keep_looks
     scratch = Path(tempfile.mkdtemp(prefix="render-pool-memory-"))
     try:
-        for variant in variants:
-            out = scratch / variant.name
-            shutil.rmtree(out, ignore_errors=True)
-            render_jobs(run, [(variant, args.setting, c, out / c.name) for c in clips], progress=False,
-                        variants=[variant])
-            gc.collect()                # what the look left unreferenced is freed before anything is read
-            if args.flush_jit_caches:
-                dr.flush_kernel_cache()
-                dr.flush_malloc_cache()
-            rows.append(row(variant.name, len(scene_pool(mi))))
-            print(rows[-1], file=sys.stderr, flush=True)
+        if args.one_call:
+            # a look named twice is rendered twice, into folders of its own
+            jobs = ReadJobs((variant, args.setting, c, scratch / f"{k}-{variant.name}" / c.name)
+                            for k, variant in enumerate(variants) for c in clips)
+            start = time.perf_counter()
+            jobs.reading = lambda job: {"look": job[0].name, "resident_mib": resident_mib(),
+                                        "pooled_scenes": len(scene_pool(mi)),
+                                        "seconds": round(time.perf_counter() - start, 2)}
+            summary = render_jobs(run, jobs, progress=False, variants=variants)
+            gc.collect()
+            clip_rows = jobs.readings
+            rows += [{"after": r["look"], "resident_mib": r["resident_mib"], "pooled_scenes": r["pooled_scenes"]}
+                     for r in clip_rows if r["after_job"] % len(clips) == 0]      # each look's last clip
+            rows.append(row("call returned", len(scene_pool(mi))))
+        else:
+            clip_rows = summary = None
+            for variant in variants:
+                out = scratch / variant.name
+                shutil.rmtree(out, ignore_errors=True)
+                render_jobs(run, [(variant, args.setting, c, out / c.name) for c in clips], progress=False,
+                            variants=[variant])
+                gc.collect()            # what the look left unreferenced is freed before anything is read
+                if args.flush_jit_caches:
+                    dr.flush_kernel_cache()
+                    dr.flush_malloc_cache()
+                rows.append(row(variant.name, len(scene_pool(mi))))
+                print(rows[-1], file=sys.stderr, flush=True)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     result = {"run": str(args.run), "setting": args.setting, "clips": len(clips),
               "backend": run.config.render.backend, "resolution": run.config.render.resolution,
               "max_pooled_scenes": MAX_POOLED_SCENES, "flush_jit_caches": args.flush_jit_caches,
-              "trace_python": args.trace_python, "rows": rows}
+              "trace_python": args.trace_python, "one_call": args.one_call,
+              "release_looks": not args.keep_looks, "rows": rows,
+              **({"render_seconds": summary["seconds"], "frames": summary["frames"], "failed": summary["failed"],
+                  "clip_readings": clip_rows} if clip_rows is not None else {})}
     if args.out:
         write_result("render_pool_memory.py", argv, result, args.out)
     else:

@@ -25,10 +25,16 @@ EXR; PNG and EXR are for looking at a run (``python -m render.frames`` writes
 PNGs from the array afterwards). A clip that fails to render gets a ``FAILED``
 file with the reason and no ``DONE``; the stage goes on with the next clip and
 lists the failures in its summary, so one bad clip does not cost a long run.
+
+The jobs go look by look (variant-major), and a look's scenes and kernels are freed once its last clip is done
+(``release_look``): a worker's memory stays that of one look however many datasets a study has, and no render
+traces the scenes of looks already finished.
 """
 
 from __future__ import annotations
 
+import ctypes
+import gc
 import shutil
 import time
 import traceback
@@ -50,12 +56,47 @@ from render.batch import BatchRenderer, batchable
 from render.config import RenderConfig, frames_per_launch
 from render.exr import write_exr
 from render.frames import LDR_DIR, STORE_KEY, FrameStore, store_path, write_frames, write_png
-from render.scene import ClipRenderer
+from render.scene import ClipRenderer, scene_pool
 from render.variants import RenderVariant, get_variant
 from render.video import compress_frames
 from sim.clip import SimClip
 
 FAILED = "FAILED"
+
+# Whether render_jobs frees a look's scenes and kernels once its last clip is done (release_look). Off only to
+# measure what it saves (benchmarks/render_pool_memory.py --keep-looks).
+RELEASE_LOOKS = True
+
+
+def release_look(mi) -> bool:
+    """Free what the looks rendered so far hold in this process; returns whether there was anything to free.
+
+    Each look (variant) has scene structures of its own: its pooled scenes (``render.scene.ScenePool``) with their
+    frozen renders, and the kernels traced for them, which Dr.Jit keeps for the life of the process (on CUDA an
+    OptiX pipeline for each structure). A render worker goes through a study's looks one after another and never
+    comes back to one, so without this its memory grows with the number of datasets (issue 14). The pool is
+    emptied first, so that no frozen render is left to replay a flushed kernel; the next look compiles its own
+    kernels anyway, the ones it shares with the last look come from Dr.Jit's disk cache.
+    """
+    pool = scene_pool(mi)
+    if not len(pool):
+        return False
+    pool.clear()
+    gc.collect()                                  # scenes held in reference cycles go now, not at some later pass
+    import drjit as dr
+    dr.sync_thread()
+    dr.flush_kernel_cache()
+    dr.flush_malloc_cache()
+    _malloc_trim()
+    return True
+
+
+def _malloc_trim() -> None:
+    """Hand the heap pages freed above back to the OS (glibc keeps them for reuse otherwise); elsewhere a no-op."""
+    try:
+        ctypes.CDLL(None).malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 def clip_index_of(clip: SimClip, clip_dir: Path) -> int:
@@ -248,7 +289,11 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
     start = time.perf_counter()
     render_seconds = 0.0
     writer = ThreadPoolExecutor(max(1, config.writer_threads), thread_name_prefix="render-writer")
-    for variant, setting, clip_dir, out_dir in tqdm(jobs, desc=label, unit="clip", disable=not progress):
+    last_job_of = {v.name: i for i, (v, *_) in enumerate(jobs)}
+    for i, (variant, setting, clip_dir, out_dir) in enumerate(tqdm(jobs, desc=label, unit="clip",
+                                                                   disable=not progress)):
+        if RELEASE_LOOKS and i and last_job_of[jobs[i - 1][0].name] == i - 1:
+            release_look(mi)                      # the previous look is finished in this call
         if is_done(out_dir):
             summary["skipped"] += 1
             continue
@@ -281,6 +326,8 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
         summary["rendered"] += 1
         summary["frames"] += meta["num_frames"]
     writer.shutdown(wait=True)
+    if RELEASE_LOOKS:
+        release_look(mi)                          # the next call (another shard, the measured set) is another look
     summary["skipped_backgrounds"] = {f: r for b in backgrounds.values() for f, r in b.skipped.items()}
     summary["seconds"] = round(time.perf_counter() - start, 3)
     if summary["rendered"]:

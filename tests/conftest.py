@@ -49,8 +49,8 @@ def synthetic_sim_run(root: Path, variants=("paper",), clips: int = 2, frames: i
     overrides render settings."""
     cfg = preset("smoke")
     cfg = replace(cfg, sim=replace(cfg.sim, frames=frames, remeshing=remeshing),
-                  render=replace(cfg.render, variants=variants, resolution=16, spp=1, backend=RENDER_BACKEND,
-                                 **render))
+                  render=replace(cfg.render, variants=variants, resolution=16, spp=1,
+                                 **{"backend": RENDER_BACKEND, **render}))
     cfg = replace(cfg, train=replace(cfg.train, clip_len=min(cfg.train.clip_len, frames)))
     run = Run.create_or_resume(root, cfg)
     for setting in cfg.sim.settings():

@@ -198,6 +198,36 @@ def test_stage_writes_frames_meta_and_done_and_skips_done_clips(tmp_path):
     assert again["rendered"] == 0 and again["skipped"] == 4
 
 
+@pytest.mark.parametrize("backend", _jit_or_scalar())
+def test_a_finished_look_is_released_and_the_next_renders_the_same_frames(tmp_path, monkeypatch, backend):
+    """A render worker frees each look's scenes and kernels once its last clip is done (render.stage.release_look),
+    so its memory does not grow with a study's datasets; what it renders must not change."""
+    import render.stage
+    from render.scene import scene_pool
+
+    releases, release_look = [], render.stage.release_look
+
+    def counted(mi):
+        releases.append((len(scene_pool(mi)), release_look(mi)))
+        return releases[-1][1]
+
+    monkeypatch.setattr(render.stage, "release_look", counted)
+    frames = {}
+    for release in (True, False):
+        monkeypatch.setattr(render.stage, "RELEASE_LOOKS", release)
+        run = synthetic_sim_run(tmp_path / str(release), ("paper", "grid"), backend=backend)
+        pool = scene_pool(load_mitsuba(backend))
+        pool.clear()
+        assert render.stage.run_render(run, progress=False)["rendered"] == 4
+        setting = run.config.sim.settings()[0]
+        frames[release] = [np.load(run.render_dir(v, setting) / clip_id(i) / "frames.npy")
+                           for v in ("paper", "grid") for i in range(2)]
+        # released: after paper's last clip (its one scene) and when the call ends (grid's); kept: both pooled
+        assert (releases, len(pool)) == (([(1, True), (1, True)], 0) if release else ([], 2))
+        releases.clear()
+    assert all(np.array_equal(a, b) for a, b in zip(frames[True], frames[False]))
+
+
 def test_variant_settings_render_and_train_only_the_listed_pairs(tmp_path):
     # The paper's Table 3 puts the grid texture on adaptive meshes only.
     from clothgap.config import pairs

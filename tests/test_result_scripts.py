@@ -1,10 +1,12 @@
-"""scripts/epoch_seconds.py, stage_summaries.py and bending_over_weight.py: figures read from what a run leaves
-(metrics.csv, the stages' summary lines, the measured-fabric probe's rows), and nothing written from a file that
-does not hold them."""
+"""scripts/epoch_seconds.py, stage_summaries.py, host_samples.py and bending_over_weight.py: figures read from what
+a run leaves (metrics.csv, the stages' summary lines, the host's memory samples, the measured-fabric probe's rows),
+and nothing written from a file that does not hold them."""
 from __future__ import annotations
 
 import importlib.util
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +24,7 @@ def _script(name: str):
 
 epoch_seconds = _script("epoch_seconds")
 stage_summaries = _script("stage_summaries")
+host_samples = _script("host_samples")
 
 
 def _model(run: Path, recipe: str, seed: int, seconds: list[float], windows: int = 100, done: bool = True) -> Path:
@@ -141,3 +144,26 @@ def test_bending_over_weight_sets_a_reading_beside_the_weight_alone(tmp_path):
     path.write_text(json.dumps({"settings": [{"setting": "arm-uniform1", "results": [{"classifier": "mlp"}]}]}))
     with pytest.raises(SystemExit, match="lacks the per-fabric rows"):
         bending_over_weight.main([str(path)])
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the sampler reads /proc")
+def test_host_samples_sums_what_the_sampler_takes_and_names_a_file_without_samples(tmp_path):
+    # The sampler paper_study.sh runs every half second: this test's own Python process is counted in it.
+    line = subprocess.run(["bash", str(ROOT / "scripts" / "gpu" / "host_sample.sh")], capture_output=True,
+                          text=True, check=True).stdout.split()
+    assert len(line) == 5 and all(x.isdigit() for x in line)
+    used, _shmem, anon, pythons, _mps = map(int, line)
+    assert used > 0 and anon > 0 and pythons >= 1
+    # a rise of 100 MiB half-way and a Python process more, then a line cut off when the sampler was stopped
+    rows = [f"{1000 + 100 * (i >= 8)} 10 {500 + 100 * (i >= 8)} {2 + (i >= 8)} 7" for i in range(16)] + ["1100 10"]
+    (tmp_path / "render.txt").write_text("\n".join(rows) + "\n")
+    out = tmp_path / "h.json"
+    host_samples.main([f"render={tmp_path / 'render.txt'}", "--out", str(out)])
+    got = json.loads(out.read_text())["render"]
+    assert (got["samples"], got["used_mib_at_start"], got["peak_used_mib_over_start"]) == (16, 1000, 100)
+    assert got["last_quarter_used_mib_over_start"] == [100, 100] and got["peak_python_processes"] == 3
+    assert got["max_by_sixteenth"]["python_anon_mib"] == [500] * 8 + [600] * 8
+    (tmp_path / "empty.txt").write_text("")
+    with pytest.raises(SystemExit, match="empty.txt has no samples"):
+        host_samples.main([f"e={tmp_path / 'empty.txt'}", "--out", str(tmp_path / "e.json")])
+    assert not (tmp_path / "e.json").exists()

@@ -57,13 +57,13 @@ for stage in $STAGES; do
   samples="/tmp/gpu_samples_$(basename "$RUN")_$stage.txt"
   nvidia-smi ${gpus:+-i $gpus} --query-gpu=memory.used,utilization.gpu --format=csv,noheader,nounits -lms 500 > "$samples" 2>/dev/null &
   sampler=$!
-  # The host's memory in use every half second (MiB, the whole machine, not only the stage; reclaimable page cache
-  # not counted; files in a tmpfs are, so its share, Shmem, is sampled too): the stage's peak over what was in use
+  # The host's memory every half second (scripts/gpu/host_sample.sh: the machine's memory in use, its Shmem, and
+  # whose it is: the Python processes' private memory and the MPS server's): the stage's peak over what was in use
   # when it started (issue 14: host memory flat across settings). The loop ends with this script.
   host_samples="/tmp/host_samples_$(basename "$RUN")_$stage.txt"
   rm -f "$host_samples"
   (while kill -0 $$ 2>/dev/null; do
-     awk '/^MemTotal:/{t=$2} /^MemAvailable:/{a=$2} /^Shmem:/{s=$2} END{print int((t-a)/1024), int(s/1024)}' /proc/meminfo
+     bash "$(dirname "$0")/host_sample.sh"
      sleep 0.5; done) > "$host_samples" 2>/dev/null &
   host_sampler=$!
   # LIMIT (seconds, optional) stops the stage in time for the call's 10 minutes; it resumes next call.
@@ -83,10 +83,11 @@ for stage in $STAGES; do
 import json, sys
 path, stage, rc, t0, t1, host_path = sys.argv[1:]
 try:
-    pairs = [line.split() for line in open(host_path)]
-    host = [(int(u), int(m)) for u, m in (p for p in pairs if len(p) == 2 and all(x.isdigit() for x in p))]
+    lines = [line.split() for line in open(host_path)]
+    samples = [[int(x) for x in p] for p in lines if len(p) == 5 and all(x.isdigit() for x in p)]
 except OSError:
-    host = []
+    samples = []
+host = [(u, m) for u, m, *_ in samples]
 rows = []
 try:
     for line in open(path):
@@ -100,7 +101,10 @@ print(json.dumps({"stage": stage, "rc": int(rc), "seconds": round(float(t1) - fl
                   "mean_gpu_util_pct": round(sum(u for _, u in rows) / len(rows), 1) if rows else None,
                   "host_used_mib_at_start": host[0][0] if host else None,
                   "peak_host_mib_over_start": max(u for u, _ in host) - host[0][0] if host else None,
-                  "peak_host_shmem_mib_over_start": max(m for _, m in host) - host[0][1] if host else None}))
+                  "peak_host_shmem_mib_over_start": max(m for _, m in host) - host[0][1] if host else None,
+                  "peak_python_anon_mib": max((s[2] for s in samples), default=None),
+                  "peak_python_processes": max((s[3] for s in samples), default=None),
+                  "peak_mps_anon_mib": max((s[4] for s in samples), default=None)}))
 PY
   case $rc in
     0) ;;

@@ -1,0 +1,9 @@
+#!/usr/bin/env bash
+# One sample of the host's memory, in MiB, as paper_study.sh takes it every half second while a stage runs:
+#   used (MemTotal - MemAvailable: reclaimable page cache not counted), Shmem (files in a tmpfs are counted as used),
+#   the machine's Python processes' anonymous resident memory summed (RssAnon: their own heap, not shared
+#   libraries or file pages), how many Python processes there are, and the MPS server's anonymous resident memory.
+# scripts/host_samples.py sums a stage's samples up.
+awk '/^MemTotal:/{t=$2} /^MemAvailable:/{a=$2} /^Shmem:/{s=$2} END{printf "%d %d ", (t-a)/1024, s/1024}' /proc/meminfo
+awk 'FNR==1{n=""} /^Name:/{n=$2} /^RssAnon:/{if (n ~ /^python/) {p+=$2; c++} else if (n ~ /mps/) m+=$2}
+     END{printf "%d %d %d\n", p/1024, c, m/1024}' /proc/[0-9]*/status 2>/dev/null
