@@ -18,9 +18,11 @@ ROOT = Path(__file__).resolve().parent.parent
 QUEUE, TOGETHER = ROOT / "scripts" / "gpu" / "queue.sh", ROOT / "scripts" / "gpu" / "together.sh"
 
 
-def _queue(plan: Path, state: Path, out: Path, budget: int = 60, **env_extra: str) -> subprocess.CompletedProcess:
+def _queue(plan: Path, state: Path, out: Path, budget: int = 60, cwd: Path | None = None,
+           **env_extra: str) -> subprocess.CompletedProcess:
     env = {**os.environ, "QUEUE_STATE": str(state), "OUT": str(out), "BUDGET": str(budget), **env_extra}
-    return subprocess.run(["bash", str(QUEUE), str(plan)], capture_output=True, text=True, env=env, timeout=120)
+    return subprocess.run(["bash", str(QUEUE), str(plan)], capture_output=True, text=True, env=env, timeout=120,
+                          cwd=cwd)
 
 
 def test_a_plan_goes_on_where_the_last_call_stopped_and_passes_a_failed_step_over(tmp_path):
@@ -117,6 +119,13 @@ def test_a_step_cut_off_by_the_budget_goes_on_next_call_and_a_bad_plan_is_refuse
     twice.write_text("a: true\na: true\n")
     r = _queue(twice, tmp_path / "s2", tmp_path / "o2")
     assert r.returncode == 2 and "step a twice" in r.stdout
+
+    # '#' starts a comment in a plan, also inside ${f##*_}: what is left is not a command, and nothing runs
+    cut = tmp_path / "cut.plan"
+    cut.write_text("first: touch ran\nsecond: for f in x_y; do echo ${f##*_}; done\n")
+    r = _queue(cut, tmp_path / "s3", tmp_path / "o3", cwd=tmp_path)
+    assert r.returncode == 2 and "step second" in r.stdout and "not a whole bash command" in r.stdout
+    assert not (tmp_path / "ran").exists()
 
 
 def test_together_reports_the_worst_of_its_commands(tmp_path):

@@ -105,6 +105,8 @@ for plan in "$@"; do
     name=${line%%:*}; name=${name//[[:space:]]/}
     cmd=${line#*:}
     [[ "$cmd" =~ [^[:space:]] ]] || refuse "step $name in $plan has no command"
+    # A '#' inside a command starts a comment here (${f##*_} included), which can leave bash half a command.
+    bash -n -c "$cmd" 2> /dev/null || refuse "step $name in $plan is not a whole bash command (a '#' in it starts a comment): $cmd"
     [[ "$seen" == *" $name "* ]] && refuse "step $name twice in $plan"
     seen+="$name "
     for k in "${!names[@]}"; do
