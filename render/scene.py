@@ -20,7 +20,10 @@ degenerate faces that no ray hits), so clips and remeshed frames of different
 sizes share one scene. On CUDA ``mi.render`` runs under ``dr.freeze``: its
 kernels are recorded once per scene and replayed with the new parameters, which
 removes the per-frame tracing of the integrator (the larger part of a frame's
-time at one frame per launch). ``reuse_scenes=False`` gives a scene per clip,
+time at one frame per launch). The render stage empties the pool once a look is
+finished (``render.stage.release_look``): kept, a look's scenes and kernels made
+every later look's renders slower and the process larger (benchmarks/render_pool_memory.py).
+``reuse_scenes=False`` gives a scene per clip,
 rebuilt when the vertex or face count changes: the reference the pool is tested
 against.
 
