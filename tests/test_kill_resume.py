@@ -45,7 +45,9 @@ CASES = {
 
 # JSON keys whose values differ between two identical runs: wall-clock times (also any "*_seconds"), the cache
 # index's DONE modification times, the run folder's own path.
-VOLATILE_KEYS = {"seconds", "signature", "run"}
+# scene_builds (a render meta): whether a clip built its scene or took a pooled one follows what its process
+# rendered before it (a resumed render's first clip builds), not the clip.
+VOLATILE_KEYS = {"seconds", "signature", "run", "scene_builds"}
 
 
 def clothgap_in_process(*args: object) -> int:
