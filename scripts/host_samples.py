@@ -2,19 +2,21 @@
 
     python3 scripts/host_samples.py one=host_samples_mr1_render.txt six=host_samples_mr6_render.txt --out h.json
 
-A samples file has a line every half second: the machine's memory in use (MemTotal - MemAvailable), its Shmem,
+The result: ``command`` (as run) and ``samples``, by label. A samples file has a line every half second: the machine's memory in use (MemTotal - MemAvailable), its Shmem,
 the Python processes' anonymous resident memory summed, how many Python processes there are, and the MPS
 server's anonymous resident memory, all in MiB (older files have the first two columns alone). For each
 ``LABEL=FILE``: the number of samples, the memory in use at the start, its peak over the start and its range over
 the last quarter of the samples (where a stage settles), the same for the Python processes' memory (peak and last
 quarter, absolute: the stage's processes start after the first sample), and each column's maximum over each
-sixteenth of the samples, so that a rise from dataset to dataset shows. A file without a sample is named and
-nothing is written.
+sixteenth of the samples, so that a rise from dataset to dataset shows; ``samples_cut_short`` counts the lines
+that were not a whole sample (a sample whose process columns did not come is left out, the line it ran into
+kept). A file without a sample is named and nothing is written.
 """
 
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 from pathlib import Path
 
@@ -26,18 +28,21 @@ COLUMNS = ("used_mib", "shmem_mib", "python_anon_mib", "python_processes", "mps_
 PARTS = 16
 
 
-def read_samples(path: Path) -> list[list[int]]:
+def read_samples(path: Path) -> tuple[list[list[int]], int]:
+    """The file's whole samples, and how many were cut short. A sample whose process columns did not come (the
+    sampler's second half failed) runs into the next line's sample: that line's last five numbers are kept."""
     try:
         lines = path.read_text(errors="replace").splitlines()
     except OSError as e:
         raise SystemExit(f"host_samples: cannot read {path}: {e}") from e
-    rows = [[int(x) for x in line.split()] for line in lines
-            if line.split() and all(x.isdigit() for x in line.split())]
-    width = max((len(r) for r in rows), default=0)
-    rows = [r for r in rows if len(r) == width]     # a line cut off when the sampler was stopped is left out
-    if not rows or width not in (2, len(COLUMNS)):
+    numbers = [[int(x) for x in line.split()] for line in lines
+               if line.split() and all(x.isdigit() for x in line.split())]
+    width = len(COLUMNS) if any(len(r) >= len(COLUMNS) for r in numbers) else 2     # older files: two columns
+    kept = [r for r in numbers if len(r) >= width and (len(r) - width) % 2 == 0]
+    if not kept:
         raise SystemExit(f"host_samples: {path} has no samples of 2 or {len(COLUMNS)} whole numbers a line")
-    return rows
+    cut = sum((len(r) - width) // 2 for r in kept) + len(lines) - len(kept)
+    return [r[len(r) - width:] for r in kept], cut
 
 
 def summary(rows: list[list[int]]) -> dict:
@@ -69,8 +74,11 @@ def main(argv: list[str] | None = None) -> None:
         label, sep, path = spec.partition("=")
         if not sep or not label:
             raise SystemExit(f"host_samples: expected LABEL=FILE, got {spec!r}")
-        result[label] = summary(read_samples(Path(path)))
-    print_json(result, args.out)
+        rows, cut = read_samples(Path(path))
+        result[label] = {**summary(rows), "samples_cut_short": cut}
+    command = " ".join(shlex.quote(a) for a in ["python3", "scripts/host_samples.py",
+                                                 *(argv if argv is not None else sys.argv[1:])])
+    print_json({"command": command, "samples": result}, args.out)
 
 
 if __name__ == "__main__":

@@ -154,14 +154,19 @@ def test_host_samples_sums_what_the_sampler_takes_and_names_a_file_without_sampl
     assert len(line) == 5 and all(x.isdigit() for x in line)
     used, _shmem, anon, pythons, _mps = map(int, line)
     assert used > 0 and anon > 0 and pythons >= 1
-    # a rise of 100 MiB half-way and a Python process more, then a line cut off when the sampler was stopped
+    # a rise of 100 MiB half-way and a Python process more; a sample whose process columns did not come, run into
+    # the next; a line cut off when the sampler was stopped
     rows = [f"{1000 + 100 * (i >= 8)} 10 {500 + 100 * (i >= 8)} {2 + (i >= 8)} 7" for i in range(16)] + ["1100 10"]
+    rows[3] = "999 10 " + rows[3]
     (tmp_path / "render.txt").write_text("\n".join(rows) + "\n")
     out = tmp_path / "h.json"
     host_samples.main([f"render={tmp_path / 'render.txt'}", "--out", str(out)])
-    got = json.loads(out.read_text())["render"]
+    written = json.loads(out.read_text())
+    got = written["samples"]["render"]
+    assert written["command"].startswith("python3 scripts/host_samples.py render=")
     assert (got["samples"], got["used_mib_at_start"], got["peak_used_mib_over_start"]) == (16, 1000, 100)
     assert got["last_quarter_used_mib_over_start"] == [100, 100] and got["peak_python_processes"] == 3
+    assert got["samples_cut_short"] == 2
     assert got["max_by_sixteenth"]["python_anon_mib"] == [500] * 8 + [600] * 8
     (tmp_path / "empty.txt").write_text("")
     with pytest.raises(SystemExit, match="empty.txt has no samples"):

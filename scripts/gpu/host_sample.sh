@@ -5,5 +5,8 @@
 #   libraries or file pages), how many Python processes there are, and the MPS server's anonymous resident memory.
 # scripts/host_samples.py sums a stage's samples up.
 awk '/^MemTotal:/{t=$2} /^MemAvailable:/{a=$2} /^Shmem:/{s=$2} END{printf "%d %d ", (t-a)/1024, s/1024}' /proc/meminfo
-awk 'FNR==1{n=""} /^Name:/{n=$2} /^RssAnon:/{if (n ~ /^python/) {p+=$2; c++} else if (n ~ /mps/) m+=$2}
-     END{printf "%d %d %d\n", p/1024, c, m/1024}' /proc/[0-9]*/status 2>/dev/null
+# Through cat: a process that exits between the glob and the read makes mawk (the GPU machine's awk) give up on
+# the whole sample, where cat skips its file. Each status file starts with its Name line.
+cat /proc/[0-9]*/status 2>/dev/null |
+  awk '/^Name:/{n=$2} /^RssAnon:/{if (n ~ /^python/) {p+=$2; c++} else if (n ~ /mps/) m+=$2}
+       END{printf "%d %d %d\n", p/1024, c, m/1024}'
