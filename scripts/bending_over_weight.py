@@ -3,10 +3,12 @@ table's mean B, B over the fabric's area density w (under gravity and the arm's 
 and weight scale together moves the same), and the baseline that knows nothing but w.
 
     python3 scripts/bending_over_weight.py RUN/eval/learnability-measured.json [--out ranks.json]
+    python3 scripts/bending_over_weight.py --tables [--out ranks.json]
 
 Reads `clothgap eval learnability RUN --measured N`'s JSON (each classifier's per-fabric rows: predicted k, B,
 w). For each classifier: Spearman of predicted k against B and against B / w, and of predicted k times w against
-B (a reading corrected by the weight), and each of the last two minus the first; once: w alone against B.
+B (a reading corrected by the weight), and each of the last two minus the first; once: w alone against B, and
+B / w against B (a perfect reader of B / w). ``--tables`` gives those two for the ten Table 2 fabrics alone.
 Every figure resamples the same fabrics (1,000 draws, 95 % percentile intervals, seed 0), so the columns are
 paired (``eval.metrics.bootstrap_correlation`` and ``bootstrap_correlation_difference``, with their rule for
 resamples that have no rank); a constant reading has no rank (null). Values are kept unrounded.
@@ -47,6 +49,23 @@ def ranks(columns: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict:
     return out
 
 
+def fixed_ranks(bending: np.ndarray, weight: np.ndarray) -> dict:
+    """The readings that look at no clip: the fabrics' weight alone, and their B / w read perfectly (what a reader
+    of the motion could rank at best where the motion shows B / w alone)."""
+    return {"fabrics": len(bending),
+            "weight_alone~bending": ranks({"weight~bending": (weight, bending)})["weight~bending"],
+            "bending_over_weight_alone~bending": ranks({"b_over_w~bending": (bending / weight, bending)})[
+                "b_over_w~bending"]}
+
+
+def table_ranks() -> dict:
+    """``fixed_ranks`` of the ten Table 2 fabrics from their own tables (sim.measured), no run needed."""
+    from sim.measured import measured_values, table2_fabrics
+
+    values = [measured_values(f) for f in table2_fabrics()]
+    return fixed_ranks(np.array([v["bending_N_m"] for v in values]), np.array([v["density_kg_m2"] for v in values]))
+
+
 def setting_ranks(report: dict) -> dict:
     try:
         results = report["results"]
@@ -61,8 +80,7 @@ def setting_ranks(report: dict) -> dict:
     except (KeyError, IndexError, TypeError) as e:
         raise SystemExit(f"bending_over_weight: setting {report.get('setting')!r} lacks the per-fabric rows "
                          f"(pred_k, bending_N_m, density_kg_m2): {e!r}") from e
-    return {"fabrics": len(bending),
-            "weight_alone~bending": ranks({"weight~bending": (weight, bending)})["weight~bending"],
+    return {**fixed_ranks(bending, weight),
             "classifiers": {kind: ranks({"pred_k~bending": (k, bending),
                                          "pred_k~bending_over_weight": (k, bending / weight),
                                          "pred_k_times_weight~bending": (k * weight, bending)})
@@ -71,9 +89,17 @@ def setting_ranks(report: dict) -> dict:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("report", type=Path, help="eval/learnability-measured.json of a run")
+    ap.add_argument("report", type=Path, nargs="?", help="eval/learnability-measured.json of a run")
+    ap.add_argument("--tables", action="store_true",
+                    help="instead of a report: the readings that look at no clip, from the fabrics' own tables")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
+    if args.tables == (args.report is not None):
+        ap.error("give a report or --tables")
+    if args.tables:
+        command = "python3 scripts/bending_over_weight.py " + " ".join(argv if argv is not None else sys.argv[1:])
+        print_json({"command": command, "table2_fabrics": table_ranks()}, args.out)
+        return
     try:
         settings = json.loads(args.report.read_text())["settings"]
     except (OSError, ValueError, KeyError) as e:

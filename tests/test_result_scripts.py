@@ -138,6 +138,19 @@ def test_bending_over_weight_sets_a_reading_beside_the_weight_alone(tmp_path):
     assert difference["spearman"] == pytest.approx(1.0 - ranked["pred_k~bending"]["spearman"])
     assert difference["lo"] <= difference["spearman"] <= difference["hi"]
     assert result["fabrics"] == 6
+    # a perfect reader of B / w: the per_weight classifier reads exactly its ranks, so it scores the same, interval too
+    assert result["bending_over_weight_alone~bending"] == ranked["pred_k~bending"]
+    from scipy.stats import spearmanr
+    from sim.measured import measured_values, table2_fabrics
+    tables = tmp_path / "tables.json"
+    bending_over_weight.main(["--tables", "--out", str(tables)])
+    ten = json.loads(tables.read_text())["table2_fabrics"]
+    values = [measured_values(f) for f in table2_fabrics()]
+    b, w = (np.array([v[key] for v in values]) for key in ("bending_N_m", "density_kg_m2"))
+    assert ten["fabrics"] == 10 and ten["weight_alone~bending"]["spearman"] == pytest.approx(spearmanr(w, b)[0])
+    assert ten["bending_over_weight_alone~bending"]["spearman"] == pytest.approx(spearmanr(b / w, b)[0])
+    with pytest.raises(SystemExit):
+        bending_over_weight.main(["--tables", str(path)])          # one or the other
     path.write_text("{}")
     with pytest.raises(SystemExit, match="not a learnability-measured.json"):
         bending_over_weight.main([str(path)])
