@@ -43,10 +43,12 @@ class ReadJobs(list):
 
     def __iter__(self):
         self.readings = getattr(self, "readings", [])
+        read = {r["after_job"] for r in self.readings}
         for k, job in enumerate(list.__iter__(self)):
             yield job
-            if is_done(job[3]) and len(self.readings) == k:
+            if is_done(job[3]) and k + 1 not in read:          # (a failed clip has no reading; the rest do)
                 self.readings.append({"after_job": k + 1, **self.reading(job)})
+                read.add(k + 1)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -163,6 +163,13 @@ def scene_pool(mi: ModuleType) -> ScenePool:
     return _POOLS.setdefault(mi.variant(), ScenePool())
 
 
+def clear_scene_pools() -> None:
+    """Empty this process's pools of every Mitsuba variant (``render.stage.release_look``, before Dr.Jit's kernels
+    go: its flush is process-wide)."""
+    for pool in _POOLS.values():
+        pool.clear()
+
+
 def load_scene(mi: ModuleType, scene: dict):
     """``mi.load_dict(scene)`` with the shapes kept apart and in the dict's order.
 

@@ -27,9 +27,8 @@ file with the reason and no ``DONE``; the stage goes on with the next clip and
 lists the failures in its summary, so one bad clip does not cost a long run.
 
 The jobs go look by look (variant-major), and a look's scenes and kernels are freed once its last clip is done
-(``release_look``): a worker's memory stays that of one look however many datasets a study has, and a look
-renders as fast after eleven others as first (kept, each look was slower than the one before it:
-benchmarks/render_pool_memory.py).
+(``release_look``): a worker's memory no longer adds up over a study's datasets, and a look renders as fast after
+eleven others as it would first (kept, the looks' render times rose over the looks: benchmarks/render_pool_memory.py).
 """
 
 from __future__ import annotations
@@ -57,7 +56,7 @@ from render.batch import BatchRenderer, batchable
 from render.config import RenderConfig, frames_per_launch
 from render.exr import write_exr
 from render.frames import LDR_DIR, STORE_KEY, FrameStore, store_path, write_frames, write_png
-from render.scene import ClipRenderer, scene_pool
+from render.scene import ClipRenderer, clear_scene_pools
 from render.variants import RenderVariant, get_variant
 from render.video import compress_frames
 from sim.clip import SimClip
@@ -69,27 +68,24 @@ FAILED = "FAILED"
 RELEASE_LOOKS = True
 
 
-def release_look(mi) -> bool:
-    """Free what the looks rendered so far hold in this process; returns whether there was anything to free.
+def release_look() -> None:
+    """Free what the looks rendered so far hold in this process.
 
     Each look (variant) has scene structures of its own: its pooled scenes (``render.scene.ScenePool``) with their
     frozen renders, and the kernels traced for them, which Dr.Jit keeps for the life of the process (on CUDA an
     OptiX pipeline for each structure). A render worker goes through a study's looks one after another and never
-    comes back to one, so without this its memory grows with the number of datasets (issue 14). The pool is
-    emptied first, so that no frozen render is left to replay a flushed kernel; the next look compiles its own
-    kernels anyway, the ones it shares with the last look come from Dr.Jit's disk cache.
+    comes back to one, so without this its memory grows with the number of datasets (issue 14). Every pool is
+    emptied first (Dr.Jit's flush is process-wide), so that no frozen render is left to replay a flushed kernel;
+    the next look compiles its own kernels anyway, the ones it shares with the last look come from Dr.Jit's disk
+    cache.
     """
-    pool = scene_pool(mi)
-    if not len(pool):
-        return False
-    pool.clear()
+    clear_scene_pools()
     gc.collect()                                  # scenes held in reference cycles go now, not at some later pass
     import drjit as dr
     dr.sync_thread()
     dr.flush_kernel_cache()
     dr.flush_malloc_cache()
     _malloc_trim()
-    return True
 
 
 def _malloc_trim() -> None:
@@ -291,14 +287,17 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
     render_seconds = 0.0
     writer = ThreadPoolExecutor(max(1, config.writer_threads), thread_name_prefix="render-writer")
     last_job_of = {v.name: i for i, (v, *_) in enumerate(jobs)}
+    rendered_since_release = False
     for i, (variant, setting, clip_dir, out_dir) in enumerate(tqdm(jobs, desc=label, unit="clip",
                                                                    disable=not progress)):
-        if RELEASE_LOOKS and i and last_job_of[jobs[i - 1][0].name] == i - 1:
-            release_look(mi)                      # the previous look is finished in this call
+        if RELEASE_LOOKS and rendered_since_release and last_job_of[jobs[i - 1][0].name] == i - 1:
+            release_look()                        # the previous look is finished in this call
+            rendered_since_release = False
         if is_done(out_dir):
             summary["skipped"] += 1
             continue
         fresh_dir(out_dir)
+        rendered_since_release = True             # (a clip that fails may have built its scene too)
         clip_start = time.perf_counter()
         try:
             clip = SimClip.load(clip_dir)
@@ -327,8 +326,8 @@ def render_jobs(run: Run, jobs: list[tuple[RenderVariant, str, Path, Path]], pro
         summary["rendered"] += 1
         summary["frames"] += meta["num_frames"]
     writer.shutdown(wait=True)
-    if RELEASE_LOOKS:
-        release_look(mi)                          # the next call (another shard, the measured set) is another look
+    if RELEASE_LOOKS and rendered_since_release:
+        release_look()      # this call's work is done; a later one (another shard, the measured set) builds its own
     summary["skipped_backgrounds"] = {f: r for b in backgrounds.values() for f, r in b.skipped.items()}
     summary["seconds"] = round(time.perf_counter() - start, 3)
     if summary["rendered"]:

@@ -205,27 +205,27 @@ def test_a_finished_look_is_released_and_the_next_renders_the_same_frames(tmp_pa
     import render.stage
     from render.scene import scene_pool
 
-    releases, release_look = [], render.stage.release_look
-
-    def counted(mi):
-        releases.append((len(scene_pool(mi)), release_look(mi)))
-        return releases[-1][1]
-
-    monkeypatch.setattr(render.stage, "release_look", counted)
+    pool = scene_pool(load_mitsuba(backend))
+    import drjit as dr                                 # after load_mitsuba: it picks libLLVM first
+    flushes, flush = [], dr.flush_kernel_cache
+    monkeypatch.setattr(dr, "flush_kernel_cache", lambda: (flushes.append(len(pool)), flush()))
     frames = {}
     for release in (True, False):
         monkeypatch.setattr(render.stage, "RELEASE_LOOKS", release)
         run = synthetic_sim_run(tmp_path / str(release), ("paper", "grid"), backend=backend)
-        pool = scene_pool(load_mitsuba(backend))
         pool.clear()
         assert render.stage.run_render(run, progress=False)["rendered"] == 4
         setting = run.config.sim.settings()[0]
         frames[release] = [np.load(run.render_dir(v, setting) / clip_id(i) / "frames.npy")
                            for v in ("paper", "grid") for i in range(2)]
-        # released: after paper's last clip (its one scene) and when the call ends (grid's); kept: both pooled
-        assert (releases, len(pool)) == (([(1, True), (1, True)], 0) if release else ([], 2))
-        releases.clear()
+        # released: Dr.Jit's kernels flushed after paper's last clip and when the call ends, every pool emptied
+        # first; kept: no flush, both looks' scenes pooled
+        assert (flushes, len(pool)) == (([0, 0], 0) if release else ([], 2))
+        flushes.clear()
     assert all(np.array_equal(a, b) for a, b in zip(frames[True], frames[False]))
+    # a call that renders nothing (every clip done) releases nothing
+    monkeypatch.setattr(render.stage, "RELEASE_LOOKS", True)
+    assert render.stage.run_render(run, progress=False)["skipped"] == 4 and flushes == []
 
 
 def test_variant_settings_render_and_train_only_the_listed_pairs(tmp_path):

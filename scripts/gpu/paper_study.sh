@@ -84,7 +84,9 @@ import json, sys
 path, stage, rc, t0, t1, host_path = sys.argv[1:]
 try:
     lines = [line.split() for line in open(host_path)]
-    samples = [[int(x) for x in p] for p in lines if len(p) == 5 and all(x.isdigit() for x in p)]
+    # as scripts/host_samples.py reads them: a sample whose process columns did not come runs into the next line's
+    samples = [[int(x) for x in p[-5:]] for p in lines
+               if len(p) >= 5 and (len(p) - 5) % 2 == 0 and all(x.isdigit() for x in p)]
 except OSError:
     samples = []
 host = [(u, m) for u, m, *_ in samples]

@@ -106,7 +106,7 @@ for plan in "$@"; do
     cmd=${line#*:}
     [[ "$cmd" =~ [^[:space:]] ]] || refuse "step $name in $plan has no command"
     # A '#' inside a command starts a comment here (${f##*_} included), which can leave bash half a command.
-    bash -n -c "$cmd" 2> /dev/null || refuse "step $name in $plan is not a whole bash command (a '#' in it starts a comment): $cmd"
+    bash -n -c "$cmd" 2> /dev/null || refuse "step $name in $plan is not a whole bash command (bash cannot parse it; a '#' in a plan starts a comment, also inside \${...}): $cmd"
     [[ "$seen" == *" $name "* ]] && refuse "step $name twice in $plan"
     seen+="$name "
     for k in "${!names[@]}"; do
