@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import subprocess
 import sys
 import tempfile
@@ -36,11 +37,23 @@ def frame_set_arguments(ap: argparse.ArgumentParser, clips: int = 2592) -> None:
     ap.add_argument("--out", type=Path, default=None)
 
 
-def write_result(script: str, argv: list[str] | None, result: dict, out: Path) -> None:
-    """Writes ``result`` (JSON) to ``out`` with the command that made it first, and says where."""
+def write_result(script: str, argv: list[str] | None, result: dict, out: Path | None) -> None:
+    """Writes ``result`` (JSON) to ``out`` with the command that made it first, and says where; without ``out``
+    prints it."""
     command = f"python benchmarks/{script} " + " ".join(argv if argv is not None else sys.argv[1:])
-    out.write_text(json.dumps({"command": command.strip(), **result}, indent=2) + "\n")
+    text = json.dumps({"command": command.strip(), **result}, indent=2)
+    if out is None:
+        print(text)
+        return
+    out.write_text(text + "\n")
     print(f"wrote {out}")
+
+
+def process_memory_mib() -> dict[str, int]:
+    """This process's resident memory and its private (anonymous) part, MiB (Linux: /proc/self/status)."""
+    status = Path("/proc/self/status").read_text()
+    return {key: int(re.search(rf"{field}:\s+(\d+)", status).group(1)) // 1024
+            for key, field in (("resident_mib", "VmRSS"), ("anon_mib", "RssAnon"))}
 
 
 def git(*words: str) -> str:

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import re
 import shutil
 import sys
 import tempfile
@@ -28,27 +27,25 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import clothgap.config  # noqa: E402,F401  (registers the study config that Run.open reads)
-from clothgap.files import print_json  # noqa: E402
 from clothgap.runs import Run, is_done  # noqa: E402
-from common import write_result  # noqa: E402  (benchmarks/common.py)
-
-
-def resident_mib() -> int:
-    return int(re.search(r"VmRSS:\s+(\d+)", Path("/proc/self/status").read_text()).group(1)) // 1024
+from common import process_memory_mib, write_result  # noqa: E402  (benchmarks/common.py)
 
 
 class ReadJobs(list):
-    """The stage's job list, read after each clip: a clip is read when the stage's loop asks for the next job (or
-    finishes) and its folder is DONE, so the stage's passes over the list before it renders take no reading."""
+    """The stage's job list, read after each clip with ``reading(job)``: a clip is read when the stage's loop asks
+    for the next job (or finishes) and its folder is DONE, so the stage's passes over the list before it renders
+    take no reading, and a failed clip none either."""
+
+    def __init__(self, jobs, reading):
+        super().__init__(jobs)
+        self.reading, self.readings, self._read = reading, [], set()
 
     def __iter__(self):
-        self.readings = getattr(self, "readings", [])
-        read = {r["after_job"] for r in self.readings}
         for k, job in enumerate(list.__iter__(self)):
             yield job
-            if is_done(job[3]) and k + 1 not in read:          # (a failed clip has no reading; the rest do)
+            if is_done(job[3]) and k not in self._read:
+                self._read.add(k)
                 self.readings.append({"after_job": k + 1, **self.reading(job)})
-                read.add(k + 1)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -92,7 +89,7 @@ def main(argv: list[str] | None = None) -> None:
         python = ({"python_mib": round(tracemalloc.get_traced_memory()[0] / 2**20, 1),
                    "tracemalloc_mib": round(tracemalloc.get_tracemalloc_memory() / 2**20, 1)}
                   if args.trace_python else {})
-        return {"after": after, "resident_mib": resident_mib(), "pooled_scenes": pooled, **python}
+        return {"after": after, "resident_mib": process_memory_mib()["resident_mib"], "pooled_scenes": pooled, **python}
 
     rows = [row("start", 0)]           # before Mitsuba loads, so the first look's row includes it
     mi = load_mitsuba(run.config.render.backend)       # the backend render_jobs loads, so drjit imports after it
@@ -102,12 +99,12 @@ def main(argv: list[str] | None = None) -> None:
     try:
         if args.one_call:
             # a look named twice is rendered twice, into folders of its own
-            jobs = ReadJobs((variant, args.setting, c, scratch / f"{k}-{variant.name}" / c.name)
-                            for k, variant in enumerate(variants) for c in clips)
             start = time.perf_counter()
-            jobs.reading = lambda job: {"look": job[0].name, "resident_mib": resident_mib(),
-                                        "pooled_scenes": len(scene_pool(mi)),
-                                        "seconds": round(time.perf_counter() - start, 2)}
+            jobs = ReadJobs(((variant, args.setting, c, scratch / f"{k}-{variant.name}" / c.name)
+                             for k, variant in enumerate(variants) for c in clips),
+                            lambda job: {"look": job[0].name, "resident_mib": process_memory_mib()["resident_mib"],
+                                         "pooled_scenes": len(scene_pool(mi)),
+                                         "seconds": round(time.perf_counter() - start, 2)})
             summary = render_jobs(run, jobs, progress=False, variants=variants)
             gc.collect()
             clip_rows = jobs.readings
@@ -136,10 +133,7 @@ def main(argv: list[str] | None = None) -> None:
               "release_looks": not args.keep_looks, "rows": rows,
               **({"render_seconds": summary["seconds"], "frames": summary["frames"], "failed": summary["failed"],
                   "clip_readings": clip_rows} if clip_rows is not None else {})}
-    if args.out:
-        write_result("render_pool_memory.py", argv, result, args.out)
-    else:
-        print_json(result)
+    write_result("render_pool_memory.py", argv, result, args.out)
 
 
 if __name__ == "__main__":

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import re
 import shutil
 import sys
 import tempfile
@@ -22,15 +21,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from clothgap.config import preset  # noqa: E402
-from clothgap.files import print_json  # noqa: E402
 from clothgap.runs import Run  # noqa: E402
-from common import write_result  # noqa: E402  (benchmarks/common.py)
-
-
-def memory_mib() -> dict[str, int]:
-    status = Path("/proc/self/status").read_text()
-    return {"resident_mib": int(re.search(r"VmRSS:\s+(\d+)", status).group(1)) // 1024,
-            "anon_mib": int(re.search(r"RssAnon:\s+(\d+)", status).group(1)) // 1024}
+from common import process_memory_mib, write_result  # noqa: E402  (benchmarks/common.py)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -47,7 +39,7 @@ def main(argv: list[str] | None = None) -> None:
 
     motions = args.motions.split(",")
     classes = tuple(int(c) for c in args.classes.split(","))
-    rows = [{"after": "start", **memory_mib()}]
+    rows = [{"after": "start", **process_memory_mib()}]
     scratch = Path(tempfile.mkdtemp(prefix="sim-settings-memory-"))
     try:
         for k in range(args.rounds):
@@ -62,16 +54,13 @@ def main(argv: list[str] | None = None) -> None:
                 shutil.rmtree(run.root, ignore_errors=True)
                 gc.collect()
                 rows.append({"after": f"{motion}-uniform1", "round": k, "clips": summary["simulated"],
-                             **memory_mib()})
+                             **process_memory_mib()})
                 print(rows[-1], file=sys.stderr, flush=True)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     result = {"device": args.device, "motions": motions, "rounds": args.rounds, "classes": list(classes),
               "sequences_per_class": args.sequences, "rows": rows}
-    if args.out:
-        write_result("sim_settings_memory.py", argv, result, args.out)
-    else:
-        print_json(result)
+    write_result("sim_settings_memory.py", argv, result, args.out)
 
 
 if __name__ == "__main__":

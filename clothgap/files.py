@@ -13,7 +13,9 @@ import fnmatch
 import glob
 import json
 import os
+import shlex
 import signal
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -47,6 +49,13 @@ def atomic_write_text(path: Path, text: str) -> None:
 
 def atomic_write_json(path: Path, data: Any) -> None:
     atomic_write_text(path, json.dumps(data, indent=2, default=_json_default) + "\n")
+
+
+def script_command(script: str, argv: list[str] | None) -> str:
+    """The command a script's result records: ``python3 FOLDER/NAME`` (``script`` is its ``__file__``) and its
+    arguments (``argv``, else the process's), shell-quoted."""
+    path = Path(script)
+    return shlex.join(["python3", f"{path.parent.name}/{path.name}", *(argv if argv is not None else sys.argv[1:])])
 
 
 def print_json(data: Any, out: Path | None = None) -> None:

@@ -81,7 +81,7 @@ def release_look() -> None:
     """
     clear_scene_pools()
     gc.collect()                                  # scenes held in reference cycles go now, not at some later pass
-    import drjit as dr
+    import drjit as dr  # imported here: render.backend picks libLLVM before drjit is first imported
     dr.sync_thread()
     dr.flush_kernel_cache()
     dr.flush_malloc_cache()

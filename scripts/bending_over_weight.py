@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from clothgap.files import print_json  # noqa: E402
+from clothgap.files import print_json, script_command  # noqa: E402
 from eval import metrics  # noqa: E402
 
 RESAMPLES, CONFIDENCE, SEED = 1000, 0.95, 0
@@ -63,7 +63,7 @@ def table_ranks() -> dict:
     from sim.measured import measured_values, table2_fabrics
 
     values = [measured_values(f) for f in table2_fabrics()]
-    return fixed_ranks(np.array([v["bending_N_m"] for v in values]), np.array([v["density_kg_m2"] for v in values]))
+    return fixed_ranks(*(np.array([v[key] for v in values]) for key in ("bending_N_m", "density_kg_m2")))
 
 
 def setting_ranks(report: dict) -> dict:
@@ -97,8 +97,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.tables == (args.report is not None):
         ap.error("give a report or --tables")
     if args.tables:
-        command = "python3 scripts/bending_over_weight.py " + " ".join(argv if argv is not None else sys.argv[1:])
-        print_json({"command": command, "table2_fabrics": table_ranks()}, args.out)
+        print_json({"command": script_command(__file__, argv), "table2_fabrics": table_ranks()}, args.out)
         return
     try:
         settings = json.loads(args.report.read_text())["settings"]

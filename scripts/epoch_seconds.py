@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shlex
 import statistics
 import sys
 from pathlib import Path
@@ -24,7 +23,7 @@ import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from clothgap.files import print_json  # noqa: E402
+from clothgap.files import print_json, script_command  # noqa: E402
 
 
 def epoch_range(text: str) -> tuple[int, int]:
@@ -87,7 +86,7 @@ def main(argv: list[str] | None = None) -> None:
     shared = set(a["models"]) & set(b["models"])
     if shared:
         raise SystemExit(f"--a and --b match the same models: {sorted(shared)}")
-    result = {"command": shlex.join(["python3", "scripts/epoch_seconds.py", *(argv if argv is not None else sys.argv[1:])]),
+    result = {"command": script_command(__file__, argv),
               "epochs": list(args.epochs), "models_per_gpu": args.models_per_gpu, "a": a, "b": b,
               "ratio_a_over_b": round(a["median_epoch_s"] / b["median_epoch_s"], 3)}
     print_json(result, args.out)

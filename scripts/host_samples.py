@@ -2,8 +2,9 @@
 
     python3 scripts/host_samples.py one=host_samples_mr1_render.txt six=host_samples_mr6_render.txt --out h.json
 
-The result: ``command`` (as run) and ``samples``, by label. A samples file has a line every half second: the machine's memory in use (MemTotal - MemAvailable), its Shmem,
-the Python processes' anonymous resident memory summed, how many Python processes there are, and the MPS
+The result: ``command`` (as run) and ``samples``, by label. A samples file has a line every half second
+(scripts/gpu/host_sample.sh): the machine's memory in use (MemTotal - MemAvailable), its Shmem, the Python
+processes' anonymous resident memory summed, how many Python processes there are, and the MPS
 server's anonymous resident memory, all in MiB (older files have the first two columns alone). For each
 ``LABEL=FILE``: the number of samples, the memory in use at the start, its peak over the start and its range over
 the last quarter of the samples (where a stage settles), the same for the Python processes' memory (peak and last
@@ -16,13 +17,12 @@ kept). A file without a sample is named and nothing is written.
 from __future__ import annotations
 
 import argparse
-import shlex
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from clothgap.files import print_json  # noqa: E402
+from clothgap.files import print_json, script_command  # noqa: E402
 
 COLUMNS = ("used_mib", "shmem_mib", "python_anon_mib", "python_processes", "mps_anon_mib")
 PARTS = 16
@@ -76,9 +76,7 @@ def main(argv: list[str] | None = None) -> None:
             raise SystemExit(f"host_samples: expected LABEL=FILE, got {spec!r}")
         rows, cut = read_samples(Path(path))
         result[label] = {**summary(rows), "samples_cut_short": cut}
-    command = " ".join(shlex.quote(a) for a in ["python3", "scripts/host_samples.py",
-                                                 *(argv if argv is not None else sys.argv[1:])])
-    print_json({"command": command, "samples": result}, args.out)
+    print_json({"command": script_command(__file__, argv), "samples": result}, args.out)
 
 
 if __name__ == "__main__":

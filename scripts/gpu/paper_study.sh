@@ -79,15 +79,15 @@ for stage in $STAGES; do
   cp "$stage_log" "$OUT/" 2>/dev/null
   t1=$(date +%s.%N)
   kill $sampler $host_sampler 2>/dev/null; wait $sampler $host_sampler 2>/dev/null
-  python3 - "$samples" "$stage" "$rc" "$t0" "$t1" "$host_samples" >> "$RUN/gpu_timings.jsonl" <<'PY'
+  python3 - "$samples" "$stage" "$rc" "$t0" "$t1" "$host_samples" "$(dirname "$0")/.." >> "$RUN/gpu_timings.jsonl" <<'PY'
 import json, sys
-path, stage, rc, t0, t1, host_path = sys.argv[1:]
+from pathlib import Path
+path, stage, rc, t0, t1, host_path, scripts = sys.argv[1:]
+sys.path.insert(0, scripts)
+from host_samples import read_samples      # scripts/host_samples.py: the samples as its summaries read them
 try:
-    lines = [line.split() for line in open(host_path)]
-    # as scripts/host_samples.py reads them: a sample whose process columns did not come runs into the next line's
-    samples = [[int(x) for x in p[-5:]] for p in lines
-               if len(p) >= 5 and (len(p) - 5) % 2 == 0 and all(x.isdigit() for x in p)]
-except OSError:
+    samples = [s for s in read_samples(Path(host_path))[0] if len(s) == 5]
+except SystemExit:                          # no sample: the stage ended within the first half second
     samples = []
 host = [(u, m) for u, m, *_ in samples]
 rows = []
