@@ -274,7 +274,8 @@ DEFAULT_KEEPS_OLD_BEHAVIOUR = frozenset({"sim.self_collision", "sim.collision_th
                                          "train.label_smoothing", "sim.arm_nuisance",
                                          "render.frames_in_flight", "train.compile_mode", "train.augment_camera",
                                          "train.shared_regressor", "train.reader_epochs", "sim.arm_view_zoom",
-                                         "train.compile_readers", "train.reader_graphs", "sim.density_range"})
+                                         "train.compile_readers", "train.reader_graphs", "sim.density_range",
+                                         "sim.table_spread"})
 # Lists a resumed run may extend: an item more is more work downstream, nothing finished changes.
 GROWING_SETTINGS = frozenset({"sim.motions", "sim.remeshing", "render.variants", "train.models", "train.seeds"})
 

@@ -31,6 +31,11 @@ class SimConfig:
     # only); (lo, hi) draws it log-uniform in [lo, hi] per clip (meta "density"), so that a class is read from
     # motion made at many weights, as real fabrics have (the measured ones: 0.11-0.32). The label stays (p, k).
     density_range: tuple[float, ...] = ()
+    # A class clip's tables off the paper's sub-space: 0 (the paper) scales the basis's by (p, k); s > 0 multiplies
+    # each entry by exp(s z) drawn per clip (meta "table_factors"), then rescales each table back to p and k times
+    # the basis's summary figure (sim.materials.Material.reshaped), so a class is read from cloths of many
+    # anisotropies and curves, as the measured fabrics are. The label stays (p, k).
+    table_spread: float = 0.0
     grid_vertices: int = 16                         # vertices per side at uniform level 1
     cloth_size_m: float = 0.5                       # side of the square cloth, metres
     frames: int = 20                                # frames written per sequence
@@ -73,6 +78,7 @@ class SimConfig:
                 out.append(f"sim.density_range={','.join(f'{v:g}' for v in lo_hi)}: give two area densities "
                            "LO,HI in kg/m^2 with 0 < LO <= HI <= 10 (e.g. 0.1,0.35), or leave it empty for the "
                            "basis fabric's")
+        out += checks.number("sim.table_spread", self.table_spread, 0, 2)
         out += checks.number("sim.grid_vertices", self.grid_vertices, 2)
         out += checks.number("sim.cloth_size_m", self.cloth_size_m, 0, lo_open=True)
         out += checks.number("sim.frames", self.frames, 1)

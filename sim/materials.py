@@ -40,6 +40,37 @@ class Material:
         return Material(f"{self.name}*(p={p:g},k={k:g})", self.garment, self.fibre, self.density,
                         self.stretching * p, self.bending * k)
 
+    def reshaped(self, stretching_factors: np.ndarray, bending_factors: np.ndarray) -> "Material":
+        """Each table entry times its (positive) factor, then each table rescaled so that its summary
+        (``stretching_summary``, ``bending_summary``) is what it was: the same stiffness by the figures a class and
+        a measured fabric are labelled with, another anisotropy and another curve over strain and curvature."""
+        st = self.stretching * np.asarray(stretching_factors, np.float64)
+        be = self.bending * np.asarray(bending_factors, np.float64)
+        st *= stretching_summary(self.stretching) / stretching_summary(st)
+        be *= bending_summary(self.bending) / bending_summary(be)
+        return Material(f"{self.name}~reshaped", self.garment, self.fibre, self.density, st, be)
+
+
+def stretching_summary(stretching: np.ndarray) -> float:
+    """A stretching table in one figure, N/m: the mean of the low-strain row's direct entries k0 (warp), k2 (weft)
+    and k3 (shear); the coupling k1 is left out (it can be negative)."""
+    return float(np.asarray(stretching)[0, [0, 2, 3]].mean())
+
+
+def bending_summary(bending: np.ndarray) -> float:
+    """A bending table in one figure, N*m: the mean of all 15 entries (3 directions x 5 curvatures)."""
+    return float(np.asarray(bending).mean())
+
+
+def table_factors(spread: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Factors for ``Material.reshaped``: each entry exp(spread z), z standard normal, one draw an entry (stretching
+    6 x 4, then bending 3 x 5). A coupling entry k1 gets the geometric mean of its row's k0 and k2 factors, so that
+    k1 / sqrt(k0 k2), which keeps the stretching energy positive, is the table's own."""
+    st = np.exp(spread * rng.standard_normal((6, 4)))
+    be = np.exp(spread * rng.standard_normal((3, 5)))
+    st[:, 1] = np.sqrt(st[:, 0] * st[:, 2])
+    return st, be
+
 
 def list_materials() -> list[str]:
     """Names of the fabrics in ``assets/materials``."""

@@ -24,12 +24,13 @@ basis (``sim.analysis.estimate_ratios``; nothing was scaled), ``basis: null``,
 
 Measured stiffness, from the tables (what predictions are correlated with):
 
-* ``stretching_N_m``: mean of the low-strain (at-rest) row's direct entries
-  k0 (warp), k2 (weft), k3 (shear), N/m; the coupling term k1 is left out (it
-  can be negative). A class's prediction is p times the basis's value.
-* ``bending_N_m``: mean of all 15 bending entries (3 directions x 5
-  curvatures), N*m, the same statistic as ``eval.classes.BASIS_MEAN_BENDING_N_M``,
-  so a class's prediction is k times the basis's value.
+* ``stretching_N_m``: ``sim.materials.stretching_summary``, the mean of the
+  low-strain (at-rest) row's direct entries k0 (warp), k2 (weft), k3 (shear), N/m.
+  A class's prediction is p times the basis's value.
+* ``bending_N_m``: ``sim.materials.bending_summary``, the mean of all 15 bending
+  entries (3 directions x 5 curvatures), N*m, the same statistic as
+  ``eval.classes.BASIS_MEAN_BENDING_N_M``, so a class's prediction is k times the
+  basis's value.
 * ``density_kg_m2``: the area density.
 """
 
@@ -41,7 +42,7 @@ from clothgap.errors import ConfigError
 from clothgap.seeding import stream_id
 from sim import classes
 from sim.analysis import BASIS, PAPER_TABLE2, estimate_ratios
-from sim.materials import list_materials, load_material
+from sim.materials import bending_summary, list_materials, load_material, stretching_summary
 
 MEASURED_INDEX_BASE = 1_000_000_000
 MAX_SEQUENCES = 1000
@@ -84,7 +85,7 @@ def table2_class(fabric: str) -> int:
 def measured_values(fabric: str) -> dict[str, float]:
     """Stretching (N/m) and bending (N*m) stiffness and area density (kg/m^2) from the fabric's tables."""
     m = load_material(fabric)
-    return {"stretching_N_m": float(m.stretching[0, [0, 2, 3]].mean()), "bending_N_m": float(m.bending.mean()),
+    return {"stretching_N_m": stretching_summary(m.stretching), "bending_N_m": bending_summary(m.bending),
             "density_kg_m2": float(m.density)}
 
 

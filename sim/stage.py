@@ -43,7 +43,7 @@ from sim.adaptive import simulate_adaptive
 from sim.clip import SimClip
 from sim.config import REMESHING, SimConfig
 from sim.intersections import count_intersections
-from sim.materials import load_material
+from sim.materials import load_material, table_factors
 from sim.mesh import ClothMesh, square_cloth, unique_edges, vertices_per_side
 from sim.motions import MOTIONS, ClipScene, get_motion, view_box, view_zoom
 from sim.phases import timed
@@ -241,6 +241,12 @@ def clip_density(cfg: SimConfig, seed: int, index: int) -> float:
     return float(np.exp(seeding.rng(seed, index, seeding.SIM, "density").uniform(np.log(lo), np.log(hi))))
 
 
+def clip_table_factors(cfg: SimConfig, seed: int, index: int) -> tuple[np.ndarray, np.ndarray]:
+    """A class clip's table factors under ``sim.table_spread`` (from its own ``tables`` stream, so that the spread
+    changes no other draw of the clip)."""
+    return table_factors(cfg.table_spread, seeding.rng(seed, index, seeding.SIM, "tables"))
+
+
 def build_scene(cfg: SimConfig, seed: int, index: int, setting: Setting, mesh: ClothMesh,
                 fabric: str | None = None, density: float | None = None) -> tuple[ClipScene, dict]:
     """The scene of one clip and the label part of its meta.
@@ -262,6 +268,10 @@ def build_scene(cfg: SimConfig, seed: int, index: int, setting: Setting, mesh: C
         p_class, k_class = classes.class_values(class_index)
         meta = {"class_index": class_index, "p_class": p_class, "k_class": k_class, "p": p, "k": k,
                 "basis": cfg.basis, "density": material.density}
+        if cfg.table_spread:
+            factors = clip_table_factors(cfg, seed, index)
+            material = material.reshaped(*factors)
+            meta["table_factors"] = {"stretching": factors[0].tolist(), "bending": factors[1].tolist()}
     else:
         from sim.measured import fabric_labels
 
