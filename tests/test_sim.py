@@ -932,6 +932,53 @@ def test_density_range_draws_each_class_clip_a_weight_and_changes_nothing_else()
     assert 0.47 < np.mean(many < np.sqrt(0.1 * 0.35)) < 0.53 and 0.62 < np.mean(many < 0.225) < 0.68
 
 
+def test_table_spread_reshapes_each_class_clips_tables_keeping_its_summary_and_every_other_draw():
+    """sim.table_spread: each class clip's tables reshaped by factors from its own stream (the same clip the same
+    tables, recorded in its meta), so that its anisotropy and curves differ from the basis's while the figures
+    its label (p, k) stands for stay p and k times the basis's; its class, (p, k), density and motion draws are
+    those without the spread."""
+    from sim.materials import bending_summary, stretching_summary
+    from sim.stage import build_scene, parse_setting
+
+    plain = SimConfig(motions=("arm",), device="cpu", grid_vertices=6)
+    spread = replace(plain, table_spread=0.5)
+    setting = parse_setting("arm-uniform1")
+    mesh = square_cloth(plain.cloth_size_m, plain.grid_vertices, 1)
+    basis = load_material(plain.basis)
+    shapes = []
+    for i in range(0, 540, 27):
+        (s0, m0), (s1, m1) = build_scene(plain, 0, i, setting, mesh), build_scene(spread, 0, i, setting, mesh)
+        assert "table_factors" not in m0 and {k: m1[k] for k in m0} == m0
+        assert s0.motion_params == s1.motion_params and np.array_equal(s0.spec.positions, s1.spec.positions)
+        assert s0.spec.density == s1.spec.density
+        for table, summary, scale in (("stretching", stretching_summary, m1["p"]),
+                                      ("bending", bending_summary, m1["k"])):
+            t0, t1 = np.asarray(getattr(s0.spec, table)), np.asarray(getattr(s1.spec, table))
+            assert np.allclose(t0, getattr(basis, table) * scale)
+            assert summary(t1) == pytest.approx(summary(t0), rel=1e-12)
+            assert np.array_equal(np.sign(t1), np.sign(t0))          # a negative coupling stays negative
+            shape = t1 / t0
+            assert shape.std() > 0.1 * shape.mean()                  # reshaped, not merely rescaled
+            rescale = shape / np.asarray(m1["table_factors"][table])  # the meta's factors, up to one rescale
+            assert np.allclose(rescale, rescale.flat[0])
+        again = build_scene(spread, 0, i, setting, mesh)[0]
+        assert np.array_equal(again.spec.bending, s1.spec.bending)   # reproducible
+        shapes.append(np.asarray(s1.spec.bending) / np.asarray(s0.spec.bending))
+    assert len({tuple(np.round(s.ravel(), 9)) for s in shapes}) == len(shapes)
+    other_seed = build_scene(spread, 1, 27, setting, mesh)[0].spec.bending
+    assert not np.allclose(other_seed / np.asarray(build_scene(plain, 1, 27, setting, mesh)[0].spec.bending),
+                           shapes[1])
+    # a coupling entry follows its row's direct entries, so that the energy stays positive where it was
+    st = np.asarray(m1["table_factors"]["stretching"])
+    assert np.allclose(st[:, 1], np.sqrt(st[:, 0] * st[:, 2]))
+
+
+@pytest.mark.parametrize("bad", [-0.1, 2.5, float("nan")])
+def test_a_bad_table_spread_is_named(bad):
+    problems = SimConfig(table_spread=bad).problems()
+    assert len(problems) == 1 and problems[0].startswith("sim.table_spread=")
+
+
 @pytest.mark.parametrize("bad", [(0.3,), (0.0, 0.3), (0.35, 0.1), (0.1, 20.0), (0.1, 0.2, 0.3)])
 def test_a_bad_density_range_is_named(bad):
     problems = SimConfig(density_range=bad).problems()
