@@ -8,7 +8,8 @@ and weight scale together moves the same), and the baseline that knows nothing b
 Reads `clothgap eval learnability RUN --measured N`'s JSON (each classifier's per-fabric rows: predicted k, B,
 w). For each classifier: Spearman of predicted k against B and against B / w, and of predicted k times w against
 B (a reading corrected by the weight), and each of the last two minus the first; once: w alone against B, and
-B / w against B (a perfect reader of B / w). ``--tables`` gives those two for the ten Table 2 fabrics alone.
+B / w against B (a perfect reader of B / w). ``--tables`` gives those two for the ten Table 2 fabrics alone, with
+how many fabrics perfect readers put within one bin of Table 2 (``perfect_readers``).
 Every figure resamples the same fabrics (1,000 draws, 95 % percentile intervals, seed 0), so the columns are
 paired (``eval.metrics.bootstrap_correlation`` and ``bootstrap_correlation_difference``, with their rule for
 resamples that have no rank); a constant reading has no rank (null). Values are kept unrounded.
@@ -59,11 +60,38 @@ def fixed_ranks(bending: np.ndarray, weight: np.ndarray) -> dict:
 
 
 def table_ranks() -> dict:
-    """``fixed_ranks`` of the ten Table 2 fabrics from their own tables (sim.measured), no run needed."""
+    """``fixed_ranks`` of the ten Table 2 fabrics from their own tables (sim.measured), no run needed, and
+    ``perfect_readers``."""
     from sim.measured import measured_values, table2_fabrics
 
     values = [measured_values(f) for f in table2_fabrics()]
-    return fixed_ranks(*(np.array([v[key] for v in values]) for key in ("bending_N_m", "density_kg_m2")))
+    return {**fixed_ranks(*(np.array([v[key] for v in values]) for key in ("bending_N_m", "density_kg_m2"))),
+            "perfect_readers": perfect_readers()}
+
+
+def perfect_readers() -> dict:
+    """How many of the ten fabrics readers that look at no clip put within one bin of (and exactly on) their Table
+    2 class, goal 3's count: the class nearest to the fabric's stretching and bending over the basis's (a perfect
+    reader of the tables), the one nearest to both over its weight relative to the basis's (a perfect reader of a
+    motion that shows S / w and B / w alone, as a class clip, made at the basis's weight, shows S and B), and the
+    constant (1, 1)."""
+    from sim import classes
+    from sim.measured import basis_values, measured_values, table2_class, table2_fabrics
+
+    base, fabrics = basis_values(), table2_fabrics()
+    truth = [table2_class(f) for f in fabrics]
+    readers: dict[str, list[int]] = {"tables": [], "over_weight": [], "constant_1_1": []}
+    for f in fabrics:
+        v = measured_values(f)
+        s, b = v["stretching_N_m"] / base["stretching_N_m"], v["bending_N_m"] / base["bending_N_m"]
+        w = v["density_kg_m2"] / base["density_kg_m2"]
+        readers["tables"].append(classes.nearest_class(s, b))
+        readers["over_weight"].append(classes.nearest_class(s / w, b / w))
+        readers["constant_1_1"].append(classes.nearest_class(1.0, 1.0))
+    return {name: {"within_one_bin": int(metrics.within_one_bin(truth, pred).sum()),
+                   "exact": int(sum(t == p for t, p in zip(truth, pred))),
+                   "classes": {f: list(classes.class_values(c)) for f, c in zip(fabrics, pred)}}
+            for name, pred in readers.items()}
 
 
 def setting_ranks(report: dict) -> dict:

@@ -149,6 +149,21 @@ def test_bending_over_weight_sets_a_reading_beside_the_weight_alone(tmp_path):
     b, w = (np.array([v[key] for v in values]) for key in ("bending_N_m", "density_kg_m2"))
     assert ten["fabrics"] == 10 and ten["weight_alone~bending"]["spearman"] == pytest.approx(spearmanr(w, b)[0])
     assert ten["bending_over_weight_alone~bending"]["spearman"] == pytest.approx(spearmanr(b / w, b)[0])
+    # goal 3's count for readers that look at no clip: each reader's count is that of the classes it lists
+    from sim.classes import K_VALUES, P_VALUES, class_values
+    from sim.measured import table2_class
+    for name, reader in ten["perfect_readers"].items():
+        steps = [(abs(P_VALUES.index(p) - P_VALUES.index(class_values(table2_class(f))[0])),
+                  abs(K_VALUES.index(k) - K_VALUES.index(class_values(table2_class(f))[1])))
+                 for f, (p, k) in reader["classes"].items()]
+        assert reader["within_one_bin"] == sum(max(d) <= 1 for d in steps), name
+        assert reader["exact"] == sum(max(d) == 0 for d in steps) <= reader["within_one_bin"], name
+        assert reader["classes"]["camel-ponte-roma"] == [1.0, 1.0], name     # the basis, at its own weight
+    assert all(c == [1.0, 1.0] for c in ten["perfect_readers"]["constant_1_1"]["classes"].values())
+    basis = measured_values("camel-ponte-roma")["density_kg_m2"]
+    lighter = [f for f, v in zip(table2_fabrics(), values) if v["density_kg_m2"] < basis]
+    assert any(ten["perfect_readers"]["over_weight"]["classes"][f] != ten["perfect_readers"]["tables"]["classes"][f]
+               for f in lighter)                       # a lighter fabric moves stiffer than its tables
     with pytest.raises(SystemExit):
         bending_over_weight.main(["--tables", str(path)])          # one or the other
     path.write_text("{}")
