@@ -271,7 +271,7 @@ def with_fabrics(videos: pd.DataFrame, clips: dict[str, str]) -> pd.DataFrame:
 def fabric_table(videos: pd.DataFrame) -> pd.DataFrame:
     """One row per fabric: the argmax of its clips' mean probabilities beside the paper's Table 2 class."""
     from sim.analysis import PAPER_TABLE2
-    from sim.measured import basis_values, measured_values, table2_class
+    from sim.measured import basis_values, measured_values, table2_class, tables_class
 
     basis = basis_values()
     rows = []
@@ -282,10 +282,7 @@ def fabric_table(videos: pd.DataFrame) -> pd.DataFrame:
         p_est, p_t2, k_est, k_t2 = PAPER_TABLE2.get(fabric, (np.nan,) * 4)
         values = measured_values(fabric)
         pred_p, pred_k = float(classes.p_value(pred)), float(classes.k_value(pred))
-        # A diagnostic beside Table 2's class (the goal's label): the class the fabric's own tables give, as the
-        # basis scaled by its measured stretching and bending (Table 2 comes from hanging and folding tests).
-        tables = classes.nearest_class(values["stretching_N_m"] / basis["stretching_N_m"],
-                                       values["bending_N_m"] / basis["bending_N_m"])
+        tables = tables_class(fabric)      # a diagnostic beside Table 2's class (the goal's label)
         rows.append({
             "fabric": fabric, "clips": len(g), "pred": pred, "pred_p": pred_p, "pred_k": pred_k,
             "prob": float(probs[pred]), "vote_share": float((g["pred"] == pred).mean()),

@@ -76,18 +76,12 @@ def perfect_readers() -> dict:
     motion that shows S / w and B / w alone, as a class clip, made at the basis's weight, shows S and B), and the
     constant (1, 1)."""
     from sim import classes
-    from sim.measured import basis_values, measured_values, table2_class, table2_fabrics
+    from sim.measured import over_weight_class, table2_class, table2_fabrics, tables_class
 
-    base, fabrics = basis_values(), table2_fabrics()
+    fabrics = table2_fabrics()
     truth = [table2_class(f) for f in fabrics]
-    readers: dict[str, list[int]] = {"tables": [], "over_weight": [], "constant_1_1": []}
-    for f in fabrics:
-        v = measured_values(f)
-        s, b = v["stretching_N_m"] / base["stretching_N_m"], v["bending_N_m"] / base["bending_N_m"]
-        w = v["density_kg_m2"] / base["density_kg_m2"]
-        readers["tables"].append(classes.nearest_class(s, b))
-        readers["over_weight"].append(classes.nearest_class(s / w, b / w))
-        readers["constant_1_1"].append(classes.nearest_class(1.0, 1.0))
+    readers = {"tables": [tables_class(f) for f in fabrics], "over_weight": [over_weight_class(f) for f in fabrics],
+               "constant_1_1": [classes.nearest_class(1.0, 1.0)] * len(fabrics)}
     return {name: {"within_one_bin": int(metrics.within_one_bin(truth, pred).sum()),
                    "exact": int(sum(t == p for t, p in zip(truth, pred))),
                    "classes": {f: list(classes.class_values(c)) for f, c in zip(fabrics, pred)}}

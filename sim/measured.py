@@ -94,6 +94,23 @@ def basis_values() -> dict[str, float]:
     return measured_values(BASIS)
 
 
+def tables_class(fabric: str) -> int:
+    """The class nearest (in log ratio) to the fabric's stretching and bending over the basis's: where a reader of
+    its tables would put it (Table 2's class comes from hanging and folding tests instead)."""
+    v, b = measured_values(fabric), basis_values()
+    return classes.nearest_class(v["stretching_N_m"] / b["stretching_N_m"], v["bending_N_m"] / b["bending_N_m"])
+
+
+def over_weight_class(fabric: str) -> int:
+    """The class nearest to the fabric's stretching and bending over its area density, relative to the basis's:
+    where a reader of a motion that shows S / w and B / w alone (gravity and inertia scale with the weight, and the
+    classes are all made at the basis's) would put it."""
+    v, b = measured_values(fabric), basis_values()
+    w = v["density_kg_m2"] / b["density_kg_m2"]
+    return classes.nearest_class(v["stretching_N_m"] / b["stretching_N_m"] / w,
+                                 v["bending_N_m"] / b["bending_N_m"] / w)
+
+
 def fabric_labels(fabric: str) -> dict:
     """The label part of a measured clip's meta (see the module docstring)."""
     m = load_material(fabric)

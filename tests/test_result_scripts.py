@@ -1,6 +1,6 @@
-"""scripts/epoch_seconds.py, stage_summaries.py, host_samples.py and bending_over_weight.py: figures read from what
-a run leaves (metrics.csv, the stages' summary lines, the host's memory samples, the measured-fabric probe's rows),
-and nothing written from a file that does not hold them."""
+"""scripts/epoch_seconds.py, stage_summaries.py, host_samples.py, bending_over_weight.py and reading_bias.py: figures
+read from what a run leaves (metrics.csv, the stages' summary lines, the host's memory samples, the measured-fabric
+readings), and nothing written from a file that does not hold them."""
 from __future__ import annotations
 
 import importlib.util
@@ -174,14 +174,57 @@ def test_bending_over_weight_sets_a_reading_beside_the_weight_alone(tmp_path):
         bending_over_weight.main([str(path)])
 
 
+def test_reading_bias_measures_readings_from_where_a_reader_of_s_and_b_over_w_puts_the_fabrics(tmp_path):
+    from sim.classes import K_VALUES, class_values
+    from sim.measured import over_weight_class, table2_fabrics
+
+    reading_bias = _script("reading_bias")
+    fabrics = table2_fabrics()
+    where = {f: class_values(over_weight_class(f)) for f in fabrics}
+    # one bin lower in k where there is a lower bin: the log ratios are those bins' spacings, all negative
+    lower = {f: (p, K_VALUES[max(K_VALUES.index(k) - 1, 0)]) for f, (p, k) in where.items()}
+    steps = [np.log(lower[f][1] / where[f][1]) for f in fabrics]
+    probe = {"settings": [{"setting": "arm-uniform1", "results": [
+        {"classifier": "exact", "fabrics": [{"fabric": f, "pred_p": p, "pred_k": k} for f, (p, k) in where.items()]},
+        {"classifier": "low", "fabrics": [{"fabric": f, "pred_p": p, "pred_k": k} for f, (p, k) in lower.items()]}]}]}
+    look = {"lrcn trained on paper": [{"Fabric": f, "Predicted (p, k)": f"({p:g}, {k:g})"} for f, (p, k) in
+                                      lower.items()]}
+    path = tmp_path / "readings.json"
+    path.write_text(json.dumps({"probe": probe, "measured_fabrics": {"arm-heldout": look}}))
+    out = tmp_path / "bias.json"
+    reading_bias.main([f"{path}:probe", f"{path}:measured_fabrics/arm-heldout", "--out", str(out)])
+    found = json.loads(out.read_text())["readings"]
+    exact, low = found[f"{path}:probe arm-uniform1 exact"], found[f"{path}:probe arm-uniform1 low"]
+    assert exact == {"fabrics": 10, "p_bias": 0.0, "p_mean_abs": 0.0, "k_bias": 0.0, "k_mean_abs": 0.0}
+    assert np.mean(steps) < 0 and low["k_bias"] == pytest.approx(np.mean(steps))
+    assert low["k_mean_abs"] == pytest.approx(-np.mean(steps))
+    assert low["p_bias"] == 0.0
+    assert found[f"{path}:measured_fabrics/arm-heldout lrcn trained on paper"] == low     # the tables parse alike
+    for bad, says in ((f"{path}:probe/settings", "neither"), (f"{path}:nothing", "nothing"),
+                      (f"{tmp_path}/absent.json", "absent.json")):
+        out.unlink(missing_ok=True)
+        with pytest.raises(SystemExit, match=says):
+            reading_bias.main([bad, "--out", str(out)])
+        assert not out.exists()
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the sampler reads /proc")
 def test_host_samples_sums_what_the_sampler_takes_and_names_a_file_without_samples(tmp_path):
-    # The sampler paper_study.sh runs every half second: this test's own Python process is counted in it.
-    line = subprocess.run(["bash", str(ROOT / "scripts" / "gpu" / "host_sample.sh")], capture_output=True,
-                          text=True, check=True).stdout.split()
+    # The sampler paper_study.sh runs every half second, with a Python process of ours holding 64 MiB counted in it
+    # (pytest's own process is named after its script, not python, and others may come and go meanwhile).
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; x = bytearray(64 << 20); x[::4096] = "
+                               "b'1' * len(x[::4096]); print('ready', flush=True); time.sleep(60)"],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "ready"
+        line = subprocess.run(["bash", str(ROOT / "scripts" / "gpu" / "host_sample.sh")], capture_output=True,
+                              text=True, check=True).stdout.split()
+    finally:
+        holder.kill()
+        holder.wait()
     assert len(line) == 5 and all(x.isdigit() for x in line)
     used, _shmem, anon, pythons, _mps = map(int, line)
-    assert used > 0 and anon > 0 and pythons >= 1
+    assert used > 0 and anon >= 64 and pythons >= 1
     # a rise of 100 MiB half-way and a Python process more; a sample whose process columns did not come, run into
     # the next; a line cut off when the sampler was stopped
     rows = [f"{1000 + 100 * (i >= 8)} 10 {500 + 100 * (i >= 8)} {2 + (i >= 8)} 7" for i in range(16)] + ["1100 10"]
