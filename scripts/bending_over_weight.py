@@ -4,6 +4,7 @@ and weight scale together moves the same), and the baseline that knows nothing b
 
     python3 scripts/bending_over_weight.py RUN/eval/learnability-measured.json [--out ranks.json]
     python3 scripts/bending_over_weight.py --tables [--out ranks.json]
+    python3 scripts/bending_over_weight.py RUN/eval/learnability-measured.json --against BASE/eval/learnability-measured.json
 
 Reads `clothgap eval learnability RUN --measured N`'s JSON (each classifier's per-fabric rows: predicted k, B,
 w). For each classifier: Spearman of predicted k against B and against B / w, and of predicted k times w against
@@ -109,11 +110,55 @@ def setting_ranks(report: dict) -> dict:
                             for kind, k in readings.items()}}
 
 
+def _rows(report: dict) -> dict[str, list[dict]]:
+    return {r["classifier"]: r["fabrics"] for r in report["results"]}
+
+
+def paired_with(base: dict, report: dict) -> dict:
+    """Each classifier of ``report`` against the same classifier of ``base`` (another run's reading of the same
+    fabrics): its Spearman against B and against B / w minus base's, and its count within one bin of Table 2 minus
+    base's, every figure over the same resamples of the fabrics."""
+    out = {}
+    base_rows = _rows(base)
+    for kind, rows in _rows(report).items():
+        if kind not in base_rows:
+            continue
+        old = base_rows[kind]
+        if [f["fabric"] for f in old] != [f["fabric"] for f in rows]:
+            raise SystemExit(f"bending_over_weight: {kind}: the two reports list different fabrics")
+        bending = np.array([f["bending_N_m"] for f in rows], float)
+        weight = np.array([f["density_kg_m2"] for f in rows], float)
+        k_old, k_new = (np.array([f["pred_k"] for f in r], float) for r in (old, rows))
+        opts = {"method": "spearman", "resamples": RESAMPLES, "confidence": CONFIDENCE}
+        out[kind] = {
+            f"pred_k~{name} minus base": _estimate(metrics.bootstrap_correlation_difference(
+                k_old, y, k_new, y, rng=np.random.default_rng(SEED), **opts))
+            for name, y in (("bending", bending), ("bending_over_weight", bending / weight))}
+        within = [np.array([f["within1"] for f in r], float) for r in (old, rows)]
+        fabrics = np.arange(len(rows))
+        diff = metrics.bootstrap_mean_difference(within[1], fabrics, within[0], fabrics, resamples=RESAMPLES,
+                                                 confidence=CONFIDENCE, rng=np.random.default_rng(SEED))
+        out[kind]["within_one_bin_count minus base"] = {
+            "count": round(diff.value * len(rows), 9), "lo": round(diff.low * len(rows), 9),
+            "hi": round(diff.high * len(rows), 9)}
+    return out
+
+
+def _settings(path: Path) -> list[dict]:
+    try:
+        return json.loads(path.read_text())["settings"]
+    except (OSError, ValueError, KeyError) as e:
+        raise SystemExit(f"bending_over_weight: {path} is not a learnability-measured.json ({e!r})") from e
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("report", type=Path, nargs="?", help="eval/learnability-measured.json of a run")
     ap.add_argument("--tables", action="store_true",
                     help="instead of a report: the readings that look at no clip, from the fabrics' own tables")
+    ap.add_argument("--against", type=Path, metavar="BASE",
+                    help="another run's learnability-measured.json of the same fabrics: each classifier's ranks "
+                         "and count minus BASE's, paired by fabric")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
     if args.tables == (args.report is not None):
@@ -121,12 +166,19 @@ def main(argv: list[str] | None = None) -> None:
     if args.tables:
         print_json({"command": script_command(__file__, argv), "table2_fabrics": table_ranks()}, args.out)
         return
+    settings = _settings(args.report)
     try:
-        settings = json.loads(args.report.read_text())["settings"]
-    except (OSError, ValueError, KeyError) as e:
-        raise SystemExit(f"bending_over_weight: {args.report} is not a learnability-measured.json ({e!r})") from e
-    result = {report.get("setting", str(i)): setting_ranks(report) for i, report in enumerate(settings)}
-    print_json(result, args.out)
+        result = {report.get("setting", str(i)): setting_ranks(report) for i, report in enumerate(settings)}
+        if args.against is not None:
+            base = {r.get("setting", str(i)): r for i, r in enumerate(_settings(args.against))}
+            for i, report in enumerate(settings):
+                name = report.get("setting", str(i))
+                if name in base:
+                    result[name]["against_base"] = paired_with(base[name], report)
+    except (KeyError, IndexError, TypeError) as e:
+        raise SystemExit(f"bending_over_weight: the reports lack the per-fabric rows (pred_k, bending_N_m, "
+                         f"density_kg_m2, within1): {e!r}") from e
+    print_json({"command": script_command(__file__, argv), **result}, args.out)
 
 
 if __name__ == "__main__":

@@ -1,14 +1,19 @@
-"""How far, and which way, readings of the measured fabrics sit from where a reader of S / w and B / w would put
-them (``sim.measured.over_weight_class``): per reading, the mean over fabrics of log(predicted k / that class's k)
-(the bias: below zero reads the bending low), the mean of its absolute value (how far fabric by fabric), and the
-same for p. A bin of the class grid is 0.3-0.7 of log apart mid-range.
+"""How far, and which way, readings of the measured fabrics sit from what a motion that shows S / w and B / w alone
+would tell (gravity and the arm's inertia scale with the weight; the classes are made at the basis's weight): per
+reading, the mean over fabrics of log(predicted k / k_w), where k_w = (B / B_basis) / (w / w_basis) is the fabric's
+bending over its weight relative to the basis's, not rounded to a class (the bias: below zero reads the bending
+low), the mean of its absolute value (how far fabric by fabric), and the same for p against (S / S_basis) / (w /
+w_basis). Neighbouring classes are 0.22-0.69 of log apart in k, 0.41-1.20 in p.
 
-    python3 scripts/reading_bias.py FILE[:KEY/KEY...] [...] [--out bias.json]
+    python3 scripts/reading_bias.py FILE[:KEY/KEY...] [...] [--pair A,B ...] [--out bias.json]
 
 FILE is JSON; the keys lead inside it to either a results file's ``measured_fabrics`` look (``{model: [rows with
 "Fabric" and "Predicted (p, k)"]}``, as ``scripts/gather_lease.py`` keeps ``clothgap eval measured``'s tables) or a
 ``clothgap eval learnability --measured`` report (``{"settings": [{"results": [{"classifier", "fabrics": [{"fabric",
-"pred_p", "pred_k"}]}]}]}``). A file or key that leads to neither is named and nothing is written.
+"pred_p", "pred_k"}]}]}]}``). Each figure has a 95 % interval from resampling the fabrics (1,000 draws, seed 0).
+``--pair A,B`` (two of the inputs, as given) pairs each reading of B with A's reading of the same name (a classifier,
+or a model) and gives B's bias minus A's, over the same resamples of the fabrics both read. A file, key or row that
+does not hold readings of known fabrics is named and nothing is written.
 """
 
 from __future__ import annotations
@@ -20,58 +25,121 @@ import re
 import sys
 from pathlib import Path
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from clothgap.files import print_json, script_command  # noqa: E402
+from eval import metrics  # noqa: E402
+
+RESAMPLES, SEED = 1000, 0
 
 
-def readings(doc, where: str) -> dict[str, dict[str, tuple[float, float]]]:
+def readings(doc) -> dict[str, dict[str, tuple[float, float]]]:
     """{reading name: {fabric: (predicted p, predicted k)}} from a measured-fabrics look or a probe report."""
     if isinstance(doc, dict) and "settings" in doc:
-        return {f"{s.get('setting', i)} {r['classifier']}": {f["fabric"]: (float(f["pred_p"]), float(f["pred_k"]))
-                                                            for f in r["fabrics"]}
+        rows = {f"{s.get('setting', i)} {r['classifier']}": [(f["fabric"], f["pred_p"], f["pred_k"])
+                                                             for f in r["fabrics"]]
                 for i, s in enumerate(doc["settings"]) for r in s["results"]}
-    if isinstance(doc, dict) and doc and all(isinstance(v, list) for v in doc.values()):
-        out = {}
-        for model, rows in doc.items():
-            out[model] = {}
-            for row in rows:
+    elif isinstance(doc, dict) and doc and all(isinstance(v, list) for v in doc.values()):
+        rows = {}
+        for model, table in doc.items():
+            rows[model] = []
+            for row in table:
                 numbers = re.findall(r"[0-9]+(?:\.[0-9]+)?", row["Predicted (p, k)"])
                 if len(numbers) != 2:
-                    raise ValueError(f"{row['Predicted (p, k)']!r} is not '(p, k)'")
-                out[model][row["Fabric"]] = (float(numbers[0]), float(numbers[1]))
-        return out
-    raise ValueError(f"{where} is neither a measured-fabrics look nor a learnability-measured report")
+                    raise ValueError(f"{model}: {row['Predicted (p, k)']!r} is not '(p, k)'")
+                rows[model].append((row["Fabric"], *numbers))
+    else:
+        raise ValueError("neither a measured-fabrics look nor a learnability-measured report")
+    out = {}
+    for name, found in rows.items():
+        fabrics = [f for f, _, _ in found]
+        if len(set(fabrics)) != len(fabrics):
+            raise ValueError(f"{name}: a fabric read twice")
+        out[name] = {f: (float(p), float(k)) for f, p, k in found}
+        if not all(v > 0 for pk in out[name].values() for v in pk):
+            raise ValueError(f"{name}: a predicted p or k that is not positive")
+    return out
+
+
+def log_ratios(reading: dict[str, tuple[float, float]]) -> dict[str, dict[str, float]]:
+    """{"p": {fabric: log(pred p / p_w)}, "k": ...}: each fabric's reading against its S / w and B / w."""
+    from sim.measured import basis_values, measured_values
+
+    base = basis_values()
+    out: dict[str, dict[str, float]] = {"p": {}, "k": {}}
+    for fabric, (pred_p, pred_k) in reading.items():
+        v = measured_values(fabric)
+        w = v["density_kg_m2"] / base["density_kg_m2"]
+        out["p"][fabric] = math.log(pred_p * w * base["stretching_N_m"] / v["stretching_N_m"])
+        out["k"][fabric] = math.log(pred_k * w * base["bending_N_m"] / v["bending_N_m"])
+    return out
+
+
+def _estimate(est: metrics.Estimate) -> dict:
+    return {"value": est.value, "lo": est.low, "hi": est.high}
 
 
 def bias(reading: dict[str, tuple[float, float]]) -> dict:
-    from sim.classes import class_values
-    from sim.measured import over_weight_class
+    """The reading's mean log ratios (signed and absolute) over its fabrics, each with its interval."""
+    logs = log_ratios(reading)
+    out: dict = {"fabrics": len(reading)}
+    for axis, by_fabric in logs.items():
+        x = np.array(list(by_fabric.values()))
+        groups = np.arange(len(x))
+        for name, values in (("bias", x), ("mean_abs", np.abs(x))):
+            out[f"{axis}_{name}"] = _estimate(metrics.bootstrap_mean(values, groups, resamples=RESAMPLES,
+                                                                    rng=np.random.default_rng(SEED)))
+    return out
 
-    logs = {axis: [math.log(pred[i] / class_values(over_weight_class(fabric))[i]) for fabric, pred in reading.items()]
-            for i, axis in enumerate("pk")}
-    return {"fabrics": len(reading),
-            **{f"{axis}_{name}": sum(f(x) for x in v) / len(v)
-               for axis, v in logs.items() for name, f in (("bias", lambda x: x), ("mean_abs", abs))}}
+
+def paired(a: dict[str, tuple[float, float]], b: dict[str, tuple[float, float]]) -> dict:
+    """B's biases minus A's over the fabrics both read, the fabrics resampled once for both."""
+    common = [f for f in a if f in b]
+    if not common:
+        raise ValueError("no fabric read by both")
+    la, lb = log_ratios({f: a[f] for f in common}), log_ratios({f: b[f] for f in common})
+    out: dict = {"fabrics": len(common)}
+    for axis in ("p", "k"):
+        xa, xb = (np.array([logs[axis][f] for f in common]) for logs in (la, lb))
+        for name, fa, fb in (("bias", xa, xb), ("mean_abs", np.abs(xa), np.abs(xb))):
+            groups = np.arange(len(common))
+            out[f"{axis}_{name}"] = _estimate(metrics.bootstrap_mean_difference(
+                fb, groups, fa, groups, resamples=RESAMPLES, rng=np.random.default_rng(SEED)))
+    return out
 
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("inputs", nargs="+", metavar="FILE[:KEY/KEY...]")
+    ap.add_argument("--pair", action="append", default=[], metavar="A,B",
+                    help="two of the inputs: each reading of B against A's reading of the same name")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
-    result: dict = {"command": script_command(__file__, argv), "readings": {}}
+    found: dict[str, dict] = {}
+    result: dict = {"command": script_command(__file__, argv), "readings": {}, "pairs": {}}
     for item in args.inputs:
         path, _, keys = item.partition(":")
         try:
             doc = json.loads(Path(path).read_text())
             for key in filter(None, keys.split("/")):
                 doc = doc[key]
-            found = readings(doc, item)
+            found[item] = readings(doc)
+            for name, reading in found[item].items():    # an unknown fabric: sim.materials' KeyError names it
+                result["readings"][f"{item} {name}"] = bias(reading)
         except (OSError, ValueError, KeyError, TypeError) as e:
             raise SystemExit(f"reading_bias: {item}: {e}") from e
-        for name, reading in found.items():
-            result["readings"][f"{item} {name}"] = bias(reading)
+    for pair in args.pair:
+        a, _, b = pair.partition(",")
+        if a not in found or b not in found:
+            raise SystemExit(f"reading_bias: --pair {pair}: give two of the inputs, as written, split by a comma")
+        for name, reading in found[b].items():
+            if name in found[a]:
+                try:
+                    result["pairs"][f"{b} minus {a}: {name}"] = paired(found[a][name], reading)
+                except ValueError as e:
+                    raise SystemExit(f"reading_bias: --pair {pair}: {name}: {e}") from e
     print_json(result, args.out)
 
 

@@ -78,7 +78,7 @@ class SimConfig:
                 out.append(f"sim.density_range={','.join(f'{v:g}' for v in lo_hi)}: give two area densities "
                            "LO,HI in kg/m^2 with 0 < LO <= HI <= 10 (e.g. 0.1,0.35), or leave it empty for the "
                            "basis fabric's")
-        out += checks.number("sim.table_spread", self.table_spread, 0, 2)
+        out += checks.number("sim.table_spread", self.table_spread, 0, 1)    # runs went to 0.5; 1 spans 7x at 2 sigma
         out += checks.number("sim.grid_vertices", self.grid_vertices, 2)
         out += checks.number("sim.cloth_size_m", self.cloth_size_m, 0, lo_open=True)
         out += checks.number("sim.frames", self.frames, 1)

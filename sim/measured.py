@@ -104,7 +104,7 @@ def tables_class(fabric: str) -> int:
 def over_weight_class(fabric: str) -> int:
     """The class nearest to the fabric's stretching and bending over its area density, relative to the basis's:
     where a reader of a motion that shows S / w and B / w alone (gravity and inertia scale with the weight, and the
-    classes are all made at the basis's) would put it."""
+    classes are made at the basis's unless ``sim.density_range`` draws theirs) would put it."""
     v, b = measured_values(fabric), basis_values()
     w = v["density_kg_m2"] / b["density_kg_m2"]
     return classes.nearest_class(v["stretching_N_m"] / b["stretching_N_m"] / w,

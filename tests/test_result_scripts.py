@@ -162,8 +162,9 @@ def test_bending_over_weight_sets_a_reading_beside_the_weight_alone(tmp_path):
     assert all(c == [1.0, 1.0] for c in ten["perfect_readers"]["constant_1_1"]["classes"].values())
     basis = measured_values("camel-ponte-roma")["density_kg_m2"]
     lighter = [f for f, v in zip(table2_fabrics(), values) if v["density_kg_m2"] < basis]
-    assert any(ten["perfect_readers"]["over_weight"]["classes"][f] != ten["perfect_readers"]["tables"]["classes"][f]
-               for f in lighter)                       # a lighter fabric moves stiffer than its tables
+    rises = [K_VALUES.index(ten["perfect_readers"]["over_weight"]["classes"][f][1])
+             - K_VALUES.index(ten["perfect_readers"]["tables"]["classes"][f][1]) for f in lighter]
+    assert min(rises) >= 0 and max(rises) > 0          # a lighter fabric moves stiffer than its tables say
     with pytest.raises(SystemExit):
         bending_over_weight.main(["--tables", str(path)])          # one or the other
     path.write_text("{}")
@@ -174,37 +175,90 @@ def test_bending_over_weight_sets_a_reading_beside_the_weight_alone(tmp_path):
         bending_over_weight.main([str(path)])
 
 
-def test_reading_bias_measures_readings_from_where_a_reader_of_s_and_b_over_w_puts_the_fabrics(tmp_path):
-    from sim.classes import K_VALUES, class_values
-    from sim.measured import over_weight_class, table2_fabrics
+def test_bending_over_weight_against_another_run_pairs_each_classifier_by_fabric(tmp_path):
+    from scipy.stats import spearmanr
+
+    bending_over_weight = _script("bending_over_weight")
+    weight = [0.1, 0.2, 0.3, 0.15, 0.25, 0.12]
+    bending = [1.0, 5.0, 3.3, 2.0, 4.0, 2.6]
+    names = [f"f{i}" for i in range(6)]
+
+    def report(pred_k, within1, order=names):
+        rows = [{"fabric": n, "pred_k": k, "bending_N_m": b, "density_kg_m2": w, "within1": c}
+                for n, k, b, w, c in zip(order, pred_k, bending, weight, within1)]
+        return {"settings": [{"setting": "arm-uniform1", "results": [{"classifier": "mlp", "fabrics": rows}]}]}
+
+    muddled = [3.0, 1.0, 2.0, 5.0, 4.0, 6.0]                 # ranks bending at some value below 1
+    paths = {name: tmp_path / f"{name}.json" for name in ("base", "new", "other")}
+    paths["base"].write_text(json.dumps(report(muddled, [1, 0, 0, 1, 0, 0])))
+    paths["new"].write_text(json.dumps(report(bending, [1, 1, 1, 1, 0, 1])))     # reads bending's order exactly
+    paths["other"].write_text(json.dumps(report(bending, [1] * 6, order=names[::-1])))
+    out = tmp_path / "paired.json"
+    bending_over_weight.main([str(paths["new"]), "--against", str(paths["base"]), "--out", str(out)])
+    result = json.loads(out.read_text())
+    assert result["command"].startswith("python3 scripts/bending_over_weight.py")
+    paired = result["arm-uniform1"]["against_base"]["mlp"]
+    rank = paired["pred_k~bending minus base"]
+    assert rank["spearman"] == pytest.approx(1.0 - spearmanr(muddled, bending)[0]) and rank["lo"] <= rank["spearman"]
+    count = paired["within_one_bin_count minus base"]
+    assert count["count"] == 3 and count["lo"] <= 3 <= count["hi"]
+    with pytest.raises(SystemExit, match="different fabrics"):
+        bending_over_weight.main([str(paths["other"]), "--against", str(paths["base"])])
+
+
+def test_reading_bias_measures_readings_from_what_s_and_b_over_w_tell(tmp_path):
+    from sim.measured import basis_values, measured_values, table2_fabrics
 
     reading_bias = _script("reading_bias")
-    fabrics = table2_fabrics()
-    where = {f: class_values(over_weight_class(f)) for f in fabrics}
-    # one bin lower in k where there is a lower bin: the log ratios are those bins' spacings, all negative
-    lower = {f: (p, K_VALUES[max(K_VALUES.index(k) - 1, 0)]) for f, (p, k) in where.items()}
-    steps = [np.log(lower[f][1] / where[f][1]) for f in fabrics]
-    probe = {"settings": [{"setting": "arm-uniform1", "results": [
-        {"classifier": "exact", "fabrics": [{"fabric": f, "pred_p": p, "pred_k": k} for f, (p, k) in where.items()]},
-        {"classifier": "low", "fabrics": [{"fabric": f, "pred_p": p, "pred_k": k} for f, (p, k) in lower.items()]}]}]}
-    look = {"lrcn trained on paper": [{"Fabric": f, "Predicted (p, k)": f"({p:g}, {k:g})"} for f, (p, k) in
-                                      lower.items()]}
+    base = basis_values()
+    over_w = {}
+    for f in table2_fabrics():
+        v = measured_values(f)
+        w = v["density_kg_m2"] / base["density_kg_m2"]
+        over_w[f] = (v["stretching_N_m"] / base["stretching_N_m"] / w, v["bending_N_m"] / base["bending_N_m"] / w)
+    # k read half a log low for every fabric, and k read right for half of them and a log high for the others
+    low = {f: (p, k * np.exp(-0.5)) for f, (p, k) in over_w.items()}
+    mixed = {f: (p, k * np.e ** (i % 2)) for i, (f, (p, k)) in enumerate(over_w.items())}
+
+    def probe(reading):
+        return [{"fabric": f, "pred_p": p, "pred_k": k} for f, (p, k) in reading.items()]
+
+    report = {"settings": [{"setting": "arm-uniform1", "results": [{"classifier": "exact", "fabrics": probe(over_w)},
+                                                                  {"classifier": "low", "fabrics": probe(low)}]}]}
+    other = {"settings": [{"setting": "arm-uniform1", "results": [{"classifier": "exact", "fabrics": probe(mixed)}]}]}
+    look = {"lrcn": [{"Fabric": f, "Predicted (p, k)": f"({p:.6f}, {k:.6f})"} for f, (p, k) in low.items()]}
     path = tmp_path / "readings.json"
-    path.write_text(json.dumps({"probe": probe, "measured_fabrics": {"arm-heldout": look}}))
+    path.write_text(json.dumps({"a": report, "b": other, "measured_fabrics": {"arm-heldout": look}}))
     out = tmp_path / "bias.json"
-    reading_bias.main([f"{path}:probe", f"{path}:measured_fabrics/arm-heldout", "--out", str(out)])
-    found = json.loads(out.read_text())["readings"]
-    exact, low = found[f"{path}:probe arm-uniform1 exact"], found[f"{path}:probe arm-uniform1 low"]
-    assert exact == {"fabrics": 10, "p_bias": 0.0, "p_mean_abs": 0.0, "k_bias": 0.0, "k_mean_abs": 0.0}
-    assert np.mean(steps) < 0 and low["k_bias"] == pytest.approx(np.mean(steps))
-    assert low["k_mean_abs"] == pytest.approx(-np.mean(steps))
-    assert low["p_bias"] == 0.0
-    assert found[f"{path}:measured_fabrics/arm-heldout lrcn trained on paper"] == low     # the tables parse alike
-    for bad, says in ((f"{path}:probe/settings", "neither"), (f"{path}:nothing", "nothing"),
-                      (f"{tmp_path}/absent.json", "absent.json")):
+    a, b, tables = f"{path}:a", f"{path}:b", f"{path}:measured_fabrics/arm-heldout"
+    reading_bias.main([a, b, tables, "--pair", f"{a},{b}", "--out", str(out)])
+    result = json.loads(out.read_text())
+    found = result["readings"]
+    exact, half_low = found[f"{a} arm-uniform1 exact"], found[f"{a} arm-uniform1 low"]
+    assert exact["fabrics"] == 10
+    for key in ("p_bias", "p_mean_abs", "k_bias", "k_mean_abs"):
+        assert all(abs(exact[key][x]) < 1e-9 for x in ("value", "lo", "hi")), key
+    assert half_low["k_bias"]["value"] == pytest.approx(-0.5) and half_low["k_mean_abs"]["value"] == pytest.approx(0.5)
+    assert half_low["k_bias"]["lo"] == pytest.approx(-0.5) and abs(half_low["p_bias"]["value"]) < 1e-9
+    assert found[f"{tables} lrcn"]["k_bias"]["value"] == pytest.approx(-0.5, abs=1e-5)     # the tables parse alike
+    mixed_bias = found[f"{b} arm-uniform1 exact"]["k_bias"]
+    assert mixed_bias["value"] == pytest.approx(0.5) and mixed_bias["lo"] < 0.5 < mixed_bias["hi"]    # resampled
+    pair = result["pairs"][f"{b} minus {a}: arm-uniform1 exact"]
+    assert pair["fabrics"] == 10                                     # minus a reading that is 0 everywhere
+    assert pair["k_bias"] == pytest.approx(mixed_bias)
+    bad_rows = [("unknown", {"settings": [{"results": [{"classifier": "x", "fabrics": [
+                    {"fabric": "no-such-fabric", "pred_p": 1, "pred_k": 1}]}]}]}, "no-such-fabric"),
+                ("zero", {"settings": [{"results": [{"classifier": "x", "fabrics": probe({**low, "royal-target": (1, 0)})}]}]},
+                 "not positive"),
+                ("twice", {"settings": [{"results": [{"classifier": "x", "fabrics": probe(low) * 2}]}]}, "twice")]
+    for name, doc, says in bad_rows:
+        (tmp_path / f"{name}.json").write_text(json.dumps(doc))
+    for args, says in [([f"{path}:a/settings"], "neither"), ([f"{path}:nothing"], "nothing"),
+                       ([f"{tmp_path}/absent.json"], "absent.json"), ([a, "--pair", f"{a},{path}:c"], "two of the")] + [
+                      ([str(tmp_path / f"{name}.json")], says) for name, _, says in bad_rows]:
         out.unlink(missing_ok=True)
         with pytest.raises(SystemExit, match=says):
-            reading_bias.main([bad, "--out", str(out)])
+            reading_bias.main([*args, "--out", str(out)])
         assert not out.exists()
 
 
