@@ -275,7 +275,7 @@ DEFAULT_KEEPS_OLD_BEHAVIOUR = frozenset({"sim.self_collision", "sim.collision_th
                                          "render.frames_in_flight", "train.compile_mode", "train.augment_camera",
                                          "train.shared_regressor", "train.reader_epochs", "sim.arm_view_zoom",
                                          "train.compile_readers", "train.reader_graphs", "sim.density_range",
-                                         "sim.table_spread"})
+                                         "sim.table_spread", "sim.table_shape"})
 # Lists a resumed run may extend: an item more is more work downstream, nothing finished changes.
 GROWING_SETTINGS = frozenset({"sim.motions", "sim.remeshing", "render.variants", "train.models", "train.seeds"})
 

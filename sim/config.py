@@ -36,6 +36,8 @@ class SimConfig:
     # the basis's summary figure (sim.materials.Material.reshaped), so a class is read from cloths of many
     # anisotropies and curves, as the measured fabrics are. The label stays (p, k).
     table_spread: float = 0.0
+    table_shape: str = "entries"                    # how: "entries" (one draw an entry) or "smooth" (a factor a
+                                                    # direction, a high-strain factor, a trend over curvature)
     grid_vertices: int = 16                         # vertices per side at uniform level 1
     cloth_size_m: float = 0.5                       # side of the square cloth, metres
     frames: int = 20                                # frames written per sequence
@@ -59,7 +61,7 @@ class SimConfig:
     def problems(self) -> list[str]:
         """What is wrong with these settings, one message each (empty when they are valid)."""
         from sim.classes import NUM_CLASSES          # numpy only
-        from sim.materials import list_materials     # numpy only
+        from sim.materials import TABLE_SHAPES, list_materials     # numpy only
         from sim.motions import MOTIONS              # numpy only
 
         out = checks.names("sim.motions", self.motions, tuple(MOTIONS), "motion")
@@ -79,6 +81,7 @@ class SimConfig:
                            "LO,HI in kg/m^2 with 0 < LO <= HI <= 10 (e.g. 0.1,0.35), or leave it empty for the "
                            "basis fabric's")
         out += checks.number("sim.table_spread", self.table_spread, 0, 1)    # runs went to 0.5; 1 spans 7x at 2 sigma
+        out += checks.choice("sim.table_shape", self.table_shape, tuple(TABLE_SHAPES))
         out += checks.number("sim.grid_vertices", self.grid_vertices, 2)
         out += checks.number("sim.cloth_size_m", self.cloth_size_m, 0, lo_open=True)
         out += checks.number("sim.frames", self.frames, 1)

@@ -62,12 +62,33 @@ def bending_summary(bending: np.ndarray) -> float:
     return float(np.asarray(bending).mean())
 
 
-def table_factors(spread: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Factors for ``Material.reshaped``: each entry exp(spread z), z standard normal, one draw an entry (stretching
-    6 x 4, then bending 3 x 5). A coupling entry k1 gets the geometric mean of its row's k0 and k2 factors, so that
-    k1 / sqrt(k0 k2), which keeps the stretching energy positive, is the table's own."""
-    st = np.exp(spread * rng.standard_normal((6, 4)))
-    be = np.exp(spread * rng.standard_normal((3, 5)))
+def _entry_factors(spread: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Each entry exp(spread z), z standard normal, one draw an entry (stretching 6 x 4, then bending 3 x 5)."""
+    return np.exp(spread * rng.standard_normal((6, 4))), np.exp(spread * rng.standard_normal((3, 5)))
+
+
+def _smooth_factors(spread: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Factors with the structure the measured fabrics' tables differ from the basis's by: stretching, one factor a
+    direction (warp, weft, shear columns) for every row and one more for the high-strain rows (how fast the cloth
+    stiffens); bending, one factor a direction and a log-linear trend over the five curvatures. Eight draws, each
+    exp(spread z) (the trend's end points)."""
+    columns, high, directions, trend = (np.exp(spread * rng.standard_normal(n)) for n in (3, 1, 3, 1))
+    st = np.ones((6, 4))
+    st[:, [0, 2, 3]] = columns
+    st[1:] *= high
+    be = directions[:, None] * trend ** np.linspace(-1.0, 1.0, 5)[None, :]
+    return st, be
+
+
+# How a class clip's tables are reshaped under sim.table_spread (sim.config.SimConfig.table_shape names one).
+TABLE_SHAPES = {"entries": _entry_factors, "smooth": _smooth_factors}
+
+
+def table_factors(spread: float, rng: np.random.Generator, shape: str = "entries") -> tuple[np.ndarray, np.ndarray]:
+    """Factors for ``Material.reshaped`` (stretching 6 x 4, bending 3 x 5), drawn as ``TABLE_SHAPES[shape]`` does.
+    A coupling entry k1 gets the geometric mean of its row's k0 and k2 factors, so that k1 / sqrt(k0 k2), which
+    keeps the stretching energy positive, is the table's own."""
+    st, be = TABLE_SHAPES[shape](spread, rng)
     st[:, 1] = np.sqrt(st[:, 0] * st[:, 2])
     return st, be
 

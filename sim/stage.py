@@ -244,7 +244,7 @@ def clip_density(cfg: SimConfig, seed: int, index: int) -> float:
 def clip_table_factors(cfg: SimConfig, seed: int, index: int) -> tuple[np.ndarray, np.ndarray]:
     """A class clip's table factors under ``sim.table_spread`` (from its own ``tables`` stream, so that the spread
     changes no other draw of the clip)."""
-    return table_factors(cfg.table_spread, seeding.rng(seed, index, seeding.SIM, "tables"))
+    return table_factors(cfg.table_spread, seeding.rng(seed, index, seeding.SIM, "tables"), cfg.table_shape)
 
 
 def build_scene(cfg: SimConfig, seed: int, index: int, setting: Setting, mesh: ClothMesh,
