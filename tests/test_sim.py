@@ -981,6 +981,35 @@ def test_table_spread_reshapes_each_class_clips_tables_keeping_its_summary_and_e
         assert np.array_equal(f0.spec.bending, f1.spec.bending)
 
 
+def test_smooth_table_shape_reshapes_by_direction_strain_and_a_curve_over_curvature():
+    """sim.table_shape=smooth: a class clip's tables reshaped as the measured fabrics' differ from the basis's, a
+    factor a direction, one for the high-strain rows and a log-linear trend over curvature, not entry by entry; the
+    label's summaries are kept as under the entries shape, and so is every other draw."""
+    from sim.materials import bending_summary, stretching_summary
+    from sim.stage import build_scene, parse_setting
+
+    plain = SimConfig(motions=("arm",), device="cpu", grid_vertices=6)
+    smooth = replace(plain, table_spread=0.5, table_shape="smooth")
+    setting = parse_setting("arm-uniform1")
+    mesh = square_cloth(plain.cloth_size_m, plain.grid_vertices, 1)
+    trends = []
+    for i in (3, 40, 77):
+        (s0, m0), (s1, m1) = build_scene(plain, 0, i, setting, mesh), build_scene(smooth, 0, i, setting, mesh)
+        assert {k: m1[k] for k in m0} == m0 and s0.motion_params == s1.motion_params
+        st, be = (np.asarray(m1["table_factors"][t]) for t in ("stretching", "bending"))
+        assert np.allclose(st[1:], st[1]) and np.allclose(st[1] / st[0], st[1, 0] / st[0, 0])   # rows alike
+        assert np.allclose(st[:, 1], np.sqrt(st[:, 0] * st[:, 2]))
+        log_be = np.log(be)
+        steps = np.diff(log_be, axis=1)
+        assert np.allclose(steps, steps[0, 0])                # one trend, the same for every direction
+        assert not np.allclose(log_be[:, 0], log_be[0, 0])    # the directions differ
+        trends.append(steps[0, 0])
+        for table, summary in (("stretching", stretching_summary), ("bending", bending_summary)):
+            assert summary(getattr(s1.spec, table)) == pytest.approx(summary(getattr(s0.spec, table)), rel=1e-12)
+    assert len(set(np.round(trends, 9))) == 3
+    assert SimConfig(table_shape="wavy").problems()[0].startswith("sim.table_shape=")
+
+
 @pytest.mark.parametrize("bad", [-0.1, 1.5, float("nan")])
 def test_a_bad_table_spread_is_named(bad):
     problems = SimConfig(table_spread=bad).problems()
