@@ -82,6 +82,9 @@ class SimConfig:
                            "basis fabric's")
         out += checks.number("sim.table_spread", self.table_spread, 0, 1)    # runs went to 0.5; 1 spans 7x at 2 sigma
         out += checks.choice("sim.table_shape", self.table_shape, tuple(TABLE_SHAPES))
+        if self.table_shape != "entries" and not self.table_spread:
+            out.append(f"sim.table_shape={self.table_shape}: reshapes nothing without sim.table_spread (set it above 0, "
+                       "e.g. 0.5, or leave the shape at entries)")
         out += checks.number("sim.grid_vertices", self.grid_vertices, 2)
         out += checks.number("sim.cloth_size_m", self.cloth_size_m, 0, lo_open=True)
         out += checks.number("sim.frames", self.frames, 1)

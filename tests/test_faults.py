@@ -189,6 +189,9 @@ def test_config_json_with_unknown_or_missing_settings_is_never_silently_defaulte
     write(lambda d: d["sim"].pop("table_spread"))             # runs before it scaled the basis's tables alone
     with pytest.warns(UserWarning, match="sim.table_spread"):
         assert Run.open(run.root).config.sim.table_spread == 0.0
+    write(lambda d: d["sim"].pop("table_shape"))
+    with pytest.warns(UserWarning, match="sim.table_shape"):
+        assert Run.open(run.root).config.sim.table_shape == "entries"
 
 
 @pytest.mark.skipif(not can_mount_tmpfs(), reason="needs unshare and tmpfs for a real read-only folder")

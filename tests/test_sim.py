@@ -985,6 +985,7 @@ def test_smooth_table_shape_reshapes_by_direction_strain_and_a_curve_over_curvat
     """sim.table_shape=smooth: a class clip's tables reshaped as the measured fabrics' differ from the basis's, a
     factor a direction, one for the high-strain rows and a log-linear trend over curvature, not entry by entry; the
     label's summaries are kept as under the entries shape, and so is every other draw."""
+    from clothgap import seeding
     from sim.materials import bending_summary, stretching_summary
     from sim.stage import build_scene, parse_setting
 
@@ -1002,12 +1003,17 @@ def test_smooth_table_shape_reshapes_by_direction_strain_and_a_curve_over_curvat
         log_be = np.log(be)
         steps = np.diff(log_be, axis=1)
         assert np.allclose(steps, steps[0, 0])                # one trend, the same for every direction
-        assert not np.allclose(log_be[:, 0], log_be[0, 0])    # the directions differ
         trends.append(steps[0, 0])
+        # each factor is exp(0.5 z) of the clip's own eight draws: three directions of stretching, its high strain,
+        # three directions of bending, and the trend's end point (two steps from the middle curvature)
+        z = seeding.rng(0, i, seeding.SIM, "tables").standard_normal(8)
+        assert np.allclose(np.log(st[0, [0, 2, 3]]), 0.5 * z[:3]) and np.isclose(np.log(st[1, 0] / st[0, 0]), 0.5 * z[3])
+        assert np.allclose(log_be[:, 2], 0.5 * z[4:7]) and np.isclose(2 * steps[0, 0], 0.5 * z[7])
         for table, summary in (("stretching", stretching_summary), ("bending", bending_summary)):
             assert summary(getattr(s1.spec, table)) == pytest.approx(summary(getattr(s0.spec, table)), rel=1e-12)
     assert len(set(np.round(trends, 9))) == 3
-    assert SimConfig(table_shape="wavy").problems()[0].startswith("sim.table_shape=")
+    assert SimConfig(table_spread=0.5, table_shape="wavy").problems()[0].startswith("sim.table_shape=")
+    assert "sim.table_spread" in SimConfig(table_shape="smooth").problems()[0]     # a shape with no spread does nothing
 
 
 @pytest.mark.parametrize("bad", [-0.1, 1.5, float("nan")])
