@@ -32,6 +32,7 @@ from clothgap.files import print_json, script_command  # noqa: E402
 from eval import metrics  # noqa: E402
 
 RESAMPLES, CONFIDENCE, SEED = 1000, 0.95, 0
+SPEARMAN = {"method": "spearman", "resamples": RESAMPLES, "confidence": CONFIDENCE}
 
 
 def _estimate(est: metrics.Estimate) -> dict:
@@ -41,13 +42,12 @@ def _estimate(est: metrics.Estimate) -> dict:
 def ranks(columns: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict:
     """Each column's Spearman (x against y) with a percentile interval, and the difference of each later column
     from the first; every figure over the same resamples of fabrics (one seed), so the columns are paired."""
-    opts = {"method": "spearman", "resamples": RESAMPLES, "confidence": CONFIDENCE}
-    out = {name: _estimate(metrics.bootstrap_correlation(x, y, rng=np.random.default_rng(SEED), **opts))
+    out = {name: _estimate(metrics.bootstrap_correlation(x, y, rng=np.random.default_rng(SEED), **SPEARMAN))
            for name, (x, y) in columns.items()}
     first, *later = columns
     for name in later:
         out[f"{name} minus {first}"] = _estimate(metrics.bootstrap_correlation_difference(
-            *columns[first], *columns[name], rng=np.random.default_rng(SEED), **opts))
+            *columns[first], *columns[name], rng=np.random.default_rng(SEED), **SPEARMAN))
     return out
 
 
@@ -129,10 +129,9 @@ def paired_with(base: dict, report: dict) -> dict:
         bending = np.array([f["bending_N_m"] for f in rows], float)
         weight = np.array([f["density_kg_m2"] for f in rows], float)
         k_old, k_new = (np.array([f["pred_k"] for f in r], float) for r in (old, rows))
-        opts = {"method": "spearman", "resamples": RESAMPLES, "confidence": CONFIDENCE}
         out[kind] = {
             f"pred_k~{name} minus base": _estimate(metrics.bootstrap_correlation_difference(
-                k_old, y, k_new, y, rng=np.random.default_rng(SEED), **opts))
+                k_old, y, k_new, y, rng=np.random.default_rng(SEED), **SPEARMAN))
             for name, y in (("bending", bending), ("bending_over_weight", bending / weight))}
         within = [np.array([f["within1"] for f in r], float) for r in (old, rows)]
         fabrics = np.arange(len(rows))

@@ -64,16 +64,14 @@ def readings(doc) -> dict[str, dict[str, tuple[float, float]]]:
 
 
 def log_ratios(reading: dict[str, tuple[float, float]]) -> dict[str, dict[str, float]]:
-    """{"p": {fabric: log(pred p / p_w)}, "k": ...}: each fabric's reading against its S / w and B / w."""
-    from sim.measured import basis_values, measured_values
+    """{"p": {fabric: log(pred p / p_w)}, "k": ...}: each fabric's reading against its S / w and B / w
+    (``sim.measured.over_weight_ratios``)."""
+    from sim.measured import over_weight_ratios
 
-    base = basis_values()
     out: dict[str, dict[str, float]] = {"p": {}, "k": {}}
     for fabric, (pred_p, pred_k) in reading.items():
-        v = measured_values(fabric)
-        w = v["density_kg_m2"] / base["density_kg_m2"]
-        out["p"][fabric] = math.log(pred_p * w * base["stretching_N_m"] / v["stretching_N_m"])
-        out["k"][fabric] = math.log(pred_k * w * base["bending_N_m"] / v["bending_N_m"])
+        p_w, k_w = over_weight_ratios(fabric)
+        out["p"][fabric], out["k"][fabric] = math.log(pred_p / p_w), math.log(pred_k / k_w)
     return out
 
 
@@ -81,10 +79,9 @@ def _estimate(est: metrics.Estimate) -> dict:
     return {"value": est.value, "lo": est.low, "hi": est.high}
 
 
-def bias(reading: dict[str, tuple[float, float]]) -> dict:
-    """The reading's mean log ratios (signed and absolute) over its fabrics, each with its interval."""
-    logs = log_ratios(reading)
-    out: dict = {"fabrics": len(reading)}
+def bias(logs: dict[str, dict[str, float]]) -> dict:
+    """A reading's mean log ratios (``log_ratios``; signed and absolute) over its fabrics, each with its interval."""
+    out: dict = {"fabrics": len(logs["k"])}
     for axis, by_fabric in logs.items():
         x = np.array(list(by_fabric.values()))
         groups = np.arange(len(x))
@@ -94,17 +91,17 @@ def bias(reading: dict[str, tuple[float, float]]) -> dict:
     return out
 
 
-def paired(a: dict[str, tuple[float, float]], b: dict[str, tuple[float, float]]) -> dict:
-    """B's biases minus A's over the fabrics both read, the fabrics resampled once for both."""
-    common = [f for f in a if f in b]
+def paired(la: dict[str, dict[str, float]], lb: dict[str, dict[str, float]]) -> dict:
+    """B's biases minus A's (``log_ratios`` of each) over the fabrics both read, the fabrics resampled once for
+    both."""
+    common = [f for f in la["k"] if f in lb["k"]]
     if not common:
         raise ValueError("no fabric read by both")
-    la, lb = log_ratios({f: a[f] for f in common}), log_ratios({f: b[f] for f in common})
     out: dict = {"fabrics": len(common)}
+    groups = np.arange(len(common))
     for axis in ("p", "k"):
         xa, xb = (np.array([logs[axis][f] for f in common]) for logs in (la, lb))
         for name, fa, fb in (("bias", xa, xb), ("mean_abs", np.abs(xa), np.abs(xb))):
-            groups = np.arange(len(common))
             out[f"{axis}_{name}"] = _estimate(metrics.bootstrap_mean_difference(
                 fb, groups, fa, groups, resamples=RESAMPLES, rng=np.random.default_rng(SEED)))
     return out
@@ -125,19 +122,20 @@ def main(argv: list[str] | None = None) -> None:
             doc = json.loads(Path(path).read_text())
             for key in filter(None, keys.split("/")):
                 doc = doc[key]
-            found[item] = readings(doc)
-            for name, reading in found[item].items():    # an unknown fabric: sim.materials' KeyError names it
-                result["readings"][f"{item} {name}"] = bias(reading)
+            # each reading's log ratios, once (an unknown fabric: sim.materials' KeyError names it)
+            found[item] = {name: log_ratios(reading) for name, reading in readings(doc).items()}
+            for name, logs in found[item].items():
+                result["readings"][f"{item} {name}"] = bias(logs)
         except (OSError, ValueError, KeyError, TypeError) as e:
             raise SystemExit(f"reading_bias: {item}: {e}") from e
     for pair in args.pair:
         a, _, b = pair.partition(",")
         if a not in found or b not in found:
             raise SystemExit(f"reading_bias: --pair {pair}: give two of the inputs, as written, split by a comma")
-        for name, reading in found[b].items():
+        for name, logs in found[b].items():
             if name in found[a]:
                 try:
-                    result["pairs"][f"{b} minus {a}: {name}"] = paired(found[a][name], reading)
+                    result["pairs"][f"{b} minus {a}: {name}"] = paired(found[a][name], logs)
                 except ValueError as e:
                     raise SystemExit(f"reading_bias: --pair {pair}: {name}: {e}") from e
     print_json(result, args.out)

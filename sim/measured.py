@@ -94,21 +94,30 @@ def basis_values() -> dict[str, float]:
     return measured_values(BASIS)
 
 
-def tables_class(fabric: str) -> int:
-    """The class nearest (in log ratio) to the fabric's stretching and bending over the basis's: where a reader of
-    its tables would put it (Table 2's class comes from hanging and folding tests instead)."""
+def table_ratios(fabric: str) -> tuple[float, float]:
+    """The fabric's stretching and bending over the basis's: the (p, k) its own tables stand for."""
     v, b = measured_values(fabric), basis_values()
-    return classes.nearest_class(v["stretching_N_m"] / b["stretching_N_m"], v["bending_N_m"] / b["bending_N_m"])
+    return v["stretching_N_m"] / b["stretching_N_m"], v["bending_N_m"] / b["bending_N_m"]
+
+
+def over_weight_ratios(fabric: str) -> tuple[float, float]:
+    """``table_ratios`` over the fabric's area density relative to the basis's: the (p, k) a motion that shows
+    S / w and B / w alone stands for (gravity and inertia scale with the weight, and the classes are made at the
+    basis's unless ``sim.density_range`` draws theirs)."""
+    w = measured_values(fabric)["density_kg_m2"] / basis_values()["density_kg_m2"]
+    s, b = table_ratios(fabric)
+    return s / w, b / w
+
+
+def tables_class(fabric: str) -> int:
+    """The class nearest (in log ratio) to ``table_ratios``: where a reader of the fabric's tables would put it
+    (Table 2's class comes from hanging and folding tests instead)."""
+    return classes.nearest_class(*table_ratios(fabric))
 
 
 def over_weight_class(fabric: str) -> int:
-    """The class nearest to the fabric's stretching and bending over its area density, relative to the basis's:
-    where a reader of a motion that shows S / w and B / w alone (gravity and inertia scale with the weight, and the
-    classes are made at the basis's unless ``sim.density_range`` draws theirs) would put it."""
-    v, b = measured_values(fabric), basis_values()
-    w = v["density_kg_m2"] / b["density_kg_m2"]
-    return classes.nearest_class(v["stretching_N_m"] / b["stretching_N_m"] / w,
-                                 v["bending_N_m"] / b["bending_N_m"] / w)
+    """The class nearest to ``over_weight_ratios``: where a reader of S / w and B / w would put the fabric."""
+    return classes.nearest_class(*over_weight_ratios(fabric))
 
 
 def fabric_labels(fabric: str) -> dict:
