@@ -37,7 +37,16 @@ RESAMPLES, SEED = 1000, 0
 
 def readings(doc) -> dict[str, dict[str, tuple[float, float]]]:
     """{reading name: {fabric: (predicted p, predicted k)}} from a measured-fabrics look or a probe report."""
-    if isinstance(doc, dict) and "settings" in doc:
+    if isinstance(doc, dict) and "fabrics" in doc and "models" in doc:
+        # `clothgap eval measured`'s JSON, each reading named as its Markdown's section is (measured_fabrics' keys)
+        rows = {}
+        for kind, who in (("models", "seed {}"), ("ensembles", "seeds {}, their ensemble: mean probabilities per clip")):
+            for m in doc.get(kind) or []:
+                if "per_fabric" not in m:
+                    raise ValueError(f"{m.get('folder', kind)}: no per-fabric rows (read measured_fabrics instead)")
+                name = f"{m['model']} trained on {m['train_variant']} ({m['setting']}, {who.format(m['seed'])})"
+                rows[name] = [(f["fabric"], f["pred_p"], f["pred_k"]) for f in m["per_fabric"]]
+    elif isinstance(doc, dict) and "settings" in doc:
         rows = {f"{s.get('setting', i)} {r['classifier']}": [(f["fabric"], f["pred_p"], f["pred_k"])
                                                              for f in r["fabrics"]]
                 for i, s in enumerate(doc["settings"]) for r in s["results"]}
@@ -51,7 +60,7 @@ def readings(doc) -> dict[str, dict[str, tuple[float, float]]]:
                     raise ValueError(f"{model}: {row['Predicted (p, k)']!r} is not '(p, k)'")
                 rows[model].append((row["Fabric"], *numbers))
     else:
-        raise ValueError("neither a measured-fabrics look nor a learnability-measured report")
+        raise ValueError("neither a measured-fabrics look (JSON or its tables) nor a learnability-measured report")
     out = {}
     for name, found in rows.items():
         fabrics = [f for f, _, _ in found]

@@ -226,12 +226,18 @@ def test_reading_bias_measures_readings_from_what_s_and_b_over_w_tell(tmp_path):
     report = {"settings": [{"setting": "arm-uniform1", "results": [{"classifier": "exact", "fabrics": probe(over_w)},
                                                                   {"classifier": "low", "fabrics": probe(low)}]}]}
     other = {"settings": [{"setting": "arm-uniform1", "results": [{"classifier": "exact", "fabrics": probe(mixed)}]}]}
-    look = {"lrcn": [{"Fabric": f, "Predicted (p, k)": f"({p:.6f}, {k:.6f})"} for f, (p, k) in low.items()]}
+    lrcn = "lrcn trained on lighting-random (arm-uniform1, seed 0)"
+    look = {lrcn: [{"Fabric": f, "Predicted (p, k)": f"({p:.6f}, {k:.6f})"} for f, (p, k) in low.items()]}
+    # the same reading as `clothgap eval measured` writes it, named as its Markdown section is, so the two pair
+    measured = {"fabrics": sorted(low), "settings": ["arm-uniform1"], "models": [{"model": "lrcn", "train_variant": "lighting-random", "setting": "arm-uniform1",
+                                           "seed": 0, "per_fabric": probe(low)}]}
     path = tmp_path / "readings.json"
-    path.write_text(json.dumps({"a": report, "b": other, "measured_fabrics": {"arm-heldout": look}}))
+    path.write_text(json.dumps({"a": report, "b": other, "measured_fabrics": {"arm-heldout": look},
+                                "measured": {"arm-heldout": measured}}))
     out = tmp_path / "bias.json"
-    a, b, tables = f"{path}:a", f"{path}:b", f"{path}:measured_fabrics/arm-heldout"
-    reading_bias.main([a, b, tables, "--pair", f"{a},{b}", "--out", str(out)])
+    a, b, tables, as_json = (f"{path}:a", f"{path}:b", f"{path}:measured_fabrics/arm-heldout",
+                             f"{path}:measured/arm-heldout")
+    reading_bias.main([a, b, tables, as_json, "--pair", f"{a},{b}", "--pair", f"{tables},{as_json}", "--out", str(out)])
     result = json.loads(out.read_text())
     found = result["readings"]
     exact, half_low = found[f"{a} arm-uniform1 exact"], found[f"{a} arm-uniform1 low"]
@@ -240,7 +246,9 @@ def test_reading_bias_measures_readings_from_what_s_and_b_over_w_tell(tmp_path):
         assert all(abs(exact[key][x]) < 1e-9 for x in ("value", "lo", "hi")), key
     assert half_low["k_bias"]["value"] == pytest.approx(-0.5) and half_low["k_mean_abs"]["value"] == pytest.approx(0.5)
     assert half_low["k_bias"]["lo"] == pytest.approx(-0.5) and abs(half_low["p_bias"]["value"]) < 1e-9
-    assert found[f"{tables} lrcn"]["k_bias"]["value"] == pytest.approx(-0.5, abs=1e-5)     # the tables parse alike
+    assert found[f"{tables} {lrcn}"]["k_bias"]["value"] == pytest.approx(-0.5, abs=1e-5)     # the tables parse alike
+    assert found[f"{as_json} {lrcn}"]["k_bias"]["value"] == pytest.approx(-0.5)
+    assert abs(result["pairs"][f"{as_json} minus {tables}: {lrcn}"]["k_bias"]["value"]) < 1e-5
     mixed_bias = found[f"{b} arm-uniform1 exact"]["k_bias"]
     assert mixed_bias["value"] == pytest.approx(0.5) and mixed_bias["lo"] < 0.5 < mixed_bias["hi"]    # resampled
     pair = result["pairs"][f"{b} minus {a}: arm-uniform1 exact"]
@@ -253,7 +261,9 @@ def test_reading_bias_measures_readings_from_what_s_and_b_over_w_tell(tmp_path):
                 ("twice", {"settings": [{"results": [{"classifier": "x", "fabrics": probe(low) * 2}]}]}, "twice")]
     for name, doc, says in bad_rows:
         (tmp_path / f"{name}.json").write_text(json.dumps(doc))
-    for args, says in [([f"{path}:a/settings"], "neither"), ([f"{path}:nothing"], "nothing"),
+    without_rows = {"fabrics": 10, "models": [{"folder": "eval/measured/old", "model": "lrcn"}]}
+    (tmp_path / "old.json").write_text(json.dumps(without_rows))
+    for args, says in [([f"{path}:a/settings"], "neither"), ([str(tmp_path / "old.json")], "eval/measured/old"), ([f"{path}:nothing"], "nothing"),
                        ([f"{tmp_path}/absent.json"], "absent.json"), ([a, "--pair", f"{a},{path}:c"], "two of the")] + [
                       ([str(tmp_path / f"{name}.json")], says) for name, _, says in bad_rows]:
         out.unlink(missing_ok=True)
