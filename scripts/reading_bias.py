@@ -7,10 +7,12 @@ w_basis). Neighbouring classes are 0.22-0.69 of log apart in k, 0.41-1.20 in p.
 
     python3 scripts/reading_bias.py FILE[:KEY/KEY...] [...] [--pair A,B ...] [--out bias.json]
 
-FILE is JSON; the keys lead inside it to either a results file's ``measured_fabrics`` look (``{model: [rows with
-"Fabric" and "Predicted (p, k)"]}``, as ``scripts/gather_lease.py`` keeps ``clothgap eval measured``'s tables) or a
-``clothgap eval learnability --measured`` report (``{"settings": [{"results": [{"classifier", "fabrics": [{"fabric",
-"pred_p", "pred_k"}]}]}]}``). Each figure has a 95 % interval from resampling the fabrics (1,000 draws, seed 0).
+FILE is JSON; the keys lead inside it to ``clothgap eval measured``'s JSON (its models' and ensembles'
+``per_fabric`` rows, each reading named as the Markdown names its section; a results file's ``measured`` look), to
+a results file's ``measured_fabrics`` look (``{model: [rows with "Fabric" and "Predicted (p, k)"]}``, as
+``scripts/gather_lease.py`` keeps the Markdown's tables of a JSON without per-fabric rows) or to a ``clothgap eval
+learnability --measured`` report (``{"settings": [{"results": [{"classifier", "fabrics": [{"fabric", "pred_p",
+"pred_k"}]}]}]}``). Each figure has a 95 % interval from resampling the fabrics (1,000 draws, seed 0).
 ``--pair A,B`` (two of the inputs, as given) pairs each reading of B with A's reading of the same name (a classifier,
 or a model) and gives B's bias minus A's, over the same resamples of the fabrics both read. A file, key or row that
 does not hold readings of known fabrics is named and nothing is written.
@@ -40,12 +42,17 @@ def readings(doc) -> dict[str, dict[str, tuple[float, float]]]:
     if isinstance(doc, dict) and "fabrics" in doc and "models" in doc:
         # `clothgap eval measured`'s JSON, each reading named as its Markdown's section is (measured_fabrics' keys)
         rows = {}
-        for kind, who in (("models", "seed {}"), ("ensembles", "seeds {}, their ensemble: mean probabilities per clip")):
+        for kind, who in (("models", "seed {}"),
+                          ("ensembles", "seeds {}, their ensemble: mean probabilities per clip")):
             for m in doc.get(kind) or []:
-                if "per_fabric" not in m:
-                    raise ValueError(f"{m.get('folder', kind)}: no per-fabric rows (read measured_fabrics instead)")
                 name = f"{m['model']} trained on {m['train_variant']} ({m['setting']}, {who.format(m['seed'])})"
-                rows[name] = [(f["fabric"], f["pred_p"], f["pred_k"]) for f in m["per_fabric"]]
+                if "per_fabric" in m:
+                    rows[name] = [(f["fabric"], f["pred_p"], f["pred_k"]) for f in m["per_fabric"]]
+                elif m.get("status") not in (None, "predicted", "reused"):
+                    continue        # not scored (e.g. no rendered clips), and left out of the Markdown alike
+                else:
+                    raise ValueError(f"{name}: no per-fabric rows, as in a file written before they were kept "
+                                     "(read its measured_fabrics tables instead)")
     elif isinstance(doc, dict) and "settings" in doc:
         rows = {f"{s.get('setting', i)} {r['classifier']}": [(f["fabric"], f["pred_p"], f["pred_k"])
                                                              for f in r["fabrics"]]
@@ -61,6 +68,8 @@ def readings(doc) -> dict[str, dict[str, tuple[float, float]]]:
                 rows[model].append((row["Fabric"], *numbers))
     else:
         raise ValueError("neither a measured-fabrics look (JSON or its tables) nor a learnability-measured report")
+    if not rows:
+        raise ValueError("it holds no reading")
     out = {}
     for name, found in rows.items():
         fabrics = [f for f, _, _ in found]

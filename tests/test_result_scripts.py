@@ -229,15 +229,19 @@ def test_reading_bias_measures_readings_from_what_s_and_b_over_w_tell(tmp_path):
     lrcn = "lrcn trained on lighting-random (arm-uniform1, seed 0)"
     look = {lrcn: [{"Fabric": f, "Predicted (p, k)": f"({p:.6f}, {k:.6f})"} for f, (p, k) in low.items()]}
     # the same reading as `clothgap eval measured` writes it, named as its Markdown section is, so the two pair
-    measured = {"fabrics": sorted(low), "settings": ["arm-uniform1"], "models": [{"model": "lrcn", "train_variant": "lighting-random", "setting": "arm-uniform1",
-                                           "seed": 0, "per_fabric": probe(low)}]}
+    model = {"model": "lrcn", "train_variant": "lighting-random", "setting": "arm-uniform1", "seed": 0}
+    measured = {"fabrics": sorted(low), "settings": ["arm-uniform1"],
+                "models": [{**model, "status": "predicted", "per_fabric": probe(low)},
+                           {**model, "seed": 1, "status": "no rendered measured clips"}],     # unscored: left out
+                "ensembles": [{**model, "seed": "0+1", "per_fabric": probe(over_w)}]}
     path = tmp_path / "readings.json"
     path.write_text(json.dumps({"a": report, "b": other, "measured_fabrics": {"arm-heldout": look},
                                 "measured": {"arm-heldout": measured}}))
     out = tmp_path / "bias.json"
     a, b, tables, as_json = (f"{path}:a", f"{path}:b", f"{path}:measured_fabrics/arm-heldout",
                              f"{path}:measured/arm-heldout")
-    reading_bias.main([a, b, tables, as_json, "--pair", f"{a},{b}", "--pair", f"{tables},{as_json}", "--out", str(out)])
+    reading_bias.main([a, b, tables, as_json, "--pair", f"{a},{b}", "--pair", f"{tables},{as_json}",
+                       "--out", str(out)])
     result = json.loads(out.read_text())
     found = result["readings"]
     exact, half_low = found[f"{a} arm-uniform1 exact"], found[f"{a} arm-uniform1 low"]
@@ -248,6 +252,9 @@ def test_reading_bias_measures_readings_from_what_s_and_b_over_w_tell(tmp_path):
     assert half_low["k_bias"]["lo"] == pytest.approx(-0.5) and abs(half_low["p_bias"]["value"]) < 1e-9
     assert found[f"{tables} {lrcn}"]["k_bias"]["value"] == pytest.approx(-0.5, abs=1e-5)     # the tables parse alike
     assert found[f"{as_json} {lrcn}"]["k_bias"]["value"] == pytest.approx(-0.5)
+    ensemble = "lrcn trained on lighting-random (arm-uniform1, seeds 0+1, their ensemble: mean probabilities per clip)"
+    assert abs(found[f"{as_json} {ensemble}"]["k_bias"]["value"]) < 1e-9
+    assert not any("seed 1)" in k for k in found)
     assert abs(result["pairs"][f"{as_json} minus {tables}: {lrcn}"]["k_bias"]["value"]) < 1e-5
     mixed_bias = found[f"{b} arm-uniform1 exact"]["k_bias"]
     assert mixed_bias["value"] == pytest.approx(0.5) and mixed_bias["lo"] < 0.5 < mixed_bias["hi"]    # resampled
@@ -261,9 +268,10 @@ def test_reading_bias_measures_readings_from_what_s_and_b_over_w_tell(tmp_path):
                 ("twice", {"settings": [{"results": [{"classifier": "x", "fabrics": probe(low) * 2}]}]}, "twice")]
     for name, doc, says in bad_rows:
         (tmp_path / f"{name}.json").write_text(json.dumps(doc))
-    without_rows = {"fabrics": 10, "models": [{"folder": "eval/measured/old", "model": "lrcn"}]}
-    (tmp_path / "old.json").write_text(json.dumps(without_rows))
-    for args, says in [([f"{path}:a/settings"], "neither"), ([str(tmp_path / "old.json")], "eval/measured/old"), ([f"{path}:nothing"], "nothing"),
+    (tmp_path / "old.json").write_text(json.dumps({"fabrics": 10, "models": [model]}))     # no per-fabric rows
+    (tmp_path / "none.json").write_text(json.dumps({"fabrics": 10, "models": [], "ensembles": []}))
+    for args, says in [([f"{path}:a/settings"], "neither"), ([str(tmp_path / "old.json")], r"seed 0\): no per-fabric"),
+                       ([str(tmp_path / "none.json")], "no reading"), ([f"{path}:nothing"], "nothing"),
                        ([f"{tmp_path}/absent.json"], "absent.json"), ([a, "--pair", f"{a},{path}:c"], "two of the")] + [
                       ([str(tmp_path / f"{name}.json")], says) for name, _, says in bad_rows]:
         out.unlink(missing_ok=True)
