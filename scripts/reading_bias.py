@@ -150,6 +150,9 @@ def main(argv: list[str] | None = None) -> None:
         a, _, b = pair.partition(",")
         if a not in found or b not in found:
             raise SystemExit(f"reading_bias: --pair {pair}: give two of the inputs, as written, split by a comma")
+        if not set(found[a]) & set(found[b]):
+            raise SystemExit(f"reading_bias: --pair {pair}: no reading of the second has a name the first's have "
+                             f"(first: {', '.join(sorted(found[a]))})")
         for name, logs in found[b].items():
             if name in found[a]:
                 try:

@@ -271,7 +271,8 @@ def test_reading_bias_measures_readings_from_what_s_and_b_over_w_tell(tmp_path):
     (tmp_path / "old.json").write_text(json.dumps({"fabrics": 10, "models": [model]}))     # no per-fabric rows
     (tmp_path / "none.json").write_text(json.dumps({"fabrics": 10, "models": [], "ensembles": []}))
     for args, says in [([f"{path}:a/settings"], "neither"), ([str(tmp_path / "old.json")], r"seed 0\): no per-fabric"),
-                       ([str(tmp_path / "none.json")], "no reading"), ([f"{path}:nothing"], "nothing"),
+                       ([str(tmp_path / "none.json")], "no reading"),
+                       ([a, tables, "--pair", f"{a},{tables}"], "no reading of the second"), ([f"{path}:nothing"], "nothing"),
                        ([f"{tmp_path}/absent.json"], "absent.json"), ([a, "--pair", f"{a},{path}:c"], "two of the")] + [
                       ([str(tmp_path / f"{name}.json")], says) for name, _, says in bad_rows]:
         out.unlink(missing_ok=True)
