@@ -356,20 +356,27 @@ def markdown(run: Run, variant: str, heldout: bool, table: pd.DataFrame, corr: p
              "Each fabric simulated with its own Wang et al. 2011 tables, predicted through the real-video path "
              "(mean sub-sequence probabilities per clip, then per fabric), beside the class of the paper's Table 2.",
              ""]
-    lines += _sections(table, corr, match, "seed {}")
+    lines += _sections(table, corr, match, ensemble=False)
     if ensembles is not None:
-        lines += _sections(*ensembles, "seeds {}, their ensemble: mean probabilities per clip")
+        lines += _sections(*ensembles, ensemble=True)
     return "\n".join(lines)
 
 
-def _sections(table: pd.DataFrame, corr: pd.DataFrame, match: pd.DataFrame, who: str) -> list[str]:
+def reading_title(model: str, train_variant: str, setting: str, seed, ensemble: bool = False) -> str:
+    """The title of a model's (or a seeds' ensemble's, ``seed`` then "0+1") section in ``measured.md``: the name a
+    reading of the measured fabrics goes by (scripts/gather_lease.py keys its tables by it)."""
+    who = f"seeds {seed}, their ensemble: mean probabilities per clip" if ensemble else f"seed {seed}"
+    return f"{model} trained on {train_variant} ({setting}, {who})"
+
+
+def _sections(table: pd.DataFrame, corr: pd.DataFrame, match: pd.DataFrame, ensemble: bool) -> list[str]:
     """The markdown sections of the models (or ensembles) in ``table``, in its order."""
     lines = []
     for key, g in table.groupby(MODEL_KEYS, sort=True):
         setting, train_v, model, seed, test_v = key
         kmask = np.logical_and.reduce([corr[c] == v for c, v in zip(MODEL_KEYS, key)])
         mmask = np.logical_and.reduce([match[c] == v for c, v in zip(MODEL_KEYS, key)])
-        lines += [f"## {model} trained on {train_v} ({setting}, {who.format(seed)})", "",
+        lines += [f"## {reading_title(model, train_v, setting, seed, ensemble)}", "",
                   f"Checkpoint: `{'`, `'.join(str(g['checkpoint'].iloc[0]).split())}`", "",
                   "| Fabric | Clips | Predicted (p, k) | Table 2 (p, k) | Exact | p | k | Within one bin | "
                   "Grid steps | Bending measured / predicted (N*m) | Stretching measured / predicted (N/m) | Density |",

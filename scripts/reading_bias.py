@@ -41,11 +41,12 @@ def readings(doc) -> dict[str, dict[str, tuple[float, float]]]:
     """{reading name: {fabric: (predicted p, predicted k)}} from a measured-fabrics look or a probe report."""
     if isinstance(doc, dict) and "fabrics" in doc and "models" in doc:
         # `clothgap eval measured`'s JSON, each reading named as its Markdown's section is (measured_fabrics' keys)
+        from eval.measured import reading_title
+
         rows = {}
-        for kind, who in (("models", "seed {}"),
-                          ("ensembles", "seeds {}, their ensemble: mean probabilities per clip")):
+        for kind in ("models", "ensembles"):
             for m in doc.get(kind) or []:
-                name = f"{m['model']} trained on {m['train_variant']} ({m['setting']}, {who.format(m['seed'])})"
+                name = reading_title(m["model"], m["train_variant"], m["setting"], m["seed"], kind == "ensembles")
                 if "per_fabric" in m:
                     rows[name] = [(f["fabric"], f["pred_p"], f["pred_k"]) for f in m["per_fabric"]]
                 elif m.get("status") not in (None, "predicted", "reused"):

@@ -252,7 +252,8 @@ def test_reading_bias_measures_readings_from_what_s_and_b_over_w_tell(tmp_path):
     assert half_low["k_bias"]["lo"] == pytest.approx(-0.5) and abs(half_low["p_bias"]["value"]) < 1e-9
     assert found[f"{tables} {lrcn}"]["k_bias"]["value"] == pytest.approx(-0.5, abs=1e-5)     # the tables parse alike
     assert found[f"{as_json} {lrcn}"]["k_bias"]["value"] == pytest.approx(-0.5)
-    ensemble = "lrcn trained on lighting-random (arm-uniform1, seeds 0+1, their ensemble: mean probabilities per clip)"
+    ensemble = ("lrcn trained on lighting-random (arm-uniform1, seeds 0+1, their ensemble: mean probabilities "
+                "per clip)")
     assert abs(found[f"{as_json} {ensemble}"]["k_bias"]["value"]) < 1e-9
     assert not any("seed 1)" in k for k in found)
     assert abs(result["pairs"][f"{as_json} minus {tables}: {lrcn}"]["k_bias"]["value"]) < 1e-5
@@ -263,16 +264,19 @@ def test_reading_bias_measures_readings_from_what_s_and_b_over_w_tell(tmp_path):
     assert pair["k_bias"] == pytest.approx(mixed_bias)
     bad_rows = [("unknown", {"settings": [{"results": [{"classifier": "x", "fabrics": [
                     {"fabric": "no-such-fabric", "pred_p": 1, "pred_k": 1}]}]}]}, "no-such-fabric"),
-                ("zero", {"settings": [{"results": [{"classifier": "x", "fabrics": probe({**low, "royal-target": (1, 0)})}]}]},
+                ("zero", {"settings": [{"results": [{"classifier": "x",
+                                                      "fabrics": probe({**low, "royal-target": (1, 0)})}]}]},
                  "not positive"),
                 ("twice", {"settings": [{"results": [{"classifier": "x", "fabrics": probe(low) * 2}]}]}, "twice")]
     for name, doc, says in bad_rows:
         (tmp_path / f"{name}.json").write_text(json.dumps(doc))
     (tmp_path / "old.json").write_text(json.dumps({"fabrics": 10, "models": [model]}))     # no per-fabric rows
     (tmp_path / "none.json").write_text(json.dumps({"fabrics": 10, "models": [], "ensembles": []}))
-    for args, says in [([f"{path}:a/settings"], "neither"), ([str(tmp_path / "old.json")], r"seed 0\): no per-fabric"),
+    for args, says in [([f"{path}:a/settings"], "neither"),
+                       ([str(tmp_path / "old.json")], r"seed 0\): no per-fabric"),
                        ([str(tmp_path / "none.json")], "no reading"),
-                       ([a, tables, "--pair", f"{a},{tables}"], "no reading of the second"), ([f"{path}:nothing"], "nothing"),
+                       ([a, tables, "--pair", f"{a},{tables}"], "no reading of the second"),
+                       ([f"{path}:nothing"], "nothing"),
                        ([f"{tmp_path}/absent.json"], "absent.json"), ([a, "--pair", f"{a},{path}:c"], "two of the")] + [
                       ([str(tmp_path / f"{name}.json")], says) for name, _, says in bad_rows]:
         out.unlink(missing_ok=True)
