@@ -10,6 +10,7 @@ alone costs.
 
     python scripts/reader_ceiling.py RUN_DIR --setting wind-uniform1 [--noise 0.18] [--per-coordinate]
                                      [--clip-len 10 --stride 5] [--centre median|frame]
+                                     [--reader frames|stats] [--transfer OTHER_RUN ...]
 
 ``--clip-len``/``--stride`` cut the windows as ``train.clip_len``/``train.clip_stride`` do (40: the whole clip);
 ``--centre frame`` measures each lattice from the median shape at its frame index, as ``train.geometry_centre``.
@@ -19,6 +20,13 @@ alone costs.
 lattices with the same reader: each fabric's class (argmax of its clips' mean window probabilities) against
 its Table 2 class (exact, grid steps, within one step) and predicted bending ranked against measured bending.
 This is what the geometry alone tells of the measured set, with no pixels and no render look in the way.
+
+``--reader stats`` replaces the reader by one that reads a window's statistics of the shape (each point's mean and
+spread over the window, its mean speed, the window's bounding box: what ``eval.learnability``'s probes read) with
+an MLP, instead of a recurrence over frames. ``--transfer OTHER_RUN`` reads the test clips of another run of the
+same setting whose class clips differ in one thing (``sim.table_spread``: the same clip ids, classes and motion
+draws, the tables reshaped) with the reader trained here: how far a reader carries to material shapes it never saw,
+measured on labelled clips, so that a reader can be chosen without the measured fabrics.
 """
 
 from __future__ import annotations
@@ -39,6 +47,40 @@ from learn.geometry import TARGET_LIMIT, clip_lattices, median_shape
 from learn.models import GEOMETRY_DIM, build_model, model_args
 from learn.split import split_sequences
 from sim.lattice import clip_lattice
+
+
+class StatsReader(torch.nn.Module):
+    """A window's shape statistics read by an MLP: the reader interface (``read_lattice``, ``probs``, ``loss``) of
+    ``learn.models.ClipClassifier`` with one step a window."""
+
+    def __init__(self, geometry_dim: int, hidden: int, classes: int = 54, dropout: float = 0.3):
+        super().__init__()
+        points = geometry_dim // 3
+        features = 2 * geometry_dim + points + 6
+        # No per-feature standardisation: the lattice comes standardised as a whole (as the frames reader gets it),
+        # and scaling each statistic to unit spread lifts the ones that hold nothing but noise.
+        self.mlp = torch.nn.Sequential(torch.nn.Linear(features, hidden),
+                                       torch.nn.ReLU(), torch.nn.Dropout(dropout), torch.nn.Linear(hidden, hidden),
+                                       torch.nn.ReLU(), torch.nn.Dropout(dropout), torch.nn.Linear(hidden, classes))
+
+    @staticmethod
+    def statistics(shape: torch.Tensor) -> torch.Tensor:
+        """(B, T, P*3) -> (B, 2*P*3 + P + 6): eval.learnability.window_features of each window."""
+        pts = shape.unflatten(-1, (-1, 3))
+        speed = (pts[:, 1:] - pts[:, :-1]).norm(dim=-1).mean(1) if shape.shape[1] > 1 else pts[:, 0, :, 0] * 0
+        box = torch.cat([pts.amin(dim=(1, 2)), pts.amax(dim=(1, 2))], dim=-1)
+        return torch.cat([shape.mean(1), shape.std(1, unbiased=False), speed, box], dim=-1)
+
+    def read_lattice(self, shape: torch.Tensor) -> dict[str, torch.Tensor]:
+        return {"logits": self.mlp(self.statistics(shape))[:, None]}
+
+    @staticmethod
+    def probs(out: dict[str, torch.Tensor]) -> torch.Tensor:
+        return out["logits"].float().softmax(-1).mean(1)
+
+    @staticmethod
+    def loss(out: dict[str, torch.Tensor], labels: torch.Tensor) -> torch.Tensor:
+        return torch.nn.functional.cross_entropy(out["logits"][:, 0].float(), labels)
 
 
 def windows(lattices, labels, clips, centre, scale, clip_len, stride):
@@ -62,7 +104,7 @@ def read_measured(run, setting, model, sequences, centre, scale, clip_len, strid
     fabrics = table2_fabrics()
     simulate_measured(run, fabrics, sequences, progress=False)
     folder = run.measured_sim_dir(setting)
-    preds = []
+    preds, device = [], next(model.parameters()).device
     for fabric in fabrics:
         names = [clip_name(f, n) for f, n in wanted_clips([fabric], sequences)]
         lattices = {c: clip_lattice(folder / c).reshape(-1, GEOMETRY_DIM) for c in names}
@@ -70,19 +112,55 @@ def read_measured(run, setting, model, sequences, centre, scale, clip_len, strid
         for c in names:         # a clip's mean window probabilities, as the real-video path reads a video
             x, _ = windows(lattices, {c: 0}, [c], centre, scale, clip_len, stride)
             with torch.no_grad():
-                probs.append(model.probs(model.read_lattice(x)).mean(0).numpy())
+                probs.append(model.probs(model.read_lattice(x.to(device))).mean(0).cpu().numpy())
         preds.append(int(np.mean(probs, 0).argmax()))
     # the stiffness a class stands for, as `clothgap eval measured` reads it
     pred_bending = with_predicted_values(pd.DataFrame({"pred": preds}))["pred_bending_N_m"]
     rows = [{"fabric": fabric, "pred": pred, "table2_class": table2_class(fabric),
              "grid_steps": int(metrics.class_distance([table2_class(fabric)], [pred])[0]),
+             "within_one_bin": bool(metrics.within_one_bin([table2_class(fabric)], [pred])[0]),
              "pred_bending_N_m": float(bending), "bending_N_m": measured_values(fabric)["bending_N_m"]}
             for fabric, pred, bending in zip(fabrics, preds, pred_bending)]
     steps = np.array([r["grid_steps"] for r in rows])
     rho = stats.spearmanr([r["pred_bending_N_m"] for r in rows], [r["bending_N_m"] for r in rows]).statistic
     return {"sequences": sequences, "fabrics": len(rows), "exact": int((steps == 0).sum()),
-            "within_one_step": int((steps <= 1).sum()), "mean_grid_steps": round(float(steps.mean()), 2),
+            "within_one_step": int((steps <= 1).sum()),
+            # the goal's count, as `clothgap eval measured` counts it: at most one bin off in p and in k
+            "within_one_bin": sum(r["within_one_bin"] for r in rows),
+            "mean_grid_steps": round(float(steps.mean()), 2),
             "bending_spearman": None if np.isnan(rho) else round(float(rho), 3), "rows": rows}
+
+
+def load_run(run: Run, setting: str):
+    """A run's finished clip ids, their true lattices (T, GEOMETRY_DIM), classes and split by sequence."""
+    folder = run.sim_dir(setting)
+    ids = run.done_clips(folder)
+    lattices = {c: lat.reshape(-1, GEOMETRY_DIM) for c, lat in clip_lattices(run, setting, ids, progress=False).items()}
+    labels = {c: int(read_meta(folder / c)["class_index"]) for c in ids}
+    split = split_sequences(labels, run.config.train.val_fraction, run.config.train.test_fraction, run.config.seed)
+    return ids, lattices, labels, split
+
+
+def scores(truth: np.ndarray, pred: np.ndarray) -> dict:
+    return {"top1": round(float((pred == truth).mean()), 4),
+            "within_one": round(float(metrics.within_one_bin(truth, pred).mean()), 4),
+            "stretching": round(float(metrics.stretch_correct(truth, pred).mean()), 4),
+            "bending": round(float(metrics.bend_correct(truth, pred).mean()), 4)}
+
+
+def read_transfer(other: str, setting: str, model, test_clips: list[str], noise: float, centre, scale,
+                  clip_len: int, stride: int) -> dict:
+    """``model``'s scores on another run's test clips (the same clip ids as this run's test clips)."""
+    run = Run.open(other)
+    _, lattices, labels, split = load_run(run, setting)
+    if sorted(split["test"]) != sorted(test_clips):
+        raise SystemExit(f"{other}: its test clips are not this run's; --transfer reads a run of the same clip ids "
+                         "(the same seed, classes and sequences a class)")
+    x, y = windows(lattices, labels, split["test"], centre, scale, clip_len, stride)
+    x = x.to(next(model.parameters()).device)
+    with torch.no_grad():
+        pred = model.probs(model.read_lattice(x + noise * torch.randn_like(x))).argmax(1).cpu().numpy()
+    return {"run": str(run.root), "windows": int(len(y)), **scores(y.numpy(), pred)}
 
 
 def main(argv=None):
@@ -96,17 +174,18 @@ def main(argv=None):
     ap.add_argument("--centre", choices=("median", "frame"), default="median")
     ap.add_argument("--epochs", type=int, default=30)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--reader", choices=("frames", "stats"), default="frames",
+                    help="frames: the bottleneck's reader (per-frame MLP, LSTM); stats: an MLP on window statistics")
+    ap.add_argument("--weight-decay", type=float, default=1e-4)
+    ap.add_argument("--device", default="cpu", help="where the reader trains and reads (cpu, cuda)")
+    ap.add_argument("--transfer", nargs="*", default=[], metavar="OTHER_RUN",
+                    help="also read the test clips of these runs (same clip ids, reshaped tables)")
     ap.add_argument("--measured", type=int, default=0, metavar="N",
                     help="also read N simulated clips of each measured fabric (their Table 2 classes)")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     run = Run.open(args.run)
-    folder = run.sim_dir(args.setting)
-    ids = run.done_clips(folder)
-    lattices = {c: lat.reshape(-1, GEOMETRY_DIM)
-                for c, lat in clip_lattices(run, args.setting, ids, progress=False).items()}
-    labels = {c: int(read_meta(folder / c)["class_index"]) for c in ids}
-    split = split_sequences(labels, run.config.train.val_fraction, run.config.train.test_fraction, run.config.seed)
+    ids, lattices, labels, split = load_run(run, args.setting)
     # Scaled as learn.geometry does (median centre, the median clip's RMS spread), or per coordinate.
     train = [lattices[c] for c in split["train"]]
     ends = np.cumsum([len(t) for t in train])
@@ -117,14 +196,21 @@ def main(argv=None):
     xtr, ytr = windows(lattices, labels, split["train"], centre, scale, args.clip_len, args.stride)
     xte, yte = windows(lattices, labels, split["test"], centre, scale, args.clip_len, args.stride)
     xva, yva = windows(lattices, labels, split["val"], centre, scale, args.clip_len, args.stride)
+    if not len(ytr) or not len(yte):
+        raise SystemExit(f"{run.root}: {len(split['train'])} training and {len(split['test'])} test sequences give "
+                         f"{len(ytr)} and {len(yte)} windows of {args.clip_len} frames; the reader needs both")
+    device = torch.device(args.device)
+    xtr, ytr, xte, xva = xtr.to(device), ytr.to(device), xte.to(device), xva.to(device)
     torch.manual_seed(args.seed)
     # The run's lrcn with the bottleneck on (its CNN is built but never used here).
-    model = build_model("lrcn", **model_args(dataclasses.replace(run.config.train, bottleneck=True)))
-    opt = torch.optim.AdamW(model.parameters(), 1e-3, weight_decay=1e-4)
+    cfg = dataclasses.replace(run.config.train, bottleneck=True)
+    model = (build_model("lrcn", **model_args(cfg)) if args.reader == "frames" else
+             StatsReader(GEOMETRY_DIM, cfg.hidden)).to(device)
+    opt = torch.optim.AdamW(model.parameters(), 1e-3, weight_decay=args.weight_decay)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, args.epochs)
     for _ in range(args.epochs):
         model.train()
-        order = torch.randperm(len(xtr))
+        order = torch.randperm(len(xtr), device=device)
         for i in range(0, len(order), 64):
             b = order[i:i + 64]
             loss = model.loss(model.read_lattice(xtr[b] + args.noise * torch.randn_like(xtr[b])), ytr[b])
@@ -134,11 +220,13 @@ def main(argv=None):
         sched.step()
     model.eval()
     with torch.no_grad():
-        pred = model.probs(model.read_lattice(xte + args.noise * torch.randn_like(xte))).argmax(1).numpy()
-        val_pred = (model.probs(model.read_lattice(xva + args.noise * torch.randn_like(xva))).argmax(1).numpy()
+        pred = model.probs(model.read_lattice(xte + args.noise * torch.randn_like(xte))).argmax(1).cpu().numpy()
+        val_pred = (model.probs(model.read_lattice(xva + args.noise * torch.randn_like(xva))).argmax(1).cpu().numpy()
                     if len(yva) else np.zeros(0, int))
     truth = yte.numpy()
     val_top1 = round(float((val_pred == yva.numpy()).mean()), 4) if len(yva) else None
+    transfer = [read_transfer(other, args.setting, model, split["test"], args.noise, centre, scale, args.clip_len,
+                              args.stride) for other in args.transfer]
     measured = (read_measured(run, args.setting, model, args.measured, centre, scale, args.clip_len, args.stride)
                 if args.measured else None)
     print(json.dumps({"run": str(run.root), "setting": args.setting, "clips": len(ids),
@@ -146,10 +234,8 @@ def main(argv=None):
                       "noise": args.noise, "per_coordinate": args.per_coordinate, "epochs": args.epochs,
                       "clip_len": args.clip_len, "stride": args.stride, "centre": args.centre,
                       "val_windows": int(len(yva)), "val_top1": val_top1,
-                      "top1": round(float((pred == truth).mean()), 4),
-                      "within_one": round(float(metrics.within_one_bin(truth, pred).mean()), 4),
-                      "stretching": round(float(metrics.stretch_correct(truth, pred).mean()), 4),
-                      "bending": round(float(metrics.bend_correct(truth, pred).mean()), 4),
+                      "reader": args.reader, "weight_decay": args.weight_decay, **scores(truth, pred),
+                      **({"transfer": transfer} if transfer else {}),
                       **({"measured": measured} if measured else {}),
                       "seconds": round(time.perf_counter() - t0, 1)}))
 
