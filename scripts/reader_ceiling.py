@@ -234,7 +234,8 @@ def main(argv=None):
                       "noise": args.noise, "per_coordinate": args.per_coordinate, "epochs": args.epochs,
                       "clip_len": args.clip_len, "stride": args.stride, "centre": args.centre,
                       "val_windows": int(len(yva)), "val_top1": val_top1,
-                      "reader": args.reader, "weight_decay": args.weight_decay, **scores(truth, pred),
+                      "reader": args.reader, "seed": args.seed, "weight_decay": args.weight_decay,
+                      **scores(truth, pred),
                       **({"transfer": transfer} if transfer else {}),
                       **({"measured": measured} if measured else {}),
                       "seconds": round(time.perf_counter() - t0, 1)}))

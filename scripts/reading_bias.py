@@ -12,7 +12,7 @@ FILE is JSON; the keys lead inside it to ``clothgap eval measured``'s JSON (its 
 a results file's ``measured_fabrics`` look (``{model: [rows with "Fabric" and "Predicted (p, k)"]}``, as
 ``scripts/gather_lease.py`` keeps the Markdown's tables of a JSON without per-fabric rows) or to a ``clothgap eval
 learnability --measured`` report (``{"settings": [{"results": [{"classifier", "fabrics": [{"fabric", "pred_p",
-"pred_k"}]}]}]}``). Each figure has a 95 % interval from resampling the fabrics (1,000 draws, seed 0).
+"pred_k"}]}]}]}``) or to scripts/reader_ceiling.py's output (``{"measured": {"rows": [{"fabric", "pred"}]}}``). Each figure has a 95 % interval from resampling the fabrics (1,000 draws, seed 0).
 ``--pair A,B`` (two of the inputs, as given) pairs each reading of B with A's reading of the same name (a classifier,
 or a model) and gives B's bias minus A's, over the same resamples of the fabrics both read. A file, key or row that
 does not hold readings of known fabrics is named and nothing is written.
@@ -54,6 +54,14 @@ def readings(doc) -> dict[str, dict[str, tuple[float, float]]]:
                 else:
                     raise ValueError(f"{name}: no per-fabric rows, as in a file written before they were kept "
                                      "(read its measured_fabrics tables instead)")
+    elif isinstance(doc, dict) and isinstance(doc.get("measured"), dict) and "rows" in doc["measured"]:
+        # scripts/reader_ceiling.py's output: its reader on the measured fabrics' true lattices, a class index each
+        from eval import classes
+
+        seed = f", seed {doc['seed']}" if "seed" in doc else ""
+        name = f"{doc.get('reader', 'frames')} reader on true lattices ({doc['setting']}, {doc['clips']} clips{seed})"
+        rows = {name: [(r["fabric"], float(classes.p_value(r["pred"])), float(classes.k_value(r["pred"])))
+                       for r in doc["measured"]["rows"]]}
     elif isinstance(doc, dict) and "settings" in doc:
         rows = {f"{s.get('setting', i)} {r['classifier']}": [(f["fabric"], f["pred_p"], f["pred_k"])
                                                              for f in r["fabrics"]]
@@ -68,7 +76,8 @@ def readings(doc) -> dict[str, dict[str, tuple[float, float]]]:
                     raise ValueError(f"{model}: {row['Predicted (p, k)']!r} is not '(p, k)'")
                 rows[model].append((row["Fabric"], *numbers))
     else:
-        raise ValueError("neither a measured-fabrics look (JSON or its tables) nor a learnability-measured report")
+        raise ValueError("neither a measured-fabrics look (JSON or its tables), a learnability-measured report nor "
+                         "a reader_ceiling output")
     if not rows:
         raise ValueError("it holds no reading")
     out = {}

@@ -1,4 +1,5 @@
-"""scripts/epoch_seconds.py, stage_summaries.py, host_samples.py, bending_over_weight.py and reading_bias.py: figures
+"""scripts/epoch_seconds.py, stage_summaries.py, host_samples.py, bending_over_weight.py, reading_bias.py and
+fabric_classes.py: figures
 read from what a run leaves (metrics.csv, the stages' summary lines, the host's memory samples, the measured-fabric
 readings), and nothing written from a file that does not hold them."""
 from __future__ import annotations
@@ -283,6 +284,66 @@ def test_reading_bias_measures_readings_from_what_s_and_b_over_w_tell(tmp_path):
         with pytest.raises(SystemExit, match=says):
             reading_bias.main([*args, "--out", str(out)])
         assert not out.exists()
+
+
+def _reader_output(classes_by_fabric: dict[str, int], seed: int = 0) -> dict:
+    """scripts/reader_ceiling.py's output with a class index per measured fabric."""
+    return {"setting": "arm-uniform1", "clips": 10368, "reader": "frames", "seed": seed,
+            "measured": {"rows": [{"fabric": f, "pred": c} for f, c in classes_by_fabric.items()]}}
+
+
+def test_reading_bias_reads_the_reader_on_true_lattices(tmp_path):
+    # a reader that names each fabric's S / w, B / w class: its log ratios are the classes' rounding alone
+    from sim.measured import over_weight_class, over_weight_ratios, table2_fabrics
+
+    from eval import classes
+
+    fabrics = table2_fabrics()
+    path = tmp_path / "reader.json"
+    path.write_text(json.dumps(_reader_output({f: over_weight_class(f) for f in fabrics}, seed=1)))
+    _script("reading_bias").main([str(path), "--out", str(tmp_path / "bias.json")])
+    result = json.loads((tmp_path / "bias.json").read_text())
+    (name, reading), = result["readings"].items()
+    assert name == f"{path} frames reader on true lattices (arm-uniform1, 10368 clips, seed 1)"
+    expected = np.mean([np.log(classes.k_value(over_weight_class(f)) / over_weight_ratios(f)[1]) for f in fabrics])
+    assert reading["fabrics"] == 10 and reading["k_bias"]["value"] == pytest.approx(expected)
+    assert reading["k_mean_abs"]["value"] < np.log(2)            # rounding to the classes: under a bin on average
+
+
+def test_fabric_classes_sets_readings_beside_table2_and_beside_each_other(tmp_path, capsys):
+    from sim.measured import table2_class, table2_fabrics, tables_class
+
+    from eval import classes
+
+    fabric_classes = _script("fabric_classes")
+    fabrics = table2_fabrics()
+    on_table2 = {f: table2_class(f) for f in fabrics}
+    on_tables = {f: tables_class(f) for f in fabrics}
+    # two bins of k above Table 2 for the first three fabrics, on Table 2 for the rest
+    moved = {f: classes.class_of(int(classes.p_index(c)), min(int(classes.k_index(c)) + 2, classes.NUM_K - 1))
+             if i < 3 else c for i, (f, c) in enumerate(on_table2.items())}
+    path = tmp_path / "readers.json"
+    path.write_text(json.dumps({"t2": _reader_output(on_table2), "tables": _reader_output(on_tables),
+                                "moved": _reader_output(moved, seed=1)}))
+    result = fabric_classes.main([f"{path}:t2", f"{path}:tables", f"{path}:moved", "--out", str(tmp_path / "c.json")])
+    assert json.loads((tmp_path / "c.json").read_text()) == result
+    name = {key: next(n for n in result["readings"] if n.startswith(f"{path}:{key} ")) for key in ("t2", "tables", "moved")}
+    t2, tables, moved_reading = (result["readings"][name[k]] for k in ("t2", "tables", "moved"))
+    assert t2["within_one_bin"]["table2"] == t2["exact_table2"] == 10
+    assert tables["within_one_bin"]["tables"] == 10
+    assert tables["within_one_bin"]["table2"] == t2["within_one_bin"]["tables"]        # the same count, both ways
+    moved_off = sum(int(classes.k_index(on_table2[f])) < classes.NUM_K - 1 for f in fabrics[:3])
+    assert moved_reading["within_one_bin"]["table2"] == 10 - moved_off
+    agreement = result["agreement_within_one_bin"]
+    assert agreement[name["t2"]][name["moved"]] == agreement[name["moved"]][name["t2"]] == 10 - moved_off
+    assert name["t2"] not in agreement[name["t2"]]
+    assert result["references"]["table2"] == {f: fabric_classes._label(c) for f, c in on_table2.items()}
+    # a reading without every fabric is named, and nothing is written
+    (tmp_path / "c.json").unlink()
+    path.write_text(json.dumps({"short": _reader_output({f: on_table2[f] for f in fabrics[:-1]})}))
+    with pytest.raises(SystemExit, match=f"no reading of {fabrics[-1]}"):
+        fabric_classes.main([f"{path}:short", "--out", str(tmp_path / "c.json")])
+    assert not (tmp_path / "c.json").exists()
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the sampler reads /proc")
