@@ -12,7 +12,8 @@ FILE is JSON; the keys lead inside it to ``clothgap eval measured``'s JSON (its 
 a results file's ``measured_fabrics`` look (``{model: [rows with "Fabric" and "Predicted (p, k)"]}``, as
 ``scripts/gather_lease.py`` keeps the Markdown's tables of a JSON without per-fabric rows) or to a ``clothgap eval
 learnability --measured`` report (``{"settings": [{"results": [{"classifier", "fabrics": [{"fabric", "pred_p",
-"pred_k"}]}]}]}``) or to scripts/reader_ceiling.py's output (``{"measured": {"rows": [{"fabric", "pred"}]}}``). Each figure has a 95 % interval from resampling the fabrics (1,000 draws, seed 0).
+"pred_k"}]}]}]}``) or to scripts/reader_ceiling.py's output (``{"measured": {"rows": [{"fabric", "pred"}]}}``).
+Each figure has a 95 % interval from resampling the fabrics (1,000 draws, seed 0).
 ``--pair A,B`` (two of the inputs, as given) pairs each reading of B with A's reading of the same name (a classifier,
 or a model) and gives B's bias minus A's, over the same resamples of the fabrics both read. A file, key or row that
 does not hold readings of known fabrics is named and nothing is written.

@@ -319,23 +319,32 @@ def test_fabric_classes_sets_readings_beside_table2_and_beside_each_other(tmp_pa
     fabrics = table2_fabrics()
     on_table2 = {f: table2_class(f) for f in fabrics}
     on_tables = {f: tables_class(f) for f in fabrics}
-    # two bins of k above Table 2 for the first three fabrics, on Table 2 for the rest
-    moved = {f: classes.class_of(int(classes.p_index(c)), min(int(classes.k_index(c)) + 2, classes.NUM_K - 1))
-             if i < 3 else c for i, (f, c) in enumerate(on_table2.items())}
+    def shifted(c: int, dp: int, dk: int) -> int:        # dp, dk bins from class c, kept on the grid
+        return classes.class_of(int(np.clip(classes.p_index(c) + dp, 0, classes.NUM_P - 1)),
+                                int(np.clip(classes.k_index(c) + dk, 0, classes.NUM_K - 1)))
+
+    # two bins of k from Table 2 for the first three fabrics (up, or down at the grid's top), on it for the rest
+    moved = {f: shifted(c, 0, 2 if classes.k_index(c) < classes.NUM_K - 2 else -2) if i < 3 else c
+             for i, (f, c) in enumerate(on_table2.items())}
+    # one bin of p and one of k from Table 2 for every fabric: within one bin, none exact
+    diagonal = {f: shifted(c, 1 if classes.p_index(c) < classes.NUM_P - 1 else -1,
+                           1 if classes.k_index(c) < classes.NUM_K - 1 else -1) for f, c in on_table2.items()}
     path = tmp_path / "readers.json"
     path.write_text(json.dumps({"t2": _reader_output(on_table2), "tables": _reader_output(on_tables),
-                                "moved": _reader_output(moved, seed=1)}))
-    result = fabric_classes.main([f"{path}:t2", f"{path}:tables", f"{path}:moved", "--out", str(tmp_path / "c.json")])
+                                "moved": _reader_output(moved, seed=1), "diagonal": _reader_output(diagonal)}))
+    keys = ("t2", "tables", "moved", "diagonal")
+    result = fabric_classes.main([*(f"{path}:{k}" for k in keys), "--out", str(tmp_path / "c.json")])
     assert json.loads((tmp_path / "c.json").read_text()) == result
-    name = {key: next(n for n in result["readings"] if n.startswith(f"{path}:{key} ")) for key in ("t2", "tables", "moved")}
-    t2, tables, moved_reading = (result["readings"][name[k]] for k in ("t2", "tables", "moved"))
+    name = {key: next(n for n in result["readings"] if n.startswith(f"{path}:{key} ")) for key in keys}
+    t2, tables, moved_reading, diagonal_reading = (result["readings"][name[k]] for k in keys)
     assert t2["within_one_bin"]["table2"] == t2["exact_table2"] == 10
     assert tables["within_one_bin"]["tables"] == 10
     assert tables["within_one_bin"]["table2"] == t2["within_one_bin"]["tables"]        # the same count, both ways
-    moved_off = sum(int(classes.k_index(on_table2[f])) < classes.NUM_K - 1 for f in fabrics[:3])
-    assert moved_reading["within_one_bin"]["table2"] == 10 - moved_off
+    assert moved_reading["within_one_bin"]["table2"] == 7 and moved_reading["exact_table2"] == 7
+    assert diagonal_reading["within_one_bin"]["table2"] == 10 and diagonal_reading["exact_table2"] == 0
     agreement = result["agreement_within_one_bin"]
-    assert agreement[name["t2"]][name["moved"]] == agreement[name["moved"]][name["t2"]] == 10 - moved_off
+    assert agreement[name["t2"]][name["moved"]] == agreement[name["moved"]][name["t2"]] == 7
+    assert agreement[name["diagonal"]][name["t2"]] == agreement[name["diagonal"]][name["moved"]] == 10   # a bin apart
     assert name["t2"] not in agreement[name["t2"]]
     assert result["references"]["table2"] == {f: fabric_classes._label(c) for f, c in on_table2.items()}
     # a reading without every fabric is named, and nothing is written
