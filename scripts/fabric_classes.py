@@ -16,7 +16,6 @@ ten fabrics is named and nothing is written.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -25,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from clothgap.files import print_json, script_command  # noqa: E402
 from eval import classes, metrics  # noqa: E402
-from reading_bias import readings  # noqa: E402
+from reading_bias import input_readings  # noqa: E402
 
 
 def references() -> dict[str, dict[str, int]]:
@@ -73,12 +72,8 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     found: dict[str, dict[str, tuple[float, float]]] = {}
     for item in args.inputs:
-        path, _, keys = item.partition(":")
         try:
-            doc = json.loads(Path(path).read_text())
-            for key in filter(None, keys.split("/")):
-                doc = doc[key]
-            for name, reading in readings(doc).items():
+            for name, reading in input_readings(item).items():
                 found[f"{item} {name}"] = reading
         except (OSError, ValueError, KeyError, TypeError) as e:
             raise SystemExit(f"fabric_classes: {item}: {e}") from e

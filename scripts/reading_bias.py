@@ -92,6 +92,15 @@ def readings(doc) -> dict[str, dict[str, tuple[float, float]]]:
     return out
 
 
+def input_readings(item: str) -> dict[str, dict[str, tuple[float, float]]]:
+    """The readings (``readings``) of one input, ``FILE[:KEY/KEY...]``: the JSON file, the keys followed into it."""
+    path, _, keys = item.partition(":")
+    doc = json.loads(Path(path).read_text())
+    for key in filter(None, keys.split("/")):
+        doc = doc[key]
+    return readings(doc)
+
+
 def log_ratios(reading: dict[str, tuple[float, float]]) -> dict[str, dict[str, float]]:
     """{"p": {fabric: log(pred p / p_w)}, "k": ...}: each fabric's reading against its S / w and B / w
     (``sim.measured.over_weight_ratios``)."""
@@ -146,13 +155,9 @@ def main(argv: list[str] | None = None) -> None:
     found: dict[str, dict] = {}
     result: dict = {"command": script_command(__file__, argv), "readings": {}, "pairs": {}}
     for item in args.inputs:
-        path, _, keys = item.partition(":")
         try:
-            doc = json.loads(Path(path).read_text())
-            for key in filter(None, keys.split("/")):
-                doc = doc[key]
             # each reading's log ratios, once (an unknown fabric: sim.materials' KeyError names it)
-            found[item] = {name: log_ratios(reading) for name, reading in readings(doc).items()}
+            found[item] = {name: log_ratios(reading) for name, reading in input_readings(item).items()}
             for name, logs in found[item].items():
                 result["readings"][f"{item} {name}"] = bias(logs)
         except (OSError, ValueError, KeyError, TypeError) as e:
