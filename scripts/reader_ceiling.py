@@ -218,8 +218,9 @@ def main(argv=None):
     device = torch.device(args.device)
     xtr, ytr, xte, xva = xtr.to(device), ytr.to(device), xte.to(device), xva.to(device)
     torch.manual_seed(args.seed)
-    # one noise draw for the validation windows, so that epochs are compared on the same inputs
-    xva_noised = xva + args.noise * torch.randn_like(xva)
+    # --keep best compares the epochs on one noise draw of the validation windows; the last epoch's draw is taken
+    # after the test windows', so that a run that keeps the last epoch draws what it always drew
+    xva_noised = xva + args.noise * torch.randn_like(xva) if args.keep == "best" else None
     # The run's lrcn with the bottleneck on (its CNN is built but never used here).
     cfg = dataclasses.replace(run.config.train, bottleneck=True)
     model = (build_model("lrcn", **model_args(cfg)) if args.reader == "frames" else
@@ -249,6 +250,8 @@ def main(argv=None):
     model.eval()
     with torch.no_grad():
         pred = model.probs(model.read_lattice(xte + args.noise * torch.randn_like(xte))).argmax(1).cpu().numpy()
+        if xva_noised is None:
+            xva_noised = xva + args.noise * torch.randn_like(xva)
         val_pred = (model.probs(model.read_lattice(xva_noised)).argmax(1).cpu().numpy()
                     if len(yva) else np.zeros(0, int))
     truth = yte.numpy()
