@@ -77,11 +77,12 @@ def perfect_readers() -> dict:
     motion that shows S / w and B / w alone, as a class clip, made at the basis's weight, shows S and B), and the
     constant (1, 1)."""
     from sim import classes
-    from sim.measured import over_weight_class, table2_class, table2_fabrics, tables_class
+    from sim.measured import reference_classes
 
-    fabrics = table2_fabrics()
-    truth = [table2_class(f) for f in fabrics]
-    readers = {"tables": [tables_class(f) for f in fabrics], "over_weight": [over_weight_class(f) for f in fabrics],
+    refs = reference_classes()
+    fabrics = list(refs["table2"])
+    truth = list(refs["table2"].values())
+    readers = {"tables": list(refs["tables"].values()), "over_weight": list(refs["over_weight"].values()),
                "constant_1_1": [classes.nearest_class(1.0, 1.0)] * len(fabrics)}
     return {name: {"within_one_bin": int(metrics.within_one_bin(truth, pred).sum()),
                    "exact": int(sum(t == p for t, p in zip(truth, pred))),

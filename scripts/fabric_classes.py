@@ -27,15 +27,6 @@ from eval import classes, metrics  # noqa: E402
 from reading_bias import input_readings  # noqa: E402
 
 
-def references() -> dict[str, dict[str, int]]:
-    """{reference: {fabric: class index}}: Table 2's, a perfect reader's of the tables and of S / w, B / w."""
-    from sim.measured import over_weight_class, table2_class, table2_fabrics, tables_class
-
-    fabrics = table2_fabrics()
-    return {"table2": {f: table2_class(f) for f in fabrics}, "tables": {f: tables_class(f) for f in fabrics},
-            "over_weight": {f: over_weight_class(f) for f in fabrics}}
-
-
 def _label(index: int) -> str:
     return f"({classes.p_value(index):g}, {classes.k_value(index):g})"
 
@@ -47,7 +38,9 @@ def _within(a: dict[str, int], b: dict[str, int], fabrics: list[str]) -> int:
 def compare(found: dict[str, dict[str, tuple[float, float]]]) -> dict:
     """The classes, the counts against the references and the agreement of every two of ``found`` ({reading:
     {fabric: (p, k)}}, each reading of all ten fabrics)."""
-    refs = references()
+    from sim.measured import reference_classes
+
+    refs = reference_classes()
     fabrics = sorted(refs["table2"])
     picked: dict[str, dict[str, int]] = {}
     for name, reading in found.items():

@@ -120,6 +120,15 @@ def over_weight_class(fabric: str) -> int:
     return classes.nearest_class(*over_weight_ratios(fabric))
 
 
+def reference_classes() -> dict[str, dict[str, int]]:
+    """{reference: {fabric: class index}} for the Table 2 fabrics, in the paper's order: Table 2's own class, the
+    tables' (``tables_class``) and the tables' over the weight (``over_weight_class``): what goal 3 counts against,
+    and where two readers that look at no clip would put each fabric."""
+    fabrics = table2_fabrics()
+    return {"table2": {f: table2_class(f) for f in fabrics}, "tables": {f: tables_class(f) for f in fabrics},
+            "over_weight": {f: over_weight_class(f) for f in fabrics}}
+
+
 def fabric_labels(fabric: str) -> dict:
     """The label part of a measured clip's meta (see the module docstring)."""
     m = load_material(fabric)
